@@ -1,0 +1,5 @@
+"""timedexec.drivers (see docs/architecture.md)."""
+
+from __future__ import annotations
+
+__all__: list[str] = []

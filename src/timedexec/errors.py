@@ -1,0 +1,52 @@
+"""Exceptions of timedexec.
+
+One base class, :class:`TimedExecError`; every subclass also inherits the builtin exception
+it refines, so ``except ValueError`` keeps working for callers that do not know timedexec.
+Vendor errors (ur_rtde, h5py, pyserial) are converted at the boundary with
+``raise ... from exc``.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "ConfigError",
+    "DriverError",
+    "DriverTimeout",
+    "ModelError",
+    "ProtocolError",
+    "RecordingError",
+    "SensorError",
+    "TimedExecError",
+]
+
+
+class TimedExecError(Exception):
+    """Base class of every error raised by timedexec."""
+
+
+class ConfigError(TimedExecError, ValueError):
+    """A setting, argument or input value is invalid; the message says how to fix it."""
+
+
+class RecordingError(TimedExecError, OSError):
+    """A recording cannot be written, read or resumed."""
+
+
+class ProtocolError(TimedExecError, ValueError):
+    """Bytes from a robot controller or sensor do not follow the protocol."""
+
+
+class DriverError(TimedExecError, RuntimeError):
+    """A robot driver failed (connection lost, robot stopped, command refused)."""
+
+
+class DriverTimeout(DriverError, TimeoutError):
+    """A robot or sensor did not answer in time; no stale data is handed out."""
+
+
+class SensorError(TimedExecError, OSError):
+    """The gyro/IMU stream failed (port, framing, clock)."""
+
+
+class ModelError(TimedExecError, ValueError):
+    """A delay model or model bundle is invalid, corrupt or for another robot."""
