@@ -1,5 +1,7 @@
-"""timedexec.drivers (see docs/architecture.md)."""
+"""timedexec.drivers: one RobotDriver interface over ur_rtde, KUKA RSI and the simulator."""
 
 from __future__ import annotations
 
-__all__: list[str] = []
+from timedexec.drivers._base import RobotDriver, RobotState
+
+__all__ = ["RobotDriver", "RobotState"]

@@ -1,0 +1,106 @@
+"""The one robot-driver interface every backend implements.
+
+A driver is a context manager. Between ``connect()`` and ``close()`` it publishes the
+controller's state packages (``read_state``) and accepts joint-velocity commands in the
+``speedj`` style (target joint speeds, acceleration of the leading axis, duration) and stops.
+Times: ``host_time_s`` is :func:`time.monotonic` on arrival of the package (or the
+simulator's virtual host clock); ``controller_time_s`` is the controller's own clock
+(RTDE ``timestamp``, RSI ``IPOC`` converted to seconds).
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Self
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["RobotDriver", "RobotState"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotState:
+    """One state package as received by the host.
+
+    Attributes
+    ----------
+    host_time_s : float
+        Host receive time, s (``time.monotonic()`` or the virtual host clock).
+    controller_time_s : float
+        Controller time stamp of the package, s.
+    q : ndarray, shape (6,)
+        Reported joint positions, rad.
+    qd : ndarray, shape (6,)
+        Reported joint velocities, rad/s (differentiated by the driver where the protocol
+        reports positions only, as RSI does).
+    raw : bytes
+        The package's raw bytes as received (empty for the in-process simulator).
+    sequence : int
+        Package counter since connect, 0-based; a gap means a package was lost.
+    """
+
+    host_time_s: float
+    controller_time_s: float
+    q: FloatArray
+    qd: FloatArray
+    raw: bytes = b""
+    sequence: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def __iter__(self):  # type: ignore[no-untyped-def]
+        """Unpack as ``host_time_s, controller_time_s, q, qd``."""
+        return iter((self.host_time_s, self.controller_time_s, self.q, self.qd))
+
+
+class RobotDriver(abc.ABC):
+    """Common interface of the UR, KUKA RSI and simulator drivers."""
+
+    #: Robot spec name this driver talks to ("ur10", "ur10e", "kr5").
+    robot: str
+
+    @property
+    @abc.abstractmethod
+    def controller_period_s(self) -> float:
+        """Controller cycle period, s (0.008 CB3, 0.002 e-Series, 0.012/0.004 RSI)."""
+
+    @abc.abstractmethod
+    def connect(self) -> None:
+        """Open the connection; raise :class:`~timedexec.errors.DriverError` on failure."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Stop any motion and release the connection. Idempotent."""
+
+    @abc.abstractmethod
+    def read_state(self, timeout_s: float = 0.1) -> RobotState:
+        """Block until the next state package arrives and return it.
+
+        Never returns a package twice. Raises :class:`~timedexec.errors.DriverTimeout` if
+        none arrives within ``timeout_s`` (no stale data is handed out as fresh).
+        """
+
+    @abc.abstractmethod
+    def speedj(self, qd_rad_s: FloatArray, acceleration_rad_s2: float, duration_s: float) -> None:
+        """Command joint speeds (rad/s) with the leading axis' acceleration (rad/s²) for
+        ``duration_s`` (s); returns as soon as the command is sent (non-blocking)."""
+
+    @abc.abstractmethod
+    def stop(self, deceleration_rad_s2: float = 10.0) -> None:
+        """Decelerate all joints to rest."""
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
