@@ -1,0 +1,389 @@
+"""Settings of the simulated robots: control-box timing, servo physics, gyro, trial motion.
+
+Every number here is a physical or timing parameter with its unit in its name. The
+defaults per robot (:func:`default_settings`) are calibrated so that the *emerging* delays
+match the published statistics (DESIGN.md §1); ``benchmarks/bench_sim_stats.py`` prints the
+comparison. Settings round-trip through :meth:`SimSettings.to_dict` so a recording stores
+the settings that produced it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from timedexec.errors import ConfigError
+from timedexec.robots import RobotSpec, get_robot, joint_inertia
+
+__all__ = [
+    "GyroSettings",
+    "ServoSettings",
+    "SimSettings",
+    "TimingSettings",
+    "TrialProfile",
+    "default_settings",
+]
+
+
+def _positive(owner: str, **values: float) -> None:
+    for name, value in values.items():
+        if not value > 0:
+            raise ConfigError(f"{owner}: {name}={value!r} must be > 0")
+
+
+def _non_negative(owner: str, **values: float) -> None:
+    for name, value in values.items():
+        if not value >= 0:
+            raise ConfigError(f"{owner}: {name}={value!r} must be >= 0")
+
+
+def _six(owner: str, name: str, value: Any) -> tuple[float, ...]:
+    out = tuple(float(v) for v in value)
+    if len(out) != 6:
+        raise ConfigError(f"{owner}: {name} needs 6 values (one per joint), got {len(out)}")
+    return out
+
+
+class _DictMixin:
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (tuples become lists)."""
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            v = getattr(self, f.name)
+            if dataclasses.is_dataclass(v) and not isinstance(v, type):
+                out[f.name] = v.to_dict()  # type: ignore[attr-defined]
+            elif isinstance(v, tuple):
+                out[f.name] = list(v)
+            else:
+                out[f.name] = v
+        return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class TimingSettings(_DictMixin):
+    """Control-box and network timing.
+
+    Parameters
+    ----------
+    pipeline_cycles : int
+        Cycles between command intake (at a cycle boundary) and the reference reaching the
+        drives (trajectory interpolation, script thread, drive bus).
+    packing_phase_s : (float, float)
+        Range of the delay from sampling the state (at a cycle boundary) to putting the
+        package on the wire; drawn once per trial (the publisher's phase drifts slowly
+        against the control cycle).
+    cycle_jitter_s : float
+        Standard deviation of the controller's cycle boundaries, s.
+    to_host_latency_s, to_host_jitter_s : float
+        Minimum one-way controller-to-host latency and the mean of its exponential excess, s.
+    to_controller_latency_s, to_controller_jitter_s : float
+        Same for host-to-controller.
+    host_processing_s : float
+        Host time from receiving the trigger package to sending the command, s.
+    """
+
+    pipeline_cycles: int
+    packing_phase_s: tuple[float, float]
+    cycle_jitter_s: float = 20e-6
+    to_host_latency_s: float = 150e-6
+    to_host_jitter_s: float = 60e-6
+    to_controller_latency_s: float = 150e-6
+    to_controller_jitter_s: float = 60e-6
+    host_processing_s: float = 100e-6
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.pipeline_cycles, int) or self.pipeline_cycles < 0:
+            raise ConfigError(
+                f"timing: pipeline_cycles={self.pipeline_cycles!r} must be an int >= 0"
+            )
+        lo, hi = (float(x) for x in self.packing_phase_s)
+        if not 0 <= lo <= hi:
+            raise ConfigError(f"timing: packing_phase_s=({lo}, {hi}) needs 0 <= low <= high")
+        object.__setattr__(self, "packing_phase_s", (lo, hi))
+        _non_negative(
+            "timing",
+            cycle_jitter_s=self.cycle_jitter_s,
+            to_host_latency_s=self.to_host_latency_s,
+            to_host_jitter_s=self.to_host_jitter_s,
+            to_controller_latency_s=self.to_controller_latency_s,
+            to_controller_jitter_s=self.to_controller_jitter_s,
+            host_processing_s=self.host_processing_s,
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServoSettings(_DictMixin):
+    """Per-joint drive physics: velocity loop, current loop, friction, torque limit.
+
+    The velocity loop is a PI controller with gravity feed-forward, tuned for the joint's
+    nominal inertia: ``kp = J_nom · 2π · bandwidth_hz``, ``ki = kp · 2π · bandwidth_hz /
+    integral_ratio``. The current loop is a first-order lag. Static friction (breakaway)
+    exceeds kinetic friction; a stuck joint moves only when the drive torque beyond the
+    gravity torque exceeds breakaway.
+
+    Parameters
+    ----------
+    bandwidth_hz : 6 floats
+        Velocity-loop bandwidth per joint, Hz.
+    integral_ratio : float
+        Ratio of proportional to integral corner frequency (> 0).
+    current_time_constant_s : float
+        Current (torque) loop time constant, s.
+    breakaway_nm : 6 floats
+        Warm static friction per joint, N·m (before the effects scale it).
+    kinetic_ratio : float
+        Kinetic / static friction, in (0, 1].
+    viscous_nms : 6 floats
+        Viscous friction, N·m·s/rad.
+    position_gain_1_s : float
+        Position-loop gain for position-mode commands (servoj, movej), 1/s.
+    onset_threshold_rad_s : float
+        The true motion onset is when the joint's physical speed first reaches this, rad/s.
+    """
+
+    bandwidth_hz: tuple[float, ...]
+    integral_ratio: float = 4.0
+    current_time_constant_s: float = 0.0008
+    breakaway_nm: tuple[float, ...]
+    kinetic_ratio: float = 0.7
+    viscous_nms: tuple[float, ...]
+    position_gain_1_s: float = 40.0
+    onset_threshold_rad_s: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("bandwidth_hz", "breakaway_nm", "viscous_nms"):
+            object.__setattr__(self, name, _six("servo", name, getattr(self, name)))
+        if min(self.bandwidth_hz) <= 0 or min(self.breakaway_nm) < 0 or min(self.viscous_nms) < 0:
+            raise ConfigError("servo: bandwidth_hz must be > 0, breakaway_nm and viscous_nms >= 0")
+        _positive(
+            "servo",
+            integral_ratio=self.integral_ratio,
+            current_time_constant_s=self.current_time_constant_s,
+            position_gain_1_s=self.position_gain_1_s,
+            onset_threshold_rad_s=self.onset_threshold_rad_s,
+        )
+        if not 0 < self.kinetic_ratio <= 1:
+            raise ConfigError(f"servo: kinetic_ratio={self.kinetic_ratio} must lie in (0, 1]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GyroSettings(_DictMixin):
+    """The MPU-6000 on the flange, as the simulator models it.
+
+    Parameters
+    ----------
+    nominal_rate_hz : float
+        Nominal output rate (8000 with the DLPF off).
+    clock_error_ppm : float
+        True rate = nominal · (1 + error); the MEMS clock is within about ±1 %.
+    noise_density_dps_rthz : float
+        Rate noise density, °/s/√Hz.
+    full_scale_dps : int
+        ±250/500/1000/2000 °/s; sensitivity 32768/full_scale LSB per °/s.
+    bias_dps : float
+        Zero-rate offsets are drawn per axis uniformly in ±bias_dps at sweep start.
+    bias_drift_dps_per_hour : float
+        Linear bias drift over the sweep (temperature), °/s per hour, per axis random sign.
+    scale_error : float
+        Sensitivity error per axis drawn uniformly in ±scale_error (0.03 = ±3 %).
+    group_delay_s : float
+        Fixed group delay of the sensor's internal filter (DLPF_CFG=0: 0.98 ms).
+    block_samples : int
+        Samples the host receives together (USB frames).
+    usb_latency_s, usb_jitter_s : float
+        Minimum latency of a block to the host and the mean of the exponential excess, s.
+    """
+
+    nominal_rate_hz: float = 8000.0
+    clock_error_ppm: float = 3000.0
+    noise_density_dps_rthz: float = 0.005
+    full_scale_dps: int = 500
+    bias_dps: float = 3.0
+    bias_drift_dps_per_hour: float = 0.2
+    scale_error: float = 0.03
+    group_delay_s: float = 0.00098
+    block_samples: int = 8
+    usb_latency_s: float = 0.0008
+    usb_jitter_s: float = 0.0004
+
+    def __post_init__(self) -> None:
+        if self.full_scale_dps not in (250, 500, 1000, 2000):
+            raise ConfigError(
+                f"gyro: full_scale_dps={self.full_scale_dps!r} is not one of 250, 500, 1000, 2000"
+            )
+        if abs(self.clock_error_ppm) > 20000:
+            raise ConfigError(
+                f"gyro: clock_error_ppm={self.clock_error_ppm} outside ±20000 ppm (±2 %)"
+            )
+        if not isinstance(self.block_samples, int) or self.block_samples < 1:
+            raise ConfigError(f"gyro: block_samples={self.block_samples!r} must be an int >= 1")
+        _positive("gyro", nominal_rate_hz=self.nominal_rate_hz)
+        _non_negative(
+            "gyro",
+            noise_density_dps_rthz=self.noise_density_dps_rthz,
+            bias_dps=self.bias_dps,
+            bias_drift_dps_per_hour=self.bias_drift_dps_per_hour,
+            scale_error=self.scale_error,
+            group_delay_s=self.group_delay_s,
+            usb_latency_s=self.usb_latency_s,
+            usb_jitter_s=self.usb_jitter_s,
+        )
+
+    @property
+    def true_rate_hz(self) -> float:
+        """The sensor's actual sample rate, Hz."""
+        return self.nominal_rate_hz * (1.0 + 1e-6 * self.clock_error_ppm)
+
+    @property
+    def lsb_per_dps(self) -> float:
+        """Sensitivity, LSB per °/s."""
+        return 32768.0 / self.full_scale_dps
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrialProfile(_DictMixin):
+    """The calibration motion of one trial and the recording window.
+
+    One joint moves out and back: accelerate at ``acceleration_rad_s2`` to ``speed_rad_s``,
+    hold for ``hold_s``, decelerate to rest, pause ``pause_s``, then the mirror image back to
+    the start pose. Trial time 0 is the arrival of the state package that triggers the
+    command; the recording covers ``[-pre_s, record_s)``.
+    """
+
+    speed_rad_s: float = 0.4
+    acceleration_rad_s2: float = 8.0
+    hold_s: float = 0.05
+    pause_s: float = 0.05
+    pre_s: float = 0.05
+    record_s: float = 0.55
+
+    def __post_init__(self) -> None:
+        _positive(
+            "profile",
+            speed_rad_s=self.speed_rad_s,
+            acceleration_rad_s2=self.acceleration_rad_s2,
+            record_s=self.record_s,
+        )
+        _non_negative("profile", hold_s=self.hold_s, pause_s=self.pause_s, pre_s=self.pre_s)
+
+    @property
+    def pulse_s(self) -> float:
+        """Duration of one pulse (out or back), s."""
+        return 2.0 * self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s
+
+    @property
+    def duration_s(self) -> float:
+        """Commanded motion duration, out and back, s."""
+        return 2.0 * self.pulse_s + self.pause_s
+
+    @property
+    def displacement_rad(self) -> float:
+        """Joint travel of the out pulse, rad."""
+        return self.speed_rad_s * (self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimSettings(_DictMixin):
+    """Everything the simulator needs beyond the robot spec and the effect set."""
+
+    robot: str
+    controller_period_s: float
+    timing: TimingSettings
+    servo: ServoSettings
+    gyro: GyroSettings = dataclasses.field(default_factory=GyroSettings)
+    profile: TrialProfile = dataclasses.field(default_factory=TrialProfile)
+    still_s: float = 10.0
+    config_move_s: float = 3.0
+    trial_gap_s: float = 0.3
+
+    def __post_init__(self) -> None:
+        _positive("settings", controller_period_s=self.controller_period_s)
+        _non_negative(
+            "settings",
+            still_s=self.still_s,
+            config_move_s=self.config_move_s,
+            trial_gap_s=self.trial_gap_s,
+        )
+        hi = self.timing.packing_phase_s[1]
+        if hi >= self.controller_period_s * 1.0000001 + 1e-12 and hi > 0:
+            raise ConfigError(
+                f"timing: packing_phase_s upper bound {hi} s must be below the controller period "
+                f"{self.controller_period_s} s (use response_extra_cycle for whole periods)"
+            )
+
+    @property
+    def spec(self) -> RobotSpec:
+        """The robot spec with this settings' controller period."""
+        return get_robot(self.robot, period_s=self.controller_period_s)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> SimSettings:
+        """Inverse of :meth:`to_dict`."""
+        d = dict(data)
+        timing = dict(d.pop("timing"))
+        timing["packing_phase_s"] = tuple(timing["packing_phase_s"])
+        return cls(
+            timing=TimingSettings(**timing),
+            servo=ServoSettings(**d.pop("servo")),
+            gyro=GyroSettings(**d.pop("gyro")),
+            profile=TrialProfile(**d.pop("profile")),
+            **d,
+        )
+
+    def replace(self, **changes: Any) -> SimSettings:
+        """A copy with fields replaced (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -> SimSettings:
+    """The calibrated default settings of a simulated robot.
+
+    Parameters
+    ----------
+    robot : str or RobotSpec
+        ``"ur10"``, ``"ur10e"`` or ``"kr5"`` (or its spec).
+    period_s : float, optional
+        Controller period (the KR 5 also runs RSI at 0.004 s).
+    """
+    spec = robot if isinstance(robot, RobotSpec) else get_robot(robot, period_s=period_s)
+    if period_s is not None and abs(spec.controller_period_s - period_s) > 1e-12:
+        spec = spec.with_period(period_s)
+    period = spec.controller_period_s
+    profile = TrialProfile(speed_rad_s=0.4, acceleration_rad_s2=8.0)
+    if spec.vendor == "universal_robots":
+        # CB3: the script thread takes the register one cycle after intake; e-Series has a
+        # longer pipeline in cycles but a 4x shorter cycle.
+        pipeline = 1 if spec.name == "ur10" else 4
+        timing = TimingSettings(
+            pipeline_cycles=pipeline, packing_phase_s=(0.02 * period, 0.97 * period)
+        )
+        bandwidth = (25.0, 25.0, 25.0, 40.0, 40.0, 40.0)
+        breakaway_time = (0.002, 0.002, 0.002, 0.002, 0.002, 0.002)
+    else:
+        # RSI: the IPO cycle interpolates and a drive-bus stage follows; the pipeline is a
+        # time (about 72 ms), so at 4 ms it holds three times as many cycles.
+        timing = TimingSettings(
+            pipeline_cycles=max(1, round(0.072 / period)),
+            packing_phase_s=(0.0005, min(0.0095, 0.8 * period)),
+            cycle_jitter_s=10e-6,
+        )
+        bandwidth = (12.0, 12.0, 12.0, 25.0, 25.0, 25.0)
+        breakaway_time = (0.0015, 0.0015, 0.0015, 0.0015, 0.0015, 0.0015)
+    # Warm breakaway torque per joint, N·m: what the nominal velocity loop (kp = J_nom·ω)
+    # builds in `breakaway_time` under the calibration ramp. Published friction data of
+    # these drives do not exist; this ties the torques to the drives' scale instead.
+    j_nom = joint_inertia(spec, np.asarray(spec.home_q_rad, dtype=float))
+    kp = j_nom * 2.0 * np.pi * np.asarray(bandwidth)
+    breakaway = kp * profile.acceleration_rad_s2 * np.asarray(breakaway_time)
+    servo = ServoSettings(
+        bandwidth_hz=bandwidth,
+        breakaway_nm=tuple(float(round(f, 3)) for f in breakaway),
+        viscous_nms=tuple(float(round(0.05 * f, 4)) for f in breakaway),
+    )
+    return SimSettings(
+        robot=spec.name, controller_period_s=period, timing=timing, servo=servo, profile=profile
+    )
