@@ -8,11 +8,14 @@ returns an exit code: 0 success, 2 bad input (a :class:`~timedexec.errors.Config
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from timedexec._version import __version__
-from timedexec.errors import TimedExecError
+from timedexec.errors import ConfigError, TimedExecError
+from timedexec.robots import ROBOT_NAMES
 
 __all__ = ["main"]
 
@@ -27,8 +30,88 @@ def _build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--version", action="version", version=f"timedexec {__version__}")
-    parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_simulate(sub)
     return parser
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    pass
+
+
+def _emit(result: dict[str, Any], args: argparse.Namespace, text: str) -> None:
+    """Results to stdout: JSON with --json, else the human-readable text."""
+    if getattr(args, "json", False):
+        print(json.dumps(result, indent=2))
+    else:
+        print(text)
+
+
+def _add_simulate(sub: Any) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate a calibration sweep on a virtual robot and record it (HDF5)",
+        formatter_class=_Formatter,
+        description=(
+            "Simulate a calibration sweep in virtual time on the embedded simulated robot: "
+            "per trial one joint moves out and back while the state packages, the command and "
+            "an 8 kHz gyro on the flange are recorded, exactly as a live sweep records them, "
+            "plus the ground truth (true onset and delays).\n\n"
+            "Output: REC.h5 (see docs/recording-format.md) and, with --truth, the ground-truth "
+            "delay table (CSV). Same seed, same output.\n\n"
+            "example:\n  timedexec simulate --robot ur10 --trials 2000 --seed 1 "
+            "--out ur10.h5 --truth ur10-truth.csv"
+        ),
+    )
+    p.add_argument("--robot", required=True, help=f"simulated robot: {', '.join(ROBOT_NAMES)}")
+    p.add_argument("--trials", type=int, required=True, help="number of trials (>= 1; the paper: 33500)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--out", required=True, help="recording to write (HDF5)")
+    p.add_argument("--truth", help="also write the ground-truth delay table here (CSV)")
+    p.add_argument(
+        "--effects",
+        default="default",
+        help="effect set: default, base, or a comma list of effect names",
+    )
+    p.add_argument("--period", type=float, help="controller period, s (kr5: 0.012 or 0.004)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes (output does not depend on it)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from timedexec.effects import parse_effects
+    from timedexec.robots import get_robot
+    from timedexec.sim import default_settings
+    from timedexec.sim._sweep import simulate_sweep
+
+    spec = get_robot(args.robot, period_s=args.period)
+    if args.trials < 1:
+        raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
+    effects = parse_effects(args.effects, spec.name)
+    result = simulate_sweep(
+        spec,
+        args.trials,
+        args.out,
+        seed=args.seed,
+        effects=effects,
+        settings=default_settings(spec),
+        truth_path=args.truth,
+        resume=args.resume,
+        jobs=args.jobs,
+        progress=not args.quiet,
+    )
+    info = result.summary()
+    text = (
+        f"recorded {info['trials']:,} trials of {spec.name} to {info['recording']} "
+        f"({info['recording_bytes'] / 1e6:.1f} MB)"
+    )
+    if info["truth"]:
+        text += f"; ground truth in {info['truth']}"
+    _emit(info, args, text)
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -135,6 +135,15 @@ class JointBank:
         v_new = np.where(moving, v + acc * dt, 0.0)
         # Stick at a velocity reversal: the joint stops and must break away again.
         reversal = moving & (v_new * direction < 0.0)
+        # Coming to rest without a reversal (the loop settles asymptotically): stick once the
+        # speed is negligible and the drive torque cannot break the joint free again.
+        settled = (
+            moving
+            & (np.abs(v_new) < 1e-7)
+            & (net <= p.breakaway_pos_nm)
+            & (net >= -p.breakaway_neg_nm)
+        )
+        reversal |= settled
         v_new = np.where(reversal, 0.0, v_new)
         self.stuck = np.where(moving, reversal, self.stuck)
         self.q = q + 0.5 * (v + v_new) * dt

@@ -1,0 +1,260 @@
+"""The delay table: the interchange format between extraction, learning and discrepancy.
+
+A CSV with one row per trial (DESIGN.md, "Delay table"):
+
+========================  ==================================================================
+column                    meaning
+========================  ==================================================================
+trial                     int, unique within a sweep
+robot                     str, ``ur10``, ``ur10e``, ``kr5``
+joint                     int, actuated joint, 1-based
+direction                 int, +1 or -1
+q1 ... q6                 float, start configuration, rad
+t_start                   float, s since the sweep started
+actuation_delay           float, s
+response_delay            float, s
+true_actuation_delay      optional, simulated sweeps only, s
+true_response_delay       optional, simulated sweeps only, s
+flag                      optional str: why a trial could not be measured ("" when fine)
+========================  ==================================================================
+
+Extra columns are kept as they are. Delays are in seconds; human-facing tables show ms.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import tempfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from timedexec.errors import ConfigError, RecordingError
+
+__all__ = ["DELAY_COLUMNS", "DelayTable", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS"]
+
+CONFIG_COLUMNS = tuple(f"q{i}" for i in range(1, 7))
+REQUIRED_COLUMNS: tuple[str, ...] = (
+    "trial",
+    "robot",
+    "joint",
+    "direction",
+    *CONFIG_COLUMNS,
+    "t_start",
+    "actuation_delay",
+    "response_delay",
+)
+OPTIONAL_COLUMNS: tuple[str, ...] = ("true_actuation_delay", "true_response_delay", "flag")
+DELAY_COLUMNS: tuple[str, ...] = ("actuation_delay", "response_delay")
+_INT_COLUMNS = ("trial", "joint", "direction")
+_STR_COLUMNS = ("robot", "flag")
+
+
+class DelayTable:
+    """Columns of equal length, validated against the contract.
+
+    Parameters
+    ----------
+    columns : mapping of str to array
+        At least :data:`REQUIRED_COLUMNS`. ``robot`` may be a single string.
+    source : str
+        Where the table came from, for error messages.
+    allow_nan : bool
+        Whether NaN delays are allowed (they are for flagged trials; a table for training
+        is checked with :meth:`validated_for_training`).
+    """
+
+    def __init__(
+        self, columns: Mapping[str, ArrayLike | str], *, source: str = "<table>", allow_nan: bool = True
+    ) -> None:
+        self.source = source
+        missing = [c for c in REQUIRED_COLUMNS if c not in columns]
+        if missing:
+            raise ConfigError(
+                f"{source}: missing column(s) {', '.join(missing)}; a delay table needs "
+                f"{', '.join(REQUIRED_COLUMNS)}"
+            )
+        lengths = {len(np.atleast_1d(np.asarray(v))) for k, v in columns.items() if k != "robot" or not isinstance(v, str)}
+        n = max(lengths) if lengths else 0
+        cols: dict[str, NDArray[Any]] = {}
+        for name, value in columns.items():
+            if name == "robot" and isinstance(value, str):
+                arr: NDArray[Any] = np.full(n, value, dtype=object)
+            elif name in _STR_COLUMNS:
+                arr = np.asarray(value, dtype=object)
+            elif name in _INT_COLUMNS:
+                raw = np.asarray(value)
+                arr = self._as_int(name, raw)
+            else:
+                arr = self._as_float(name, np.asarray(value))
+            if arr.shape != (n,):
+                raise ConfigError(f"{source}: column {name!r} has {arr.shape[0]} rows, expected {n}")
+            cols[name] = arr
+        self.columns = cols
+        if n == 0:
+            raise ConfigError(f"{source}: the delay table is empty (no rows)")
+        self._check_values(allow_nan)
+
+    def _as_int(self, name: str, raw: NDArray[Any]) -> NDArray[np.int64]:
+        try:
+            as_float = raw.astype(float)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{self.source}: column {name!r} must hold integers ({exc})") from exc
+        bad = ~np.isfinite(as_float) | (as_float != np.round(as_float))
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ConfigError(
+                f"{self.source}: column {name!r} row {row} holds {raw[row]!r}; it must be an integer"
+            )
+        return as_float.astype(np.int64)
+
+    def _as_float(self, name: str, raw: NDArray[Any]) -> NDArray[np.float64]:
+        try:
+            return raw.astype(float)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{self.source}: column {name!r} must hold numbers ({exc})") from exc
+
+    def _check_values(self, allow_nan: bool) -> None:
+        c = self.columns
+        bad = ~np.isin(c["joint"], np.arange(1, 7))
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ConfigError(f"{self.source}: row {row}: joint {c['joint'][row]} outside 1..6")
+        bad = ~np.isin(c["direction"], (-1, 1))
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ConfigError(
+                f"{self.source}: row {row}: direction {c['direction'][row]} must be +1 or -1"
+            )
+        for name in (*CONFIG_COLUMNS, "t_start"):
+            bad = ~np.isfinite(c[name])
+            if bad.any():
+                row = int(np.flatnonzero(bad)[0])
+                raise ConfigError(
+                    f"{self.source}: column {name!r} row {row} is {c[name][row]}; it must be finite"
+                )
+        for name in DELAY_COLUMNS:
+            values = c[name]
+            bad = np.isinf(values) if allow_nan else ~np.isfinite(values)
+            if bad.any():
+                row = int(np.flatnonzero(bad)[0])
+                raise ConfigError(
+                    f"{self.source}: column {name!r} row {row} is {values[row]}; delays must be "
+                    "finite seconds (flag unmeasurable trials and drop them before training)"
+                )
+
+    # ---------------------------------------------------------------- access
+    def __len__(self) -> int:
+        return len(self.columns["trial"])
+
+    def __getitem__(self, name: str) -> NDArray[Any]:
+        try:
+            return self.columns[name]
+        except KeyError:
+            raise ConfigError(
+                f"{self.source}: no column {name!r}; it has {', '.join(self.columns)}"
+            ) from None
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.columns
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.columns)
+
+    @property
+    def q(self) -> NDArray[np.float64]:
+        """Start configurations, shape (n, 6), rad."""
+        return np.column_stack([self.columns[c] for c in CONFIG_COLUMNS])
+
+    @property
+    def robots(self) -> tuple[str, ...]:
+        """Distinct robot names in the table."""
+        return tuple(sorted({str(r) for r in self.columns["robot"]}))
+
+    def select(self, mask: ArrayLike) -> DelayTable:
+        """Rows where ``mask`` is true (or at the given indices)."""
+        idx = np.asarray(mask)
+        return DelayTable(
+            {k: v[idx] for k, v in self.columns.items()}, source=self.source, allow_nan=True
+        )
+
+    def validated_for_training(self) -> DelayTable:
+        """Rows that carry no flag, checked to hold only finite delays."""
+        keep = np.ones(len(self), dtype=bool)
+        if "flag" in self.columns:
+            keep &= np.array([not f for f in self.columns["flag"]], dtype=bool)
+        table = self.select(keep)
+        table._check_values(allow_nan=False)
+        return table
+
+    # ---------------------------------------------------------------- files
+    def to_csv(self, path: str | os.PathLike[str]) -> Path:
+        """Write atomically (a temporary file renamed into place): never half-written."""
+        out = Path(path)
+        names = list(REQUIRED_COLUMNS) + [c for c in self.columns if c not in REQUIRED_COLUMNS]
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(names)
+        cols = []
+        for name in names:
+            col = self.columns[name]
+            if col.dtype == object:
+                cols.append([str(x) for x in col])
+            elif np.issubdtype(col.dtype, np.integer):
+                cols.append([str(int(x)) for x in col])
+            else:
+                cols.append([repr(float(x)) if np.isfinite(x) else "nan" for x in col])
+        writer.writerows(zip(*cols, strict=True))
+        directory = out.parent if str(out.parent) else Path(".")
+        if not directory.is_dir():
+            raise RecordingError(f"cannot write {out}: directory {directory} does not exist")
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=directory)
+            with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+                fh.write(buf.getvalue())
+            os.replace(tmp, out)
+        except OSError as exc:
+            raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from exc
+        return out
+
+    @classmethod
+    def read_csv(cls, path: str | os.PathLike[str], *, allow_nan: bool = True) -> DelayTable:
+        """Read and validate a delay table; errors name the column and row."""
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise RecordingError(f"delay table {p} does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RecordingError(f"cannot read delay table {p}: {exc}") from exc
+        rows = list(csv.reader(io.StringIO(text)))
+        if not rows:
+            raise ConfigError(f"{p}: the delay table is empty (no header, no rows)")
+        header = [h.strip() for h in rows[0]]
+        body = rows[1:]
+        for i, row in enumerate(body):
+            if len(row) != len(header):
+                raise ConfigError(
+                    f"{p}: row {i} has {len(row)} fields, the header has {len(header)}"
+                )
+        columns: dict[str, Any] = {}
+        for j, name in enumerate(header):
+            values = [row[j].strip() for row in body]
+            if name in _STR_COLUMNS:
+                columns[name] = np.asarray(values, dtype=object)
+                continue
+            out = np.empty(len(values))
+            for i, v in enumerate(values):
+                try:
+                    out[i] = float(v)
+                except ValueError:
+                    raise ConfigError(
+                        f"{p}: column {name!r} row {i} holds {v!r}, which is not a number"
+                    ) from None
+            columns[name] = out
+        return cls(columns, source=str(p), allow_nan=allow_nan)

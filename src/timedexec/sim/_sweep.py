@@ -1,0 +1,248 @@
+"""Run a whole simulated calibration sweep into a recording (the ``simulate`` command)."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from timedexec._progress import Progress
+from timedexec._version import __version__
+from timedexec.delays import DelayTable
+from timedexec.effects import EffectSet, default_effects
+from timedexec.errors import ConfigError, RecordingError
+from timedexec.robots import RobotSpec, get_robot
+from timedexec.sim._batch import (
+    SweepClock,
+    iter_blocks,
+    simulate_block,
+    sweep_clock,
+    trial_layout,
+)
+from timedexec.sim._plan import SweepPlan
+from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
+from timedexec.sim._settings import SimSettings, default_settings
+
+__all__ = ["SweepResult", "simulate_sweep", "trial_fields", "truth_table"]
+
+
+def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
+    """The per-trial fields of a recording made with ``settings``.
+
+    The live runner records the same fields except the ``true_*`` ground truth.
+    """
+    lay = trial_layout(settings)
+    p, g, b = lay.n_packages, lay.n_gyro, lay.n_blocks
+    fields = [
+        Field("trial", (), "int64", "", "plan index of the trial"),
+        Field("t0_s", (), "float64", "s", "host sweep time of the trigger package's arrival (trial time 0)"),
+        Field("cmd_send_time_s", (), "float64", "s", "host send time of the command, trial time"),
+        Field("cmd_qd_rad_s", (6,), "float64", "rad/s", "commanded joint speeds of the out pulse"),
+        Field("state_host_time_s", (p,), "float64", "s", "host arrival time of each state package, trial time (NaN: none)"),
+        Field("state_controller_time_s", (p,), "float64", "s", "controller time stamp of each package"),
+        Field("state_q_rad", (p, 6), "float32", "rad", "reported joint positions"),
+        Field("state_qd_rad_s", (p, 6), "float32", "rad/s", "reported joint speeds (RSI: host backward difference)"),
+        Field("gyro_raw", (g, 3), "int16", "LSB", "gyro rate counts, sensor axes"),
+        Field("gyro_counter", (g,), "uint16", "", "sensor sample counter (wraps at 65536)"),
+        Field("gyro_block_host_time_s", (b,), "float32", "s", "host arrival time of each block of gyro samples, trial time"),
+    ]
+    if truth:
+        fields += [
+            Field("true_onset_s", (), "float64", "s", "true motion onset, trial time"),
+            Field("true_actuation_delay_s", (), "float64", "s", "true onset - command send time"),
+            Field("true_response_delay_s", (), "float64", "s", "mean (package arrival - its sampling instant)"),
+            Field("true_reference_start_s", (), "float64", "s", "reference reaches the drive, trial time"),
+            Field("true_intake_s", (), "float64", "s", "controller takes the command, trial time"),
+            Field("true_gravity_torque_nm", (), "float64", "N·m", "holding torque of the actuated joint"),
+            Field("true_inertia_kgm2", (), "float64", "kg·m²", "reflected inertia of the actuated joint"),
+        ]
+    return fields
+
+
+def _still_recording(settings: SimSettings, clock: SweepClock, seed: int) -> dict[str, NDArray[Any]]:
+    """The stationary gyro recording that opens the sweep (PSD, zero-rate)."""
+    gyro = settings.gyro
+    rng = np.random.default_rng([seed, 2])
+    f = gyro.true_rate_hz
+    n = int(settings.still_s * gyro.nominal_rate_hz)
+    n -= n % gyro.block_samples
+    first = math.ceil(-clock.gyro_offset_s * f)
+    t = clock.gyro_offset_s + (first + np.arange(n)) / f
+    sigma = gyro.noise_density_dps_rthz * math.sqrt(f / 2.0) * gyro.lsb_per_dps
+    bias = clock.gyro_bias_dps + clock.gyro_bias_drift_dps_per_s * t[:, None]
+    counts = bias * gyro.lsb_per_dps + rng.standard_normal((n, 3)) * sigma
+    raw = np.clip(np.rint(counts), -32768, 32767).astype(np.int16)
+    counter = ((clock.gyro_counter0 + first + np.arange(n)) % 65536).astype(np.uint16)
+    last = t[gyro.block_samples - 1 :: gyro.block_samples]
+    blocks = np.maximum.accumulate(last + gyro.usb_latency_s + rng.exponential(gyro.usb_jitter_s, last.shape))
+    return {
+        "still_gyro_raw": raw,
+        "still_gyro_counter": counter,
+        "still_gyro_block_host_time_s": blocks,
+    }
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """What :func:`simulate_sweep` produced."""
+
+    path: Path
+    n_trials: int
+    n_simulated: int
+    bytes: int
+    truth_path: Path | None
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe summary."""
+        return {
+            "recording": str(self.path),
+            "trials": self.n_trials,
+            "simulated_now": self.n_simulated,
+            "recording_bytes": self.bytes,
+            "truth": str(self.truth_path) if self.truth_path else None,
+        }
+
+
+def simulate_sweep(
+    robot: str | RobotSpec,
+    n_trials: int,
+    out: str | os.PathLike[str],
+    *,
+    seed: int = 0,
+    effects: EffectSet | None = None,
+    settings: SimSettings | None = None,
+    plan: SweepPlan | None = None,
+    truth_path: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    jobs: int = 1,
+    progress: bool = True,
+    joints: Sequence[int] = (1, 2, 3, 5),
+    repeats: int = 10,
+) -> SweepResult:
+    """Simulate a calibration sweep in virtual time and record it.
+
+    Parameters
+    ----------
+    robot : str or RobotSpec
+        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+    n_trials : int
+        Trials (1 .. 10,000,000); ignored when ``plan`` is given.
+    out : path
+        The recording (HDF5). Refused if it exists, unless ``resume``.
+    seed : int
+        Same seed, same recording.
+    effects, settings, plan : optional
+        Default: the robot's default effects and settings, a plan drawn from ``seed``.
+    truth_path : path, optional
+        Where to write the ground-truth delay table (CSV; true delays in the delay columns).
+    resume : bool
+        Continue an interrupted run of the same command.
+    jobs : int
+        Worker processes (joblib); the output does not depend on it.
+    progress : bool
+        Progress with ETA on stderr.
+    """
+    spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
+    settings = settings or default_settings(spec)
+    effects = effects if effects is not None else default_effects(spec.name)
+    if plan is None:
+        plan = SweepPlan.generate(spec, n_trials, seed=seed, joints=joints, repeats=repeats)
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs={jobs!r} must be a positive integer")
+    out = Path(out)
+    if truth_path is not None:
+        tp = Path(truth_path)
+        if not (tp.parent if str(tp.parent) else Path(".")).is_dir():
+            raise RecordingError(f"cannot write {tp}: directory {tp.parent} does not exist")
+    clock = sweep_clock(plan, settings, seed)
+    header = {
+        "source": "simulator",
+        "robot": spec.to_dict(),
+        "settings": settings.to_dict(),
+        "effects": effects.to_dict(),
+        "plan": plan.meta(),
+        "seed": seed,
+        "package_version": __version__,
+        "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
+        "time_origin": "trial time 0 = host arrival of the trigger state package",
+    }
+    fields = trial_fields(settings)
+    with RecordingWriter(out, header=header, fields=fields, resume=resume) as writer:
+        if resume:
+            old = writer.header
+            if old.get("seed") != seed or old.get("plan") != plan.meta():
+                raise RecordingError(
+                    f"{out} was recorded with another plan or seed "
+                    f"({old.get('plan')}, seed {old.get('seed')}); resume with the same arguments"
+                )
+        for name, arr in plan.to_arrays().items():
+            if not writer.has_static(name):
+                writer.write_static(name, arr)
+        if not writer.has_static("still_gyro_raw"):
+            for name, arr in _still_recording(settings, clock, seed).items():
+                writer.write_static(name, arr)
+        done = writer.completed_trials
+        todo = len(plan) - len(done)
+        bar = Progress(todo, f"simulate {spec.name}", enabled=progress)
+        blocks = list(iter_blocks(len(plan), done))
+        done_mask = np.zeros(len(plan), dtype=bool)
+        done_mask[done] = True
+
+        def run(rows: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
+            return simulate_block(spec, settings, effects, plan, clock, rows, seed)
+
+        if jobs == 1:
+            results = (run(rows) for rows in blocks)
+        else:
+            from joblib import Parallel, delayed
+
+            results = Parallel(n_jobs=jobs, return_as="generator")(
+                delayed(simulate_block)(spec, settings, effects, plan, clock, rows, seed)
+                for rows in blocks
+            )
+        n_new = 0
+        for batch in results:
+            keep = ~done_mask[batch["trial"]]
+            if not keep.all():
+                batch = {k: v[keep] for k, v in batch.items()}
+            writer.append(batch)
+            n_new += len(batch["trial"])
+            bar.update(len(batch["trial"]))
+        bar.close()
+    written_truth = None
+    if truth_path is not None:
+        with RecordingReader(out) as reader:
+            written_truth = truth_table(reader).to_csv(truth_path)
+    return SweepResult(out, len(plan), n_new, out.stat().st_size, written_truth)
+
+
+def truth_table(reader: RecordingReader) -> DelayTable:
+    """The ground-truth delay table of a simulated recording (true delays in the delay
+    columns and again in ``true_*``), sorted by trial."""
+    if "true_actuation_delay_s" not in reader.fields:
+        raise RecordingError("this recording holds no ground truth (it was not simulated)")
+    trial = reader.read("trial")
+    order = np.argsort(trial)
+    trial = trial[order]
+    q = reader.static("plan_q_start_rad")[trial]
+    act = reader.read("true_actuation_delay_s")[order]
+    resp = reader.read("true_response_delay_s")[order]
+    cols: dict[str, Any] = {
+        "trial": trial,
+        "robot": str(reader.header["robot"]["name"]),
+        "joint": reader.static("plan_joint")[trial],
+        "direction": reader.static("plan_direction")[trial],
+        **{f"q{i + 1}": q[:, i] for i in range(6)},
+        "t_start": reader.read("t0_s")[order],
+        "actuation_delay": act,
+        "response_delay": resp,
+        "true_actuation_delay": act,
+        "true_response_delay": resp,
+    }
+    return DelayTable(cols, source=str(reader.path) if hasattr(reader, "path") else "recording")
