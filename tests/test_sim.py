@@ -68,7 +68,8 @@ def test_delays_emerge_within_published_ranges():
     resp = ur["true_response_delay_s"] * 1e3
     assert 15 <= np.median(act) <= 25
     assert np.mean((act >= 5) & (act <= 45)) >= 0.95
-    assert resp.min() >= 0 and resp.max() <= 35
+    assert resp.min() >= 0
+    assert resp.max() <= 35
 
 
 def test_kr5_joint2_has_highest_median_actuation():
@@ -124,9 +125,11 @@ def test_each_effect_changes_what_it_should_and_nothing_else(name, base_ur10):
     elif name == "gravity_direction":
         lifting = loaded & (d * tau > 0)
         lowering = loaded & (d * tau < 0)
-        assert np.all(d_act[lifting] > 0) and np.all(d_act[lowering] < 0)
+        assert np.all(d_act[lifting] > 0)
+        assert np.all(d_act[lowering] < 0)
     elif name == "direction":
-        assert np.all(d_act[d > 0] > 0) and np.all(d_act[d < 0] < 0)
+        assert np.all(d_act[d > 0] > 0)
+        assert np.all(d_act[d < 0] < 0)
     elif name == "inertia":
         j_nom = base["true_inertia_kgm2"]  # without the effect: the nominal inertia
         j_true = on["true_inertia_kgm2"]
@@ -163,7 +166,7 @@ def test_gyro_sees_the_joint_motion_on_its_axis():
     speed in amplitude (scale errors ±3 %, noise ~0.3 °/s)."""
     spec = get_robot("ur10")
     settings = default_settings(spec)
-    plan, out = run("ur10", default_effects("ur10"), n=16)
+    _plan, out = run("ur10", default_effects("ur10"), n=16)
     raw = out["gyro_raw"].astype(float) / settings.gyro.lsb_per_dps
     rate = np.deg2rad(np.linalg.norm(raw - raw[:, :200].mean(axis=1, keepdims=True), axis=2))
     peak = np.percentile(rate, 99.5, axis=1)
@@ -212,7 +215,9 @@ def test_stepped_controller_register_semantics_and_pipeline():
     for _ in range(40):
         c.cycle()
     ev1, ev2 = c.truth
-    assert ev1.id == first and ev1.superseded and np.isnan(ev1.intake_s)
+    assert ev1.id == first
+    assert ev1.superseded
+    assert np.isnan(ev1.intake_s)
     assert ev2.id == second
     assert ev2.intake_s == pytest.approx(2 * period)
     pipeline = default_settings("ur10e").timing.pipeline_cycles

@@ -66,7 +66,9 @@ def _add_simulate(sub: Any) -> None:
         ),
     )
     p.add_argument("--robot", required=True, help=f"simulated robot: {', '.join(ROBOT_NAMES)}")
-    p.add_argument("--trials", type=int, required=True, help="number of trials (>= 1; the paper: 33500)")
+    p.add_argument(
+        "--trials", type=int, required=True, help="number of trials (>= 1; the paper: 33500)"
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", required=True, help="recording to write (HDF5)")
     p.add_argument("--truth", help="also write the ground-truth delay table here (CSV)")
@@ -76,7 +78,9 @@ def _add_simulate(sub: Any) -> None:
         help="effect set: default, base, or a comma list of effect names",
     )
     p.add_argument("--period", type=float, help="controller period, s (kr5: 0.012 or 0.004)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (output does not depend on it)")
+    p.add_argument(
+        "--jobs", type=int, default=1, help="worker processes (output does not depend on it)"
+    )
     p.add_argument("--resume", action="store_true", help="continue an interrupted run")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -157,11 +161,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     truth = out / f"{spec.name}-truth.csv"
     if rec.exists():
         rec.unlink()
-    print(f"[1/1] simulating a {trials}-trial calibration sweep of the {spec.name}", file=sys.stderr)
-    simulate_sweep(spec, trials, rec, seed=args.seed, truth_path=truth, jobs=min(2, os.cpu_count() or 1))
+    print(
+        f"[1/1] simulating a {trials}-trial calibration sweep of the {spec.name}", file=sys.stderr
+    )
+    simulate_sweep(
+        spec, trials, rec, seed=args.seed, truth_path=truth, jobs=min(2, os.cpu_count() or 1)
+    )
     table = DelayTable.read_csv(truth)
     per_joint: dict[str, dict[str, float]] = {}
-    lines = [f"timedexec demo: {spec.description}", "joint  actuation median (ms)  response median (ms)"]
+    lines = [
+        f"timedexec demo: {spec.description}",
+        "joint  actuation median (ms)  response median (ms)",
+    ]
     for j in sorted(set(table["joint"].tolist())):
         m = table["joint"] == j
         a = float(np.median(table["actuation_delay"][m]) * 1e3)
@@ -169,8 +180,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         per_joint[str(j)] = {"actuation_median_ms": a, "response_median_ms": r}
         lines.append(f"{j:>5}  {a:>22.1f}  {r:>20.1f}")
     lines.append(f"recording: {rec}   ground truth: {truth}")
-    _emit({"robot": spec.name, "trials": trials, "per_joint": per_joint,
-           "recording": str(rec), "truth": str(truth)}, args, "\n".join(lines))
+    _emit(
+        {
+            "robot": spec.name,
+            "trials": trials,
+            "per_joint": per_joint,
+            "recording": str(rec),
+            "truth": str(truth),
+        },
+        args,
+        "\n".join(lines),
+    )
     return 0
 
 

@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError, RecordingError
 
-__all__ = ["DELAY_COLUMNS", "DelayTable", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS"]
+__all__ = ["DELAY_COLUMNS", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "DelayTable"]
 
 CONFIG_COLUMNS = tuple(f"q{i}" for i in range(1, 7))
 REQUIRED_COLUMNS: tuple[str, ...] = (
@@ -70,7 +70,11 @@ class DelayTable:
     """
 
     def __init__(
-        self, columns: Mapping[str, ArrayLike | str], *, source: str = "<table>", allow_nan: bool = True
+        self,
+        columns: Mapping[str, ArrayLike | str],
+        *,
+        source: str = "<table>",
+        allow_nan: bool = True,
     ) -> None:
         self.source = source
         missing = [c for c in REQUIRED_COLUMNS if c not in columns]
@@ -79,7 +83,11 @@ class DelayTable:
                 f"{source}: missing column(s) {', '.join(missing)}; a delay table needs "
                 f"{', '.join(REQUIRED_COLUMNS)}"
             )
-        lengths = {len(np.atleast_1d(np.asarray(v))) for k, v in columns.items() if k != "robot" or not isinstance(v, str)}
+        lengths = {
+            len(np.atleast_1d(np.asarray(v)))
+            for k, v in columns.items()
+            if k != "robot" or not isinstance(v, str)
+        }
         n = max(lengths) if lengths else 0
         cols: dict[str, NDArray[Any]] = {}
         for name, value in columns.items():
@@ -93,7 +101,9 @@ class DelayTable:
             else:
                 arr = self._as_float(name, np.asarray(value))
             if arr.shape != (n,):
-                raise ConfigError(f"{source}: column {name!r} has {arr.shape[0]} rows, expected {n}")
+                raise ConfigError(
+                    f"{source}: column {name!r} has {arr.shape[0]} rows, expected {n}"
+                )
             cols[name] = arr
         self.columns = cols
         if n == 0:
@@ -217,6 +227,9 @@ class DelayTable:
             fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=directory)
             with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
                 fh.write(buf.getvalue())
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual file mode
             os.replace(tmp, out)
         except OSError as exc:
             raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from exc

@@ -348,7 +348,7 @@ class EffectSet:
 
     def with_effect(self, effect: Effect) -> EffectSet:
         """A copy with ``effect`` added (replacing one of the same name)."""
-        return EffectSet(tuple(e for e in self.effects if e.name != effect.name) + (effect,))
+        return EffectSet((*tuple(e for e in self.effects if e.name != effect.name), effect))
 
     def without(self, name: str) -> EffectSet:
         """A copy without the effect called ``name``."""

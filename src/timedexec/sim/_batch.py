@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._signal import interp_rows
 from timedexec.effects import EffectSet
 from timedexec.robots import RobotSpec, joint_axis_in_tool
 from timedexec.sim._physics import JointBank, joint_params, pulse_profile
@@ -63,8 +64,8 @@ class TrialLayout:
 def trial_layout(settings: SimSettings) -> TrialLayout:
     """Package and gyro-sample counts per trial for these settings."""
     prof, gyro = settings.profile, settings.gyro
-    n_packages = int(math.floor(prof.record_s / settings.controller_period_s))
-    n_gyro = int(round((prof.pre_s + prof.record_s) * gyro.nominal_rate_hz))
+    n_packages = math.floor(prof.record_s / settings.controller_period_s)
+    n_gyro = round((prof.pre_s + prof.record_s) * gyro.nominal_rate_hz)
     n_gyro -= n_gyro % gyro.block_samples
     return TrialLayout(n_packages, n_gyro, n_gyro // gyro.block_samples)
 
@@ -117,16 +118,6 @@ def sweep_clock(plan: SweepPlan, settings: SimSettings, seed: int) -> SweepClock
         gyro_scale=1.0 + rng.uniform(-gyro.scale_error, gyro.scale_error, 3),
         controller_boot_s=float(rng.uniform(100.0, 5000.0)),
     )
-
-
-def _interp_rows(hist: FloatArray, pos: FloatArray) -> FloatArray:
-    """Linear interpolation of each row of ``hist`` (n, G) at fractional indices ``pos`` (n, m)."""
-    g = hist.shape[1]
-    i0 = np.clip(np.floor(pos).astype(np.int64), 0, g - 2)
-    frac = np.clip(pos - i0, 0.0, 1.0)
-    lo = np.take_along_axis(hist, i0, axis=1)
-    hi = np.take_along_axis(hist, i0 + 1, axis=1)
-    return lo + frac * (hi - lo)
 
 
 def simulate_block(
@@ -190,30 +181,49 @@ def simulate_block(
     n_first = np.ceil((t0 - prof.pre_s - clock.gyro_offset_s) * f_true).astype(np.int64)
     g_first = clock.gyro_offset_s + n_first * dt - t0  # trial time of the first sample, s
 
-    # -- joint physics on the gyro grid ----------------------------------------------------
+    # -- joint physics at half the gyro rate ------------------------------------------------
+    # Integrating at 4 kHz (every other gyro sample) halves the cost; the slowest loop
+    # (velocity, <= 160 rad/s) sees 0.04 rad per step and the current loop is discretised
+    # exactly. Gyro samples in between are interpolated. Histories hold the state at the
+    # start of each step, stamped with that time.
     params, tau_g, j_true = joint_params(spec, settings, effects, q_start, joint, t0)
     q_j0 = q_start[np.arange(n), col]
-    bank = JointBank(params, q_j0, dt, settings.servo.onset_threshold_rad_s)
+    stride = 2
+    dt_phys = stride * dt
+    n_phys = lay.n_gyro // stride + 1
+    bank = JointBank(params, q_j0, dt_phys, settings.servo.onset_threshold_rad_s)
     bank.arm_onset(np.ones(n, dtype=bool))
-    v_hist = np.empty((n, lay.n_gyro))
-    q_hist = np.empty((n, lay.n_gyro))
-    shape = {
-        "speed_rad_s": prof.speed_rad_s,
-        "acceleration_rad_s2": prof.acceleration_rad_s2,
-        "hold_s": prof.hold_s,
-        "pause_s": prof.pause_s,
-    }
-    t_rel = g_first - t_ref
-    for i in range(lay.n_gyro):
-        v_ref = direction * pulse_profile(t_rel + i * dt, **shape)
-        bank.step(v_ref, g_first + i * dt)
-        v_hist[:, i] = bank.v
-        q_hist[:, i] = bank.q
+    t_phys = g_first[None, :] + np.arange(n_phys)[:, None] * dt_phys  # (steps, n)
+    v_ref = direction * pulse_profile(t_phys - t_ref, **prof.template)  # (steps, n)
+    v_hist = np.empty((n_phys, n))
+    q_hist = np.empty((n_phys, n))
+    moving_from = np.nonzero(np.any(v_ref != 0.0, axis=1))[0]
+    first = int(moving_from[0]) if len(moving_from) else n_phys
+    last_ref = int(moving_from[-1]) if len(moving_from) else 0
+    v_hist[:first] = 0.0
+    q_hist[:first] = q_j0
+    i = first
+    while i < n_phys:
+        v_hist[i] = bank.v
+        q_hist[i] = bank.q
+        # Past every reference and with every joint at rest, nothing changes any more.
+        if i > last_ref and i % 32 == 0 and bank.stuck.all():
+            v_hist[i:] = 0.0
+            q_hist[i:] = bank.q
+            break
+        bank.step(v_ref[i], t_phys[i])
+        i += 1
     onset = bank.onset_s
+    v_hist = np.ascontiguousarray(v_hist.T)
+    q_hist = np.ascontiguousarray(q_hist.T)
+
+    # -- ground truth: onset against the commanded ramp reaching the same speed -------------
+    ramp_s = settings.servo.onset_threshold_rad_s / prof.acceleration_rad_s2
+    actuation = onset - (t_send + ramp_s)
 
     # -- reported state packages -------------------------------------------------------------
-    pos = (sample_t - g_first[:, None]) / dt
-    q_rep = _interp_rows(q_hist, pos)
+    pos = (sample_t - g_first[:, None]) / dt_phys
+    q_rep = interp_rows(q_hist, pos)
     q_pkg = np.repeat(q_start[:, None, :], lay.n_packages, axis=1)
     qd_pkg = np.zeros_like(q_pkg)
     r = np.arange(n)
@@ -222,7 +232,7 @@ def simulate_block(
         # RSI reports positions only; the host differentiates (a T/2 lag, documented).
         qd_rep = np.diff(q_rep, axis=1, prepend=q_rep[:, :1]) / period
     else:
-        qd_rep = _interp_rows(v_hist, pos)
+        qd_rep = interp_rows(v_hist, pos)
     qd_pkg[r, :, col] = qd_rep
     controller_time = (
         clock.controller_boot_s + np.round((t0 + s0) / period)[:, None] * period + k * period
@@ -230,21 +240,18 @@ def simulate_block(
 
     # -- gyro samples ------------------------------------------------------------------------
     shift = gyro.group_delay_s * f_true  # the sensor's filter delays what it reports
-    idx = np.arange(lay.n_gyro) - shift
-    v_delayed = np.where(idx >= 0, _interp_rows(v_hist, np.broadcast_to(idx, (n, lay.n_gyro))), 0.0)
+    idx = (np.arange(lay.n_gyro) - shift) / stride
+    v_delayed = interp_rows(v_hist, np.broadcast_to(idx, (n, lay.n_gyro)))
     axis = joint_axis_in_tool(spec, q_start, joint)  # (n, 3)
-    t_sweep = t0[:, None] + g_first[:, None] + np.arange(lay.n_gyro) * dt
     sigma_dps = gyro.noise_density_dps_rthz * math.sqrt(f_true / 2.0)
-    lsb = gyro.lsb_per_dps
-    rate_dps = np.rad2deg(v_delayed, dtype=np.float32)[:, :, None] * axis[:, None, :].astype(
-        np.float32
-    )
-    rate_dps *= clock.gyro_scale.astype(np.float32)
-    bias = (
-        clock.gyro_bias_dps[None, None, :] + clock.gyro_bias_drift_dps_per_s * t_sweep[:, :, None]
-    )
-    counts = (rate_dps + bias.astype(np.float32)) * np.float32(lsb)
-    counts += rng.standard_normal(counts.shape, dtype=np.float32) * np.float32(sigma_dps * lsb)
+    lsb = np.float32(gyro.lsb_per_dps)
+    # Bias at the trial's time: its drift within one trial (< 1e-4 °/s) is below a count.
+    bias = clock.gyro_bias_dps + clock.gyro_bias_drift_dps_per_s * t0[:, None]  # (n, 3)
+    gain = (axis * clock.gyro_scale * (180.0 / np.pi) * gyro.lsb_per_dps).astype(np.float32)
+    counts = rng.standard_normal((n, lay.n_gyro, 3), dtype=np.float32)
+    counts *= np.float32(sigma_dps) * lsb
+    counts += (bias * gyro.lsb_per_dps).astype(np.float32)[:, None, :]
+    counts += v_delayed.astype(np.float32)[:, :, None] * gain[:, None, :]
     np.rint(counts, out=counts)
     np.clip(counts, -32768, 32767, out=counts)
     gyro_raw = counts.astype(np.int16)
@@ -270,7 +277,7 @@ def simulate_block(
         "gyro_counter": counter,
         "gyro_block_host_time_s": blocks.astype(np.float32),
         "true_onset_s": onset,
-        "true_actuation_delay_s": onset - t_send,
+        "true_actuation_delay_s": actuation,
         "true_response_delay_s": np.mean(arrival - sample_t, axis=1),
         "true_reference_start_s": t_ref,
         "true_intake_s": intake,

@@ -16,7 +16,6 @@ friction, inertia and gains.
 from __future__ import annotations
 
 from dataclasses import dataclass
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -28,7 +27,7 @@ from timedexec.robots import RobotSpec, gravity_torque_coefficients, joint_inert
 if TYPE_CHECKING:
     from timedexec.sim._settings import SimSettings
 
-__all__ = ["JointBank", "JointParams", "joint_params", "pulse_profile"]
+__all__ = ["JointBank", "JointParams", "joint_params", "pulse_derivative", "pulse_profile"]
 
 FloatArray = NDArray[np.float64]
 
@@ -165,6 +164,7 @@ def pulse_profile(
     acceleration_rad_s2: float,
     hold_s: float,
     pause_s: float,
+    out_only: bool = False,
 ) -> FloatArray:
     """The calibration motion's commanded speed, out and back, for direction +1.
 
@@ -174,6 +174,8 @@ def pulse_profile(
         Time since the motion started, s (negative: before it).
     speed_rad_s, acceleration_rad_s2, hold_s, pause_s : float
         See :class:`~timedexec.sim.TrialProfile`.
+    out_only : bool
+        Only the out pulse (the template the delay fit aligns).
 
     Returns
     -------
@@ -188,7 +190,33 @@ def pulse_profile(
         ramp = np.minimum(acceleration_rad_s2 * x, acceleration_rad_s2 * (pulse - x))
         return np.clip(ramp, 0.0, speed_rad_s)
 
+    if out_only:
+        return trapezoid(t)
     return trapezoid(t) - trapezoid(t - pulse - pause_s)
+
+
+def pulse_derivative(
+    t_s: FloatArray | float,
+    *,
+    speed_rad_s: float,
+    acceleration_rad_s2: float,
+    hold_s: float,
+    pause_s: float,
+    out_only: bool = False,
+) -> FloatArray:
+    """Time derivative of :func:`pulse_profile` (commanded acceleration), rad/s²."""
+    t = np.asarray(t_s, dtype=float)
+    ramp = speed_rad_s / acceleration_rad_s2
+    pulse = 2.0 * ramp + hold_s
+
+    def d_trapezoid(x: FloatArray) -> FloatArray:
+        up = (x > 0) & (x < ramp)
+        down = (x > pulse - ramp) & (x < pulse)
+        return np.where(up, acceleration_rad_s2, 0.0) - np.where(down, acceleration_rad_s2, 0.0)
+
+    if out_only:
+        return d_trapezoid(t)
+    return d_trapezoid(t) - d_trapezoid(t - pulse - pause_s)
 
 
 def joint_params(
@@ -246,9 +274,11 @@ def joint_params(
         f_neg *= 1.0 - asym
     f_pos *= factor
     f_neg *= factor
+    # The drive schedules its gains on part of the pose-dependent inertia.
+    j_tuned = j_nominal + settings.servo.inertia_scheduling * (j_true - j_nominal)
     params = JointParams(
         inertia_kgm2=j_true,
-        inertia_nominal_kgm2=j_nominal,
+        inertia_nominal_kgm2=j_tuned,
         grav_a_nm=a_nm,
         grav_b_nm=b_nm,
         breakaway_pos_nm=f_pos,

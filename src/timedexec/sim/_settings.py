@@ -142,7 +142,14 @@ class ServoSettings(_DictMixin):
     position_gain_1_s : float
         Position-loop gain for position-mode commands (servoj, movej), 1/s.
     onset_threshold_rad_s : float
-        The true motion onset is when the joint's physical speed first reaches this, rad/s.
+        The motion onset is when the joint's physical speed first reaches this, rad/s (10 %
+        of the calibration speed). The actuation delay is the onset minus the time the
+        commanded ramp takes to reach the same speed after the command is sent: the delay of
+        the rising edge where the speed is clearly non-zero (breakaway and the velocity
+        loop's rise both show there; a gyro times it to well under a millisecond).
+    inertia_scheduling : float
+        Fraction of the pose-dependent inertia change the velocity-loop gains follow (gain
+        scheduling on the configuration), in [0, 1]; the rest shows as loop lag.
     """
 
     bandwidth_hz: tuple[float, ...]
@@ -152,7 +159,8 @@ class ServoSettings(_DictMixin):
     kinetic_ratio: float = 0.7
     viscous_nms: tuple[float, ...]
     position_gain_1_s: float = 40.0
-    onset_threshold_rad_s: float = 0.02
+    onset_threshold_rad_s: float = 0.04
+    inertia_scheduling: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("bandwidth_hz", "breakaway_nm", "viscous_nms"):
@@ -166,6 +174,10 @@ class ServoSettings(_DictMixin):
             position_gain_1_s=self.position_gain_1_s,
             onset_threshold_rad_s=self.onset_threshold_rad_s,
         )
+        if not 0 <= self.inertia_scheduling <= 1:
+            raise ConfigError(
+                f"servo: inertia_scheduling={self.inertia_scheduling} must lie in [0, 1]"
+            )
         if not 0 < self.kinetic_ratio <= 1:
             raise ConfigError(f"servo: kinetic_ratio={self.kinetic_ratio} must lie in (0, 1]")
 
@@ -257,9 +269,9 @@ class TrialProfile(_DictMixin):
     speed_rad_s: float = 0.4
     acceleration_rad_s2: float = 8.0
     hold_s: float = 0.05
-    pause_s: float = 0.05
+    pause_s: float = 0.15
     pre_s: float = 0.05
-    record_s: float = 0.55
+    record_s: float = 0.65
 
     def __post_init__(self) -> None:
         _positive(
@@ -269,6 +281,11 @@ class TrialProfile(_DictMixin):
             record_s=self.record_s,
         )
         _non_negative("profile", hold_s=self.hold_s, pause_s=self.pause_s, pre_s=self.pre_s)
+        if self.pause_s + self.pulse_s < self.pulse_s + 0.14:
+            raise ConfigError(
+                f"profile: pause_s={self.pause_s} s must be >= 0.14 s so the out pulse can be "
+                "aligned without the return pulse (delays up to 0.12 s)"
+            )
 
     @property
     def pulse_s(self) -> float:
@@ -279,6 +296,16 @@ class TrialProfile(_DictMixin):
     def duration_s(self) -> float:
         """Commanded motion duration, out and back, s."""
         return 2.0 * self.pulse_s + self.pause_s
+
+    @property
+    def template(self) -> dict[str, float]:
+        """Keyword arguments of :func:`~timedexec.sim.pulse_profile` for this motion."""
+        return {
+            "speed_rad_s": self.speed_rad_s,
+            "acceleration_rad_s2": self.acceleration_rad_s2,
+            "hold_s": self.hold_s,
+            "pause_s": self.pause_s,
+        }
 
     @property
     def displacement_rad(self) -> float:
@@ -362,7 +389,7 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
             pipeline_cycles=pipeline, packing_phase_s=(0.02 * period, 0.97 * period)
         )
         bandwidth = (25.0, 25.0, 25.0, 40.0, 40.0, 40.0)
-        breakaway_time = (0.002, 0.002, 0.002, 0.002, 0.002, 0.002)
+        breakaway_time = (0.0045, 0.0045, 0.0045, 0.0045, 0.0045, 0.0045)
     else:
         # RSI: the IPO cycle interpolates and a drive-bus stage follows; the pipeline is a
         # time (about 72 ms), so at 4 ms it holds three times as many cycles.

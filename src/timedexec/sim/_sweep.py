@@ -41,31 +41,95 @@ def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
     p, g, b = lay.n_packages, lay.n_gyro, lay.n_blocks
     fields = [
         Field("trial", (), "int64", "", "plan index of the trial"),
-        Field("t0_s", (), "float64", "s", "host sweep time of the trigger package's arrival (trial time 0)"),
+        Field(
+            "t0_s",
+            (),
+            "float64",
+            "s",
+            "host sweep time of the trigger package's arrival (trial time 0)",
+        ),
         Field("cmd_send_time_s", (), "float64", "s", "host send time of the command, trial time"),
         Field("cmd_qd_rad_s", (6,), "float64", "rad/s", "commanded joint speeds of the out pulse"),
-        Field("state_host_time_s", (p,), "float64", "s", "host arrival time of each state package, trial time (NaN: none)"),
-        Field("state_controller_time_s", (p,), "float64", "s", "controller time stamp of each package"),
+        Field(
+            "state_host_time_s",
+            (p,),
+            "float64",
+            "s",
+            "host arrival time of each state package, trial time (NaN: none)",
+        ),
+        Field(
+            "state_controller_time_s", (p,), "float64", "s", "controller time stamp of each package"
+        ),
         Field("state_q_rad", (p, 6), "float32", "rad", "reported joint positions"),
-        Field("state_qd_rad_s", (p, 6), "float32", "rad/s", "reported joint speeds (RSI: host backward difference)"),
+        Field(
+            "state_qd_rad_s",
+            (p, 6),
+            "float32",
+            "rad/s",
+            "reported joint speeds (RSI: host backward difference)",
+        ),
         Field("gyro_raw", (g, 3), "int16", "LSB", "gyro rate counts, sensor axes"),
         Field("gyro_counter", (g,), "uint16", "", "sensor sample counter (wraps at 65536)"),
-        Field("gyro_block_host_time_s", (b,), "float32", "s", "host arrival time of each block of gyro samples, trial time"),
+        Field(
+            "gyro_block_host_time_s",
+            (b,),
+            "float32",
+            "s",
+            "host arrival time of each block of gyro samples, trial time",
+        ),
     ]
     if truth:
         fields += [
-            Field("true_onset_s", (), "float64", "s", "true motion onset, trial time"),
-            Field("true_actuation_delay_s", (), "float64", "s", "true onset - command send time"),
-            Field("true_response_delay_s", (), "float64", "s", "mean (package arrival - its sampling instant)"),
-            Field("true_reference_start_s", (), "float64", "s", "reference reaches the drive, trial time"),
+            Field(
+                "true_onset_s",
+                (),
+                "float64",
+                "s",
+                "physical speed reaches the onset threshold, trial time",
+            ),
+            Field(
+                "true_actuation_delay_s",
+                (),
+                "float64",
+                "s",
+                "true onset - (send time + commanded ramp time to the threshold)",
+            ),
+            Field(
+                "true_response_delay_s",
+                (),
+                "float64",
+                "s",
+                "mean (package arrival - its sampling instant)",
+            ),
+            Field(
+                "true_reference_start_s",
+                (),
+                "float64",
+                "s",
+                "reference reaches the drive, trial time",
+            ),
             Field("true_intake_s", (), "float64", "s", "controller takes the command, trial time"),
-            Field("true_gravity_torque_nm", (), "float64", "N·m", "holding torque of the actuated joint"),
-            Field("true_inertia_kgm2", (), "float64", "kg·m²", "reflected inertia of the actuated joint"),
+            Field(
+                "true_gravity_torque_nm",
+                (),
+                "float64",
+                "N·m",
+                "holding torque of the actuated joint",
+            ),
+            Field(
+                "true_inertia_kgm2",
+                (),
+                "float64",
+                "kg·m²",
+                "reflected inertia of the actuated joint",
+            ),
         ]
     return fields
 
 
-def _still_recording(settings: SimSettings, clock: SweepClock, seed: int) -> dict[str, NDArray[Any]]:
+def _still_recording(
+    settings: SimSettings, clock: SweepClock, seed: int
+) -> dict[str, NDArray[Any]]:
     """The stationary gyro recording that opens the sweep (PSD, zero-rate)."""
     gyro = settings.gyro
     rng = np.random.default_rng([seed, 2])
@@ -80,7 +144,9 @@ def _still_recording(settings: SimSettings, clock: SweepClock, seed: int) -> dic
     raw = np.clip(np.rint(counts), -32768, 32767).astype(np.int16)
     counter = ((clock.gyro_counter0 + first + np.arange(n)) % 65536).astype(np.uint16)
     last = t[gyro.block_samples - 1 :: gyro.block_samples]
-    blocks = np.maximum.accumulate(last + gyro.usb_latency_s + rng.exponential(gyro.usb_jitter_s, last.shape))
+    blocks = np.maximum.accumulate(
+        last + gyro.usb_latency_s + rng.exponential(gyro.usb_jitter_s, last.shape)
+    )
     return {
         "still_gyro_raw": raw,
         "still_gyro_counter": counter,
