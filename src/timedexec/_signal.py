@@ -20,7 +20,12 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["fit_shift", "interp_rows"]
+__all__ = ["ONSET_FRACTION", "fit_shift", "interp_rows"]
+
+#: The motion onset of a calibration trial is when the joint speed reaches this fraction of
+#: the commanded speed; the actuation delay is that instant minus the instant the commanded
+#: ramp reaches the same speed (the simulator's truth and the extraction both use it).
+ONSET_FRACTION = 0.1
 
 FloatArray = NDArray[np.float64]
 Template = Callable[[FloatArray], FloatArray]

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from timedexec._signal import interp_rows
+from timedexec._signal import ONSET_FRACTION, interp_rows
 from timedexec.effects import EffectSet
 from timedexec.robots import RobotSpec, joint_axis_in_tool
 from timedexec.sim._physics import JointBank, joint_params, pulse_profile
@@ -191,7 +191,8 @@ def simulate_block(
     stride = 2
     dt_phys = stride * dt
     n_phys = lay.n_gyro // stride + 1
-    bank = JointBank(params, q_j0, dt_phys, settings.servo.onset_threshold_rad_s)
+    onset_level = ONSET_FRACTION * prof.speed_rad_s
+    bank = JointBank(params, q_j0, dt_phys, onset_level)
     bank.arm_onset(np.ones(n, dtype=bool))
     t_phys = g_first[None, :] + np.arange(n_phys)[:, None] * dt_phys  # (steps, n)
     v_ref = direction * pulse_profile(t_phys - t_ref, **prof.template)  # (steps, n)
@@ -218,8 +219,7 @@ def simulate_block(
     q_hist = np.ascontiguousarray(q_hist.T)
 
     # -- ground truth: onset against the commanded ramp reaching the same speed -------------
-    ramp_s = settings.servo.onset_threshold_rad_s / prof.acceleration_rad_s2
-    actuation = onset - (t_send + ramp_s)
+    actuation = onset - (t_send + onset_level / prof.acceleration_rad_s2)
 
     # -- reported state packages -------------------------------------------------------------
     pos = (sample_t - g_first[:, None]) / dt_phys

@@ -142,11 +142,12 @@ class ServoSettings(_DictMixin):
     position_gain_1_s : float
         Position-loop gain for position-mode commands (servoj, movej), 1/s.
     onset_threshold_rad_s : float
-        The motion onset is when the joint's physical speed first reaches this, rad/s (10 %
-        of the calibration speed). The actuation delay is the onset minus the time the
-        commanded ramp takes to reach the same speed after the command is sent: the delay of
-        the rising edge where the speed is clearly non-zero (breakaway and the velocity
-        loop's rise both show there; a gyro times it to well under a millisecond).
+        Speed at which the stepped controller's ground truth marks a joint's motion onset,
+        rad/s (10 % of the calibration speed). Batch sweeps use
+        ``timedexec._signal.ONSET_FRACTION`` of the commanded speed: the actuation delay is
+        the onset minus the time the commanded ramp takes to reach the same speed after the
+        command is sent — the delay of the rising edge where the speed is clearly non-zero
+        (breakaway and the velocity loop's rise both show there).
     inertia_scheduling : float
         Fraction of the pose-dependent inertia change the velocity-loop gains follow (gain
         scheduling on the configuration), in [0, 1]; the rest shows as loop lag.
