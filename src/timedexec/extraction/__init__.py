@@ -1,5 +1,15 @@
-"""timedexec.extraction (see docs/architecture.md)."""
+"""timedexec.extraction: stationary analysis, filtering and delay extraction -> delay table."""
 
 from __future__ import annotations
 
-__all__: list[str] = []
+from timedexec.extraction._extract import METHODS, ExtractionResult, extract_recording
+from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
+
+__all__ = [
+    "METHODS",
+    "ExtractionResult",
+    "StillAnalysis",
+    "analyse_still",
+    "design_lowpass",
+    "extract_recording",
+]

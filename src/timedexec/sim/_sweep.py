@@ -27,9 +27,9 @@ from timedexec.sim._batch import (
 )
 from timedexec.sim._plan import SweepPlan
 from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
-from timedexec.sim._settings import SimSettings, default_settings
+from timedexec.sim._settings import GyroSettings, SimSettings, default_settings
 
-__all__ = ["SweepResult", "simulate_sweep", "trial_fields", "truth_table"]
+__all__ = ["SweepResult", "gyro_header", "simulate_sweep", "trial_fields", "truth_table"]
 
 
 def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
@@ -125,6 +125,21 @@ def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
             ),
         ]
     return fields
+
+
+def gyro_header(gyro: GyroSettings) -> dict[str, Any]:
+    """What extraction needs to know of the gyro (the header's ``gyro`` entry): the
+    sensitivity, the nominal rate, the samples per host block, and the two known constant
+    latencies to compensate — the sensor's filter group delay and the minimum transport
+    latency from sampling to host arrival (not observable from arrival times)."""
+    return {
+        "lsb_per_dps": gyro.lsb_per_dps,
+        "nominal_rate_hz": gyro.nominal_rate_hz,
+        "block_samples": gyro.block_samples,
+        "group_delay_s": gyro.group_delay_s,
+        "transport_latency_s": gyro.usb_latency_s,
+        "full_scale_dps": gyro.full_scale_dps,
+    }
 
 
 def _still_recording(
@@ -235,6 +250,9 @@ def simulate_sweep(
         "plan": plan.meta(),
         "seed": seed,
         "package_version": __version__,
+        "profile": settings.profile.to_dict(),
+        "controller_period_s": settings.controller_period_s,
+        "gyro": gyro_header(settings.gyro),
         "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }
