@@ -243,17 +243,19 @@ def _sample_times(
     """Trial time of every gyro sample (physical instant it describes) and a gap flag."""
     edges, refs, offsets = ctx.windows
     w = np.clip(np.searchsorted(edges, t0, side="right") - 1, 0, len(edges) - 1)
-    c = counters.astype(np.int64)
+    c = counters.astype(np.int32)
     steps = np.diff(c, axis=1) % 65536
     gap = np.any(steps != 1, axis=1)
-    n = ctx.n_first[rows][:, None] + np.concatenate(
-        [np.zeros((len(rows), 1)), np.cumsum(steps, axis=1)], axis=1
-    )
+    g = c.shape[1]
+    n = np.broadcast_to(np.arange(g, dtype=np.float64), (len(rows), g)).copy()
+    if gap.any():  # only rows with gaps need their indices rebuilt from the counter steps
+        n[gap, 1:] = np.cumsum(steps[gap], axis=1)
+    n += ctx.n_first[rows][:, None]
     host = offsets[w][:, None] + (n - refs[w][:, None]) * ctx.clock_period_s[w][:, None]
     return host - ctx.latency_s - t0[:, None], gap
 
 
-def _extract_chunk(
+def _extract_chunk_inner(
     ctx: _Context, chunk: dict[str, NDArray[Any]], rows: NDArray[np.int64], method: str
 ) -> dict[str, NDArray[Any]]:
     n = len(rows)
@@ -270,17 +272,18 @@ def _extract_chunk(
 
     t_g, gyro_gap = _sample_times(ctx, rows, t0, chunk["gyro_counter"])
     raw = chunk["gyro_raw"]
-    clipped = np.any(np.abs(raw.astype(np.int32)) >= 32767, axis=(1, 2))
-    rate = _rates(raw, ctx.lsb_per_dps)
-    pre = t_g < (t_send + 0.003)[:, None]
-    bias = np.einsum("ngk,ng->nk", rate, pre) / np.maximum(pre.sum(axis=1), 1)[:, None]
-    rate -= bias[:, None, :]
-    # Principal axis of the motion.
-    active = (t_g > t_send[:, None]).astype(float)
-    cov = np.einsum("ngi,ngj,ng->nij", rate, rate, active)
-    _, vecs = np.linalg.eigh(cov)
-    axis = vecs[:, :, -1]
-    y = np.einsum("ngk,nk->ng", rate, axis)
+    clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2))
+    counts = raw.astype(np.float32)
+    pre = (t_g < (t_send + 0.003)[:, None]).astype(np.float32)
+    bias = np.matmul(pre[:, None, :], counts)[:, 0, :] / np.maximum(pre.sum(axis=1), 1)[:, None]
+    counts -= bias[:, None, :]
+    # Principal axis of the motion (after the command), batched 3x3 covariances.
+    active = (t_g > t_send[:, None]).astype(np.float32)
+    cov = np.matmul(counts.transpose(0, 2, 1), counts * active[:, :, None])
+    _, vecs = np.linalg.eigh(cov.astype(np.float64))
+    axis = vecs[:, :, -1].astype(np.float32)
+    y = np.matmul(counts, axis[:, :, None])[:, :, 0].astype(np.float64)
+    y *= np.deg2rad(1.0) / ctx.lsb_per_dps  # counts -> rad/s
     # The sensor's true sample spacing (its clock runs off nominal by up to ~1 %).
     dt = (t_g[:, -1] - t_g[:, 0]) / (t_g.shape[1] - 1)
     out_end = t_send + pulse + 0.12
@@ -298,9 +301,8 @@ def _extract_chunk(
     )
 
     # Filtered speed (zero phase), coarse onset and delay.
-    filt = signal.filtfilt(
-        ctx.taps, [1.0], y, axis=1, padlen=min(3 * len(ctx.taps), y.shape[1] - 1)
-    )
+    # Zero phase: the FIR is symmetric (linear phase) and "same" centres its output.
+    filt = signal.oaconvolve(y, ctx.taps[None, :], mode="same", axes=1)
     level = ONSET_FRACTION * speed
     after = (t_g > t_send[:, None]) & (filt >= level[:, None])
     found = after.any(axis=1)
@@ -378,7 +380,7 @@ def _onset_fit(
     n, g = y.shape
     after = (t_g > t_send[:, None]) & (filt >= level[:, None])
     k = np.argmax(after, axis=1)
-    lo, hi = int(round(ONSET_WINDOW_S[0] / dt)), int(round(ONSET_WINDOW_S[1] / dt))
+    lo, hi = round(ONSET_WINDOW_S[0] / dt), round(ONSET_WINDOW_S[1] / dt)
     offs = np.arange(lo, hi + 1)
     idx = np.clip(k[:, None] + offs, 0, g - 1)
     yy = np.take_along_axis(y, idx, axis=1)
@@ -461,6 +463,15 @@ def _run_rows(
     with RecordingReader(path) as reader:
         chunk = {name: reader.read(name, rows=rows) for name in REQUIRED_FIELDS}
     return _extract_chunk(ctx, chunk, rows, method)
+
+
+def _extract_chunk(
+    ctx: _Context, chunk: dict[str, NDArray[Any]], rows: NDArray[np.int64], method: str
+) -> dict[str, NDArray[Any]]:
+    """Extract one chunk of trials. Unmeasurable trials carry NaN through the arithmetic
+    and are flagged at the end, so invalid-value warnings are expected and silenced."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _extract_chunk_inner(ctx, chunk, rows, method)
 
 
 def extract_recording(
