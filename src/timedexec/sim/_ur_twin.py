@@ -60,6 +60,7 @@ from timedexec.errors import ConfigError, DriverError, ProtocolError
 
 __all__ = [
     "DASHBOARD_PORT",
+    "DEFAULT_PHYSICS_RATE_HZ",
     "RTDE_PORT",
     "SCRIPT_PORT",
     "UR_CONTROLLER_VERSIONS",
@@ -298,10 +299,24 @@ class _SimLike(Protocol):
     def truth_records(self) -> list[dict[str, Any]]: ...
 
 
-def _default_sim_factory(robot: str, *, effects: Any, q0_rad: Any, seed: int) -> _SimLike:
+#: Physics rate of the default simulated controller in the twin, Hz: 4 kHz keeps one
+#: e-Series cycle well inside its 2 ms (8 kHz costs about 1.2 ms of CPU per cycle).
+DEFAULT_PHYSICS_RATE_HZ = 4000.0
+
+
+def _default_sim_factory(
+    robot: str,
+    *,
+    effects: Any,
+    q0_rad: Any,
+    seed: int,
+    physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
+) -> _SimLike:
     from timedexec.sim import _controller
 
-    sim: _SimLike = _controller.ControllerSim(robot, effects=effects, q0_rad=q0_rad, seed=seed)
+    sim: _SimLike = _controller.ControllerSim(
+        robot, effects=effects, q0_rad=q0_rad, seed=seed, physics_rate_hz=physics_rate_hz
+    )
     return sim
 
 
@@ -356,6 +371,8 @@ _TRUTH_OPEN_S = 10.0
 _LATE_S = 0.5e-3
 #: SCHED_FIFO priority of the twin's clock and sender threads (None: normal scheduling).
 _DEFAULT_RT_PRIORITY = 10
+#: Grid on which the gyro twin is handed the flange rate (its nominal sample rate), Hz.
+_GYRO_GRID_HZ = 8000.0
 #: Interpreter switch interval in the twin process: bounds how long the physics thread
 #: can delay the sender thread, s.
 _SWITCH_INTERVAL_S = 0.2e-3
@@ -593,6 +610,7 @@ class _TwinServer:
         truth_path: str | os.PathLike[str] | None = None,
         imu_link: str | None = None,
         sim_factory: str | Callable[..., _SimLike] | None = None,
+        physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
         rt_priority: int | None = _DEFAULT_RT_PRIORITY,
         log: Callable[[str], None] | None = None,
     ) -> None:
@@ -602,7 +620,14 @@ class _TwinServer:
         self.rt_priority = rt_priority
         self.version = UR_CONTROLLER_VERSIONS[robot]
         self._log = log or (lambda msg: print(f"[ur-twin {host}] {msg}", file=sys.stderr))
-        self.sim = _resolve_factory(sim_factory)(robot, effects=effects, q0_rad=q0_rad, seed=seed)
+        self._seed = seed
+        if sim_factory is None:
+            self.sim = _default_sim_factory(
+                robot, effects=effects, q0_rad=q0_rad, seed=seed, physics_rate_hz=physics_rate_hz
+            )
+        else:
+            factory = _resolve_factory(sim_factory)
+            self.sim = factory(robot, effects=effects, q0_rad=q0_rad, seed=seed)
         self.commands = _command_types(self.sim)
         self.period_s = float(self.sim.period_s)
         self.t0 = 0.0
@@ -642,7 +667,8 @@ class _TwinServer:
         # gyro twin
         self._imu_link = imu_link
         self._gyro: Any = None
-        self._rate_lock = threading.Lock()
+        self._rates_ready = threading.Condition()
+        self._rates_upto_s = -math.inf
         self._rate_t: list[np.ndarray] = []
         self._rate_w: list[np.ndarray] = []
         self._send_seq = 0
@@ -1103,31 +1129,42 @@ class _TwinServer:
         return values
 
     def _record_rates(self, result: Any) -> None:
+        """Keep the flange rate of the physics substeps for the gyro twin (last second)."""
+        if self._gyro is None:
+            return
         t = getattr(result, "substep_time_s", None)
         w = getattr(result, "flange_rate_rad_s", None)
-        if t is None or w is None or self._gyro is None:
+        if t is None or w is None:
             return
-        with self._rate_lock:
-            self._rate_t.append(np.asarray(t, dtype=float))
-            self._rate_w.append(np.asarray(w, dtype=float))
-            # keep about two seconds of history
-            keep = max(4, int(2.0 / self.period_s))
+        with self._rates_ready:
+            self._rate_t.append(np.asarray(t, dtype=np.float64))
+            self._rate_w.append(np.asarray(w, dtype=np.float64))
+            keep = max(4, int(1.0 / self.period_s))
             if len(self._rate_t) > keep:
                 del self._rate_t[:-keep]
                 del self._rate_w[:-keep]
+            self._rates_upto_s = float(self.sim.time_s)
+            self._rates_ready.notify_all()
 
-    def rate_source(self, t0_s: float, t1_s: float, times_s: Any = None) -> np.ndarray:
-        """Flange angular rate (n, 3), rad/s, interpolated at ``times_s`` (controller time)."""
-        with self._rate_lock:
+    def flange_rate(self, times_s: Any) -> np.ndarray:
+        """Physical flange angular rate at controller times ``times_s``, shape (n, 3), rad/s.
+
+        Linear interpolation between physics substeps; before the first recorded substep
+        and after the last the end values are held. Waits (at most two controller periods)
+        until the simulation has computed the requested times: a cycle computes its whole
+        period at once, shortly after the period starts.
+        """
+        times = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
+        latest = float(times.max()) if times.size else -math.inf
+        with self._rates_ready:
+            self._rates_ready.wait_for(
+                lambda: self._rates_upto_s >= latest or self.stop_event.is_set(),
+                timeout=2 * self.period_s,
+            )
             if not self._rate_t:
-                n = 0 if times_s is None else len(times_s)
-                return np.zeros((n, 3))
+                return np.zeros((times.size, 3))
             t = np.concatenate(self._rate_t)
             w = np.concatenate(self._rate_w)
-        if times_s is None:
-            mask = (t >= t0_s) & (t < t1_s)
-            return w[mask]
-        times = np.asarray(times_s, dtype=float)
         return np.stack([np.interp(times, t, w[:, i]) for i in range(3)], axis=1)
 
     def _write_truth(self) -> None:
@@ -1176,6 +1213,7 @@ class _TwinServer:
         self._truth_file.flush()
 
     def _start_gyro(self) -> None:
+        """Start the gyro twin (``timedexec.sim._gyro_twin``) fed by the flange rate."""
         if self._imu_link is None:
             return
         try:
@@ -1185,17 +1223,32 @@ class _TwinServer:
                 f"imu_link={self._imu_link!r} needs the gyro twin (timedexec.sim._gyro_twin), "
                 f"which is not available: {exc}"
             ) from exc
-        self._gyro = True  # start recording rates before the gyro reads them
-        t0 = self.t0
+        server = self
 
-        def rate_source(t_from: float, t_to: float) -> np.ndarray:
-            # The gyro twin asks in host time; the history is in controller time.
-            return self.rate_source(t_from - t0, t_to - t0)
+        def rate_source(t0_s: float, t1_s: float) -> np.ndarray:
+            # The gyro asks on its own time base (s since its start_time_s, host clock) for
+            # a grid of k values on [t0_s, t1_s); one per 8 kHz sample is exact.
+            k = max(1, math.ceil((t1_s - t0_s) * _GYRO_GRID_HZ - 1e-9))
+            base = gyro.start_time_s - server.t0
+            grid = base + t0_s + np.arange(k) * ((t1_s - t0_s) / k)
+            return server.flange_rate(grid)
 
-        self._gyro = gyro_mod.GyroTwin(rate_source, link_path=self._imu_link)
-        start = getattr(self._gyro, "start", None)
-        if callable(start):
-            start()
+        self._gyro = True  # record rates from the first cycle on
+        gyro = gyro_mod.GyroTwin(rate_source, link_path=self._imu_link, seed=self._seed)
+        gyro.start()
+        self._gyro = gyro
+        if self._truth_file is not None:
+            meta = {
+                "event": "gyro",
+                "link_path": self._imu_link,
+                "slave_path": gyro.slave_path,
+                "start_time_s": gyro.start_time_s,
+                "true_rate_hz": gyro.true_rate_hz,
+                "clock_error_ppm": gyro.clock_error_ppm,
+                "dlpf_group_delay_s": gyro.source.dlpf_group_delay_s,
+            }
+            self._truth_file.write(json.dumps(meta, sort_keys=True) + "\n")
+            self._truth_file.flush()
 
     def serve(self, *, ready: Callable[[dict[str, Any]], None] | None = None) -> None:
         """Run until :attr:`stop_event` is set (bind first)."""
@@ -1343,13 +1396,11 @@ class _TwinServer:
         self._listeners.clear()
         self.drop_connections()
         gyro, self._gyro = self._gyro, None
+        with self._rates_ready:
+            self._rates_ready.notify_all()
         if gyro is not None and gyro is not True:
-            for name in ("close", "stop"):
-                method = getattr(gyro, name, None)
-                if callable(method):
-                    with contextlib.suppress(Exception):
-                        method()
-                    break
+            with contextlib.suppress(Exception):
+                gyro.close()
         if self._truth_file is not None:
             with contextlib.suppress(OSError, ValueError):
                 self._truth_file.close()
@@ -1402,6 +1453,7 @@ def run_ur_twin(
     stop_event: threading.Event | Any | None = None,
     ready: Callable[[dict[str, Any]], None] | None = None,
     sim_factory: str | Callable[..., Any] | None = None,
+    physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
     rt_priority: int | None = _DEFAULT_RT_PRIORITY,
 ) -> None:
     """Serve a simulated UR controller until stopped (blocking; for ``timedexec serve``).
@@ -1432,6 +1484,9 @@ def run_ur_twin(
     sim_factory : callable or "module:callable", optional
         Builds the simulated controller (default :class:`timedexec.sim.ControllerSim`);
         called as ``factory(robot, effects=..., q0_rad=..., seed=...)``.
+    physics_rate_hz : float or None
+        Physics integration rate of the default simulated controller, Hz (None: the gyro's
+        8 kHz). 4 kHz keeps a 2 ms e-Series cycle at about a quarter of a core.
     rt_priority : int or None
         SCHED_FIFO priority for the twin's clock and sender threads when the OS allows it
         (Linux as root or with CAP_SYS_NICE; silently normal scheduling otherwise). A real
@@ -1447,6 +1502,7 @@ def run_ur_twin(
         truth_path=truth_path,
         imu_link=imu_link,
         sim_factory=sim_factory,
+        physics_rate_hz=physics_rate_hz,
         rt_priority=rt_priority,
     )
     server.bind()
@@ -1524,7 +1580,7 @@ class URTwin:
     host : str
         Loopback address to serve on; ports are fixed by the client (30004, 29999, 30003),
         so run one twin per address (127.0.0.2, 127.0.0.3, ... for parallel twins).
-    seed, effects, q0_rad, truth_path, imu_link, sim_factory, rt_priority
+    seed, effects, q0_rad, truth_path, imu_link, sim_factory, physics_rate_hz, rt_priority
         See :func:`run_ur_twin`. ``effects`` and ``sim_factory`` must be picklable.
     start_timeout_s : float
         How long to wait for the process to listen, s.
@@ -1555,6 +1611,7 @@ class URTwin:
         truth_path: str | os.PathLike[str] | None = None,
         imu_link: str | None = None,
         sim_factory: str | Callable[..., Any] | None = None,
+        physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
         rt_priority: int | None = _DEFAULT_RT_PRIORITY,
         start_timeout_s: float = 20.0,
     ) -> None:
@@ -1571,6 +1628,7 @@ class URTwin:
             "truth_path": None if truth_path is None else str(truth_path),
             "imu_link": imu_link,
             "sim_factory": sim_factory,
+            "physics_rate_hz": physics_rate_hz,
             "rt_priority": rt_priority,
         }
         self.start_timeout_s = float(start_timeout_s)
