@@ -1,5 +1,70 @@
-"""timedexec.sensors (see docs/architecture.md)."""
+"""timedexec.sensors: the gyro/IMU stream over pyserial (see docs/gyro-protocol.md).
+
+- Frames: :func:`encode_frames`, :class:`FrameParser` (vectorised, resynchronising).
+- Counter: :class:`CounterUnwrapper` (wraps, gaps), :func:`unwrap_counter` (offline).
+- Clock: :class:`SensorClock` (lower-envelope fit of host_time = a + b·n),
+  :func:`fit_clock_lower_envelope`, :func:`fit_clock_least_squares`.
+- Reader: :func:`open_gyro` -> :class:`GyroReader` (background thread, ring buffer,
+  zero-rate calibration), :class:`GyroSamples`, :class:`GyroStats`, :class:`GyroSettings`.
+"""
 
 from __future__ import annotations
 
-__all__: list[str] = []
+from timedexec.sensors._clock import (
+    ClockFit,
+    SensorClock,
+    fit_clock_least_squares,
+    fit_clock_lower_envelope,
+)
+from timedexec.sensors._frames import (
+    CRC8_POLY,
+    FRAME_SIZE,
+    SYNC,
+    FrameParser,
+    ParsedFrames,
+    crc8,
+    encode_frames,
+)
+from timedexec.sensors._reader import (
+    DLPF_GROUP_DELAY_S,
+    SENSITIVITY_LSB_PER_DPS,
+    SUPPORTED_URL_SCHEMES,
+    GyroReader,
+    GyroSamples,
+    GyroSettings,
+    GyroStats,
+    ZeroRateCalibration,
+    open_gyro,
+    raw_to_rad_s,
+)
+from timedexec.sensors._simport import SimGyroPort, parse_sim_url
+from timedexec.sensors._unwrap import CounterUnwrapper, UnwrapResult, unwrap_counter
+
+__all__ = [
+    "CRC8_POLY",
+    "DLPF_GROUP_DELAY_S",
+    "FRAME_SIZE",
+    "SENSITIVITY_LSB_PER_DPS",
+    "SUPPORTED_URL_SCHEMES",
+    "SYNC",
+    "ClockFit",
+    "CounterUnwrapper",
+    "FrameParser",
+    "GyroReader",
+    "GyroSamples",
+    "GyroSettings",
+    "GyroStats",
+    "ParsedFrames",
+    "SensorClock",
+    "SimGyroPort",
+    "UnwrapResult",
+    "ZeroRateCalibration",
+    "crc8",
+    "encode_frames",
+    "fit_clock_least_squares",
+    "fit_clock_lower_envelope",
+    "open_gyro",
+    "parse_sim_url",
+    "raw_to_rad_s",
+    "unwrap_counter",
+]
