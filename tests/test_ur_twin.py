@@ -491,3 +491,55 @@ def test_gyro_twin_measures_the_simulated_flange_rate(tmp_path: Path) -> None:
     # Same threshold as the truth: equal up to the noise (0.0055 rad/s std against a
     # ramp of >= 5 rad/s² is ~1 ms per sigma; 3 ms is 3 sigma) and the 0.25 ms physics step.
     assert abs(onset_gyro - rec["onset_s"][5]) < 0.003
+
+
+def test_run_ur_twin_serves_until_sigterm() -> None:
+    """The blocking entry point (for ``timedexec serve``) serves the client and exits
+    cleanly on SIGTERM."""
+    import signal
+    import subprocess
+    import sys
+
+    host = "127.0.0.28"
+    code = f"from timedexec.sim._ur_twin import run_ur_twin; run_ur_twin('ur10', {host!r})"
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
+    try:
+        recv = None
+        end = time.monotonic() + 20.0
+        while recv is None:
+            try:
+                recv = rtde_receive.RTDEReceiveInterface(host)
+            except RuntimeError:
+                assert time.monotonic() < end, "run_ur_twin did not start listening"
+                time.sleep(0.2)
+        _, stamp = wait_fresh(recv)
+        assert stamp > 0
+        recv.disconnect()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_upper_range_registers() -> None:
+    """With FLAG_UPPER_RANGE_REGISTERS the client uses registers 24+; the twin follows."""
+    host = "127.0.0.29"
+    flags = (
+        rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+        | rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
+    )
+    with URTwin("ur10e", host):
+        ctrl = rtde_control.RTDEControlInterface(host, -1.0, flags)
+        recv = rtde_receive.RTDEReceiveInterface(host)
+        try:
+            assert ctrl.speedJ([0.2, 0, 0, 0, 0, 0], 4.0, 0.0)
+            time.sleep(0.3)
+            assert recv.getActualQd()[0] == pytest.approx(0.2, rel=0.02)  # servo settled
+            assert ctrl.speedStop(5.0)
+            assert ctrl.isSteady()
+        finally:
+            ctrl.stopScript()
+            ctrl.disconnect()
+            recv.disconnect()

@@ -536,6 +536,10 @@ class _RTDEConnection:
                 return
             recipe_id = len(self.input_recipes) + 1
             self.input_recipes[recipe_id] = _Recipe.build(recipe_id, names, _INPUT_TYPES)
+            if recipe_id == 1 and names[0] in ("input_int_register_0", "input_int_register_24"):
+                # ur_rtde's first recipe starts with the command register: 24 means the
+                # client uses the upper register range (FLAG_UPPER_RANGE_REGISTERS).
+                server.set_register_offset(int(names[0].rsplit("_", 1)[1]))
             self.reply(kind, bytes([recipe_id]) + ",".join(types).encode())
         elif kind == _RTDE_CONTROL_PACKAGE_START:
             self.started = self.output_recipe is not None
@@ -771,6 +775,11 @@ class _TwinServer:
                     self._owners[n] = conn_id
             return taken
 
+    def set_register_offset(self, offset: int) -> None:
+        """Command registers at ``offset`` (0, or 24 for the upper range)."""
+        with self._lock:
+            self._register_offset = offset
+
     def write_inputs(self, arrival_s: float, values: dict[str, Any]) -> None:
         with self._lock:
             self._write_counter += 1
@@ -888,10 +897,7 @@ class _TwinServer:
             self._forget(client)
 
     def _program_uploaded(self, program: str) -> None:
-        offset = 24 if "input_int_register(24)" in program.replace(" ", "") else None
         with self._lock:
-            if offset is not None:
-                self._register_offset = offset
             self._program_start_s = time.monotonic() - self.t0 + _PROGRAM_START_DELAY_S
         self.log(f"program uploaded ({len(program)} characters); starting it")
 
@@ -1254,6 +1260,9 @@ class _TwinServer:
         """Run until :attr:`stop_event` is set (bind first)."""
         if not self._listeners:
             self.bind()
+        # Real-time priority for this thread before any other starts: threads inherit it,
+        # so no normal-priority thread can hold the GIL while preempted (priority inversion).
+        self.stats["realtime"] = _try_realtime(self.rt_priority)
         self.t0 = time.monotonic() + 0.005
         self._write_meta()
         self._start_gyro()
@@ -1326,7 +1335,6 @@ class _TwinServer:
         """Put each package on the wire at its send time (own thread, so a long cycle
         computation does not delay it beyond the interpreter's switch interval)."""
         _set_timer_slack_ns(1000)
-        _try_realtime(self.rt_priority)
         while True:
             item = self._send_queue.get()
             if item is None:
@@ -1359,7 +1367,6 @@ class _TwinServer:
         on the wire at its send time.
         """
         _set_timer_slack_ns(1000)
-        self.stats["realtime"] = _try_realtime(self.rt_priority)
         sim = self.sim
         truth_every = max(1, round(0.01 / self.period_s))
         sender = threading.Thread(target=self._sender_loop, name="twin-sender", daemon=True)
