@@ -10,9 +10,11 @@ offers no callback or blocking read to Python. :meth:`URDriver.read_state` there
 ``getTimestamp()`` every ``poll_interval_s`` (default 50 µs) and returns a package as soon
 as the controller time stamp changes, stamping it with :func:`time.monotonic` at that
 moment. The host stamp is late by the client thread's own polling (it sleeps 100 µs when
-the socket is empty), this driver's polling interval and the Python call overhead: about
-0.05-0.25 ms in total on an idle machine (``tests/test_ur_driver.py`` measures it against
-the UR twin's known send times). Packages the caller does not read in time are replaced by
+the socket is empty), this driver's polling interval and the Python call overhead. Against
+the UR twin the stamp follows the simulated send time by a median 0.4-0.6 ms and a 99th
+percentile of 1.5-2.5 ms on a two-vCPU VM (``tests/test_ur_driver.py`` asserts a median
+below 1 ms); that figure also contains the twin's own sender wake-up (~0.1-0.2 ms), so the
+driver's share is a few hundred µs. Packages the caller does not read in time are replaced by
 newer ones inside ``ur_rtde``; :attr:`RobotState.sequence` is derived from the controller
 time stamp, so such losses show up as gaps.
 """
