@@ -33,6 +33,7 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"timedexec {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_simulate(sub)
+    _add_calibrate(sub)
     _add_extract(sub)
     _add_demo(sub)
     return parser
@@ -118,6 +119,106 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if info["truth"]:
         text += f"; ground truth in {info['truth']}"
     _emit(info, args, text)
+    return 0
+
+
+def _add_calibrate(sub: Any) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="run a calibration sweep on a robot (or a simulated one) with a gyro",
+        formatter_class=_Formatter,
+        description=(
+            "Run calibration trials through a robot driver with the gyro on the flange and "
+            "record them (HDF5, resumable): per trial wait until still, send the single-joint "
+            "command on the arrival of a state package, record every package (raw and parsed) "
+            "and the gyro stream. A still recording opens the sweep.\n\n"
+            "Robot URLs: sim://ur10 (simulator, virtual time), ur://HOST (ur_rtde), "
+            "rsi://PORT (KUKA RSI, this PC listens on the UDP port). --imu: a serial port "
+            "(/dev/ttyUSB0, a pty) or sim:// (required for real robots; sim:// robots bring "
+            "their own virtual gyro).\n\n"
+            "examples:\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
+            "--out cal.h5\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu "
+            "/dev/ttyUSB0 --trials 33500 --seed 1 --out ur10.h5 --resume"
+        ),
+    )
+    p.add_argument("--robot-url", required=True, help="sim://ROBOT, ur://HOST or rsi://PORT")
+    p.add_argument("--imu", help="gyro URL (serial device, pty path)")
+    p.add_argument("--robot", help="robot spec for ur:// and rsi:// (ur10, ur10e, kr5)")
+    p.add_argument("--trials", type=int, help="number of trials (with --seed)")
+    p.add_argument("--seed", type=int, default=0, help="plan seed")
+    p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
+    p.add_argument("--out", required=True, help="recording to write (HDF5)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted sweep")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from urllib.parse import urlsplit
+
+    import numpy as np
+
+    from timedexec.calibration import run_calibration
+    from timedexec.drivers import open_driver
+    from timedexec.sim import SweepPlan, default_settings
+
+    scheme = urlsplit(args.robot_url).scheme
+    robot = args.robot
+    if scheme == "sim":
+        robot = robot or (urlsplit(args.robot_url).netloc or "ur10")
+    elif robot is None:
+        robot = "kr5" if scheme == "rsi" else "ur10"
+    settings = default_settings(robot)
+    if (args.trials is None) == (args.plan is None):
+        raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
+    if args.plan:
+        try:
+            arrays = dict(np.load(args.plan, allow_pickle=False))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"--plan {args.plan}: cannot read it ({exc})") from exc
+        plan = SweepPlan.from_arrays(settings.robot, arrays)
+    else:
+        if args.trials < 1:
+            raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
+        plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
+    options = {"seed": args.seed} if scheme == "sim" else {}
+    driver = open_driver(args.robot_url, **options)
+    with driver:
+        if scheme == "sim" and not args.imu:
+            gyro: Any = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
+            result = run_calibration(
+                driver,
+                gyro,
+                plan,
+                args.out,
+                settings=settings,
+                resume=args.resume,
+                progress=not args.quiet,
+                source=args.robot_url,
+            )
+        else:
+            if not args.imu:
+                raise ConfigError("--imu is required for real robots: give the gyro's serial port")
+            from timedexec.sensors import open_gyro
+
+            with open_gyro(args.imu) as gyro:
+                result = run_calibration(
+                    driver,
+                    gyro,
+                    plan,
+                    args.out,
+                    settings=settings,
+                    resume=args.resume,
+                    progress=not args.quiet,
+                    source=args.robot_url,
+                )
+    info = result.summary()
+    _emit(
+        info,
+        args,
+        f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}",
+    )
     return 0
 
 

@@ -1,5 +1,7 @@
-"""timedexec.calibration (see docs/architecture.md)."""
+"""timedexec.calibration: the live trial runner (any driver + gyro) writing recordings."""
 
 from __future__ import annotations
 
-__all__: list[str] = []
+from timedexec.calibration._runner import CalibrationResult, GyroSource, run_calibration
+
+__all__ = ["CalibrationResult", "GyroSource", "run_calibration"]

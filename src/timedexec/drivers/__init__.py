@@ -1,7 +1,43 @@
-"""timedexec.drivers: one RobotDriver interface over ur_rtde, KUKA RSI and the simulator."""
+"""timedexec.drivers: one RobotDriver interface over ur_rtde, KUKA RSI and the simulator.
+
+Drivers are chosen by URL with :func:`open_driver`; the vendor drivers import their client
+libraries only when used.
+"""
 
 from __future__ import annotations
 
-from timedexec.drivers._base import RobotDriver, RobotState
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["RobotDriver", "RobotState"]
+from timedexec.drivers._base import RobotDriver, RobotState
+from timedexec.drivers._url import SCHEMES, open_driver
+
+if TYPE_CHECKING:
+    from timedexec.drivers._rsi import KukaRSIDriver
+    from timedexec.drivers._sim import SimDriver, VirtualGyro
+    from timedexec.drivers._ur import URDriver
+
+__all__ = [
+    "SCHEMES",
+    "KukaRSIDriver",
+    "RobotDriver",
+    "RobotState",
+    "SimDriver",
+    "URDriver",
+    "VirtualGyro",
+    "open_driver",
+]
+
+_LAZY = {
+    "SimDriver": "timedexec.drivers._sim",
+    "VirtualGyro": "timedexec.drivers._sim",
+    "URDriver": "timedexec.drivers._ur",
+    "KukaRSIDriver": "timedexec.drivers._rsi",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'timedexec.drivers' has no attribute {name!r}")

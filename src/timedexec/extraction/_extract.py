@@ -81,6 +81,7 @@ class _Context:
     latency_s: float  # transport latency + group delay, subtracted from fitted sample times
     taps: FloatArray
     windows: tuple[FloatArray, FloatArray, FloatArray]  # (t_start, n_ref, host time) per window
+    window_session: NDArray[np.int64]  # session of each window
     clock_period_s: FloatArray  # per window
     clock_offset: FloatArray  # per window: host time at n_ref
     n_first: FloatArray  # unwrapped index of each recorded row's first sample
@@ -169,27 +170,41 @@ def _context(
         n_still[block - 1 :: block][: len(still_blocks)], still_blocks, nominal_rate_hz=fs
     )
 
-    # Sweep-wide unwrap of every row's first sample, in time order.
+    # Unwrap every row's first sample, per session (a resumed run is a new gyro stream and
+    # host clock), in time order; the still recording anchors session 0.
     t0 = reader.read("t0_s")
-    first_counter = reader.read("gyro_counter", rows=None)[:, 0].astype(np.int64)
+    session = reader.read("session") if "session" in reader.fields else np.zeros(len(t0), np.int64)
+    first_counter = np.concatenate(
+        [c["gyro_counter"][:, 0] for c in reader.iter_chunks(4096, names=["gyro_counter"])]
+    ).astype(np.int64)
     blocks = reader.read("gyro_block_host_time_s").astype(np.float64)
-    order = np.argsort(t0)
-    first_time = t0 + blocks[:, 0]  # arrival of block 0 (its last sample is index block-1)
+    first_time = t0 + blocks[:, 0] - (block - 1) / still_fit.rate_hz  # ~ arrival of sample 0
     n_first = np.empty(len(t0), dtype=np.int64)
-    n_first[order] = _unwrap_rows(
-        first_counter[order],
-        first_time[order] - (block - 1) / still_fit.rate_hz,
-        int(n_still[-1]),
-        float(still_fit.to_host_time(n_still[-1])[()]),
-        still_fit.rate_hz,
-    )
+    for sess in np.unique(session):
+        rows = np.flatnonzero(session == sess)
+        rows = rows[np.argsort(t0[rows])]
+        if sess == session.min():
+            anchor_n = int(n_still[-1])
+            anchor_t = float(still_fit.to_host_time(n_still[-1])[()])
+        else:  # a new stream: its first trial anchors it
+            anchor_n, anchor_t = int(first_counter[rows[0]]), float(first_time[rows[0]])
+        n_first[rows] = _unwrap_rows(
+            first_counter[rows], first_time[rows], anchor_n, anchor_t, still_fit.rate_hz
+        )
 
-    # Clock fits per time window (lower envelope of block arrivals).
+    # Clock fits per session and time window (lower envelope of block arrivals).
     n_blocks = blocks.shape[1]
     block_last = n_first[:, None] + (np.arange(n_blocks) + 1) * block - 1
     block_time = t0[:, None] + blocks
-    edges = np.arange(t0.min(), t0.max() + clock_window_s, clock_window_s)
-    win = np.clip(np.searchsorted(edges, t0, side="right") - 1, 0, len(edges) - 1)
+    edges_list, sess_list = [], []
+    for sess in np.unique(session):
+        ts = t0[session == sess]
+        e = np.arange(ts.min(), ts.max() + clock_window_s, clock_window_s)
+        edges_list.append(e)
+        sess_list.append(np.full(len(e), sess))
+    edges = np.concatenate(edges_list)
+    edge_session = np.concatenate(sess_list)
+    win = _window_of(edges, edge_session, t0, session)
     periods = np.empty(len(edges))
     offsets = np.empty(len(edges))
     refs = np.empty(len(edges))
@@ -209,7 +224,10 @@ def _context(
             t_pts = np.r_[still_blocks, t_pts]
         fit = fit_clock_lower_envelope(n_pts, t_pts, nominal_rate_hz=fs)
         periods[w], offsets[w], refs[w] = fit.period_s, fit.t_ref_s, fit.n_ref
-    overall = fit_clock_lower_envelope(block_last.ravel(), block_time.ravel(), nominal_rate_hz=fs)
+    main = session == session.min()
+    overall = fit_clock_lower_envelope(
+        block_last[main].ravel(), block_time[main].ravel(), nominal_rate_hz=fs
+    )
 
     # Filter from the PSDs (a few trials' motion against the still noise).
     sample_rows = np.linspace(0, reader.n_trials - 1, min(32, reader.n_trials)).astype(int)
@@ -229,6 +247,7 @@ def _context(
         latency_s=latency,
         taps=taps,
         windows=(edges, refs, offsets),
+        window_session=edge_session,
         clock_period_s=periods,
         clock_offset=offsets,
         n_first=n_first.astype(np.float64),
@@ -237,12 +256,29 @@ def _context(
     return ctx, still, cutoff, overall.rate_hz
 
 
+def _window_of(
+    edges: FloatArray, edge_session: NDArray[np.int64], t0: FloatArray, session: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """Index of the clock-fit window (same session, last start <= t0) of each row."""
+    out = np.empty(len(t0), dtype=np.int64)
+    for sess in np.unique(session):
+        idx = np.flatnonzero(edge_session == sess)
+        rows = session == sess
+        k = np.clip(np.searchsorted(edges[idx], t0[rows], side="right") - 1, 0, len(idx) - 1)
+        out[rows] = idx[k]
+    return out
+
+
 def _sample_times(
-    ctx: _Context, rows: NDArray[np.int64], t0: FloatArray, counters: NDArray[Any]
+    ctx: _Context,
+    rows: NDArray[np.int64],
+    t0: FloatArray,
+    counters: NDArray[Any],
+    session: NDArray[np.int64],
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Trial time of every gyro sample (physical instant it describes) and a gap flag."""
     edges, refs, offsets = ctx.windows
-    w = np.clip(np.searchsorted(edges, t0, side="right") - 1, 0, len(edges) - 1)
+    w = _window_of(edges, ctx.window_session, t0, session)
     c = counters.astype(np.int32)
     steps = np.diff(c, axis=1) % 65536
     gap = np.any(steps != 1, axis=1)
@@ -270,7 +306,8 @@ def _extract_chunk_inner(
     pulse = 2 * prof["speed_rad_s"] / accel + prof["hold_s"]
     flag = np.full(n, "", dtype=object)
 
-    t_g, gyro_gap = _sample_times(ctx, rows, t0, chunk["gyro_counter"])
+    session = chunk["session"] if "session" in chunk else np.zeros(n, np.int64)
+    t_g, gyro_gap = _sample_times(ctx, rows, t0, chunk["gyro_counter"], session)
     raw = chunk["gyro_raw"]
     clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2))
     counts = raw.astype(np.float32)
@@ -461,7 +498,8 @@ def _run_rows(
     path: str, ctx: _Context, rows: NDArray[np.int64], method: str
 ) -> dict[str, NDArray[Any]]:
     with RecordingReader(path) as reader:
-        chunk = {name: reader.read(name, rows=rows) for name in REQUIRED_FIELDS}
+        names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
+        chunk = {name: reader.read(name, rows=rows) for name in names}
     return _extract_chunk(ctx, chunk, rows, method)
 
 
