@@ -33,6 +33,7 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"timedexec {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_simulate(sub)
+    _add_serve(sub)
     _add_calibrate(sub)
     _add_extract(sub)
     _add_demo(sub)
@@ -119,6 +120,75 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if info["truth"]:
         text += f"; ground truth in {info['truth']}"
     _emit(info, args, text)
+    return 0
+
+
+def _add_serve(sub: Any) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run a protocol twin: a simulated UR or KUKA controller on the network",
+        formatter_class=_Formatter,
+        description=(
+            "Serve a simulated robot controller that real clients talk to: for ur10/ur10e a "
+            "UR controller (RTDE on 30004, dashboard on 29999, script port 30003) for the "
+            "ur_rtde client; for kr5 a KUKA controller sending RSI XML over UDP to the PC's "
+            "port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro on the "
+            "flange streams over a pseudo-terminal linked at that path. Runs until Ctrl-C. "
+            "Binds 127.0.0.1 unless told otherwise.\n\n"
+            "examples:\n  timedexec serve --robot ur10 --imu-link /tmp/gyro\n"
+            "  timedexec calibrate --robot-url ur://127.0.0.1 --imu /tmp/gyro --trials 20 "
+            "--out ur.h5\n  timedexec serve --robot kr5 --rsi-port 49152"
+        ),
+    )
+    p.add_argument("--robot", required=True, choices=ROBOT_NAMES, help="simulated robot")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (UR) / to send to (RSI)")
+    p.add_argument("--imu-link", help="path for a symlink to the gyro's pseudo-terminal")
+    p.add_argument("--truth", help="write ground truth (JSON lines) here")
+    p.add_argument("--rsi-port", type=int, default=49152, help="the PC's RSI UDP port (kr5)")
+    p.add_argument("--period", type=float, help="RSI period, s (kr5: 0.012 or 0.004)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.set_defaults(func=_cmd_serve)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.robot.startswith("ur"):
+        from timedexec.sim import run_ur_twin
+
+        print(f"serving a simulated {args.robot} on {args.host} (Ctrl-C stops)", file=sys.stderr)
+        try:
+            run_ur_twin(
+                args.robot,
+                args.host,
+                seed=args.seed,
+                truth_path=args.truth,
+                imu_link=args.imu_link,
+                stop_event=stop,
+            )
+        except KeyboardInterrupt:
+            pass
+        return 0
+    from timedexec.sim import RSITwin
+
+    options: dict[str, Any] = {"host": args.host, "seed": args.seed, "truth_path": args.truth}
+    if args.period:
+        options["period_s"] = args.period
+    if args.imu_link:
+        raise ConfigError("--imu-link is available for the UR twin; the RSI twin has no gyro yet")
+    with RSITwin(args.rsi_port, **options):
+        print(
+            f"sending RSI frames of a simulated kr5 to {args.host}:{args.rsi_port} (Ctrl-C stops)",
+            file=sys.stderr,
+        )
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
     return 0
 
 

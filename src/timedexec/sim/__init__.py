@@ -7,6 +7,8 @@ the recording format.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from timedexec.sim._controller import (
     ControllerSim,
     CycleResult,
@@ -29,8 +31,40 @@ from timedexec.sim._settings import (
     default_settings,
 )
 
+if TYPE_CHECKING:
+    from timedexec.sim._gyro_twin import GyroFrameSource, GyroTwin
+    from timedexec.sim._rsi_twin import RSITwin, read_rsi_truth
+    from timedexec.sim._ur_twin import URTwin, read_truth, run_ur_twin
+
+# Protocol twins load on first use: they pull in sockets, multiprocessing and pty code.
+_LAZY = {
+    "URTwin": "timedexec.sim._ur_twin",
+    "run_ur_twin": "timedexec.sim._ur_twin",
+    "read_truth": "timedexec.sim._ur_twin",
+    "RSITwin": "timedexec.sim._rsi_twin",
+    "read_rsi_truth": "timedexec.sim._rsi_twin",
+    "GyroTwin": "timedexec.sim._gyro_twin",
+    "GyroFrameSource": "timedexec.sim._gyro_twin",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'timedexec.sim' has no attribute {name!r}")
+
+
 __all__ = [
     "ControllerSim",
+    "GyroFrameSource",
+    "GyroTwin",
+    "RSITwin",
+    "URTwin",
+    "read_rsi_truth",
+    "read_truth",
+    "run_ur_twin",
     "CycleResult",
     "GyroSettings",
     "JointBank",

@@ -434,21 +434,29 @@ class ControllerSim:
         return new_q, new_v, pos_mode
 
     # ------------------------------------------------------------------ the cycle
-    def cycle(self) -> CycleResult:
-        """Advance one controller period; see :class:`CycleResult`."""
-        period, k = self.period_s, self.cycle_index
-        t_boundary = self.time_s
+    def peek_packet(self) -> StatePacket:
+        """The package the next :meth:`cycle` returns: the state sampled at the current
+        boundary and its send time. Twins use it to put a package on the wire before the
+        cycle's physics is computed when the packing phase is shorter than that."""
+        t = self.time_s
         bank = self._bank
-        packet = StatePacket(
-            cycle=k,
-            sample_time_s=t_boundary,
-            send_time_s=t_boundary + self.packing_phase_s(t_boundary) + self._extra_s,
+        return StatePacket(
+            cycle=self.cycle_index,
+            sample_time_s=t,
+            send_time_s=t + self.packing_phase_s(t) + self._extra_s,
             q_rad=bank.q.copy(),
             qd_rad_s=bank.v.copy(),
             q_target_rad=self._ref_q.copy(),
             qd_target_rad_s=self._ref_v.copy(),
             moving=bool(np.any(np.abs(self._ref_v) > 1e-9) or not np.all(bank.stuck)),
         )
+
+    def cycle(self) -> CycleResult:
+        """Advance one controller period; see :class:`CycleResult`."""
+        period, k = self.period_s, self.cycle_index
+        t_boundary = self.time_s
+        bank = self._bank
+        packet = self.peek_packet()
         # Intake: the register as it stands at this boundary.
         if self._pending_register is not None:
             cmd, cid = self._pending_register
