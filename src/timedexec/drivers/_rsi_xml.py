@@ -26,12 +26,12 @@ The bytes come from the network, so parsing is defensive:
   a document type declaration is rejected the moment expat meets it, so no entity (internal
   "billion laughs" or external) can be declared, let alone expanded; undefined entity
   references are expat well-formedness errors. Nesting deeper than 8 levels is rejected.
-  Why not :func:`defusedxml.ElementTree.fromstring` itself: it gives the same guarantees but
-  builds a full tree through the pure-Python ``XMLParser`` (about 26 µs before any value is
-  read); collecting only the root and its direct children with expat's C callbacks parses a
-  typical frame in about 20-35 µs *including* the number conversion, which matters for the
-  answer latency at 4 ms (``IPO_FAST``). The test suite runs the same hostile payloads
-  through both and checks that this parser rejects everything defusedxml rejects;
+  Why not :func:`defusedxml.ElementTree.fromstring` itself: it gives the same guarantees
+  but builds a full tree through the pure-Python ``XMLParser``; collecting only the root
+  and its direct children in expat's callbacks takes half the time (measured by
+  ``benchmarks/bench_rsi_xml.py``: 2.0x for the XML stage and for the whole parse, about
+  35 µs against 70 µs per frame), time the answer thread holds the GIL in every cycle. The
+  test suite runs the hostile payloads through both and checks that both refuse them;
 * numbers must match a plain ASCII decimal grammar and be finite (Python's ``float`` would
   also accept ``nan``, ``inf`` and ``1_0``; ``int`` would accept Unicode digits);
 * every failure, whatever its cause, leaves as :class:`~timedexec.errors.ProtocolError`

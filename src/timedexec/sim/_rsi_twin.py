@@ -164,7 +164,9 @@ class RSITwinConfig:
     legacy_empty_frame : bool
         Send RSI <= 2.3's empty ``<Rob>`` frame before the first real one.
     send_cartesian : bool
-        Include ``RIst``/``RSol`` (flange pose from forward kinematics, DH base frame).
+        Include ``RIst``/``RSol``: the flange pose of the actual / set-point axis angles
+        from forward kinematics, in the spec's DH base frame (X, Y, Z and KUKA's A, B, C
+        as Z-Y-X Euler angles).
     max_duration_s : float
         Safety limit: RSI stops ("max_duration") after this much controller time.
     settle_s : float
@@ -382,6 +384,7 @@ class _Frame:
     q_rad: FloatArray = dataclasses.field(compare=False)
     q_set_rad: FloatArray = dataclasses.field(compare=False)
     cart: FloatArray | None = dataclasses.field(compare=False)
+    cart_set: FloatArray | None = dataclasses.field(compare=False)
     ready_s: float = dataclasses.field(compare=False, default=math.nan)
 
 
@@ -535,7 +538,9 @@ class _Engine:
     def _make_frame(
         self, k: int, t: float, send: float, q: FloatArray, q_set: FloatArray
     ) -> _Frame:
-        cart = _flange_pose(self.spec, q) if self.cfg.send_cartesian else None
+        send_cart = self.cfg.send_cartesian
+        cart = _flange_pose(self.spec, q) if send_cart else None
+        cart_set = _flange_pose(self.spec, q_set) if send_cart else None
         return _Frame(
             send_time_s=send,
             cycle=k,
@@ -544,6 +549,7 @@ class _Engine:
             q_rad=q.copy(),
             q_set_rad=q_set.copy(),
             cart=cart,
+            cart_set=cart_set,
         )
 
     # ---------------------------------------------------------------- physics thread
@@ -722,7 +728,7 @@ class _Engine:
             frame.q_rad,
             aspos_rad=frame.q_set_rad,
             rist=frame.cart,
-            rsol=frame.cart,
+            rsol=frame.cart_set,
             delay=self.late,
         )
         now = time.monotonic()
