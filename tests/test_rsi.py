@@ -622,6 +622,36 @@ def test_correction_beyond_the_rsi_limit_stops_rsi() -> None:
     assert "2.0000 deg" in final.detail
 
 
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def test_no_pc_means_rsitimeout_unless_waiting_for_it() -> None:
+    """With nobody answering, RSI stops with RSITimeout after Timeout cycles (here 20), as
+    on KSS; with wait_for_pc the late counter starts only with the first answer, so a
+    driver started later finds RSI running."""
+    lonely_port, later_port = _free_udp_port(), _free_udp_port()
+    with RSITwin(lonely_port, timeout_packets=20) as lonely, RSITwin(
+        later_port, timeout_packets=20, wait_for_pc=True
+    ) as patient:
+        status = lonely.wait_stopped(10.0)
+        assert status.reason == "RSITimeout"
+        assert status.late_count == 20
+        end = time.monotonic() + 10.0
+        while patient.status().frames_sent <= 30 and time.monotonic() < end:
+            time.sleep(0.01)
+        waiting = patient.status()
+        assert waiting.running
+        assert waiting.late_count == 0
+        assert waiting.frames_sent > 30  # more frames than Timeout went unanswered
+        with KukaRSIDriver(later_port) as drv:
+            _states_until(drv, 0.1)
+            assert patient.status().running
+            assert patient.status().answers_in_time > 0
+
+
 def test_ipo_fast_legacy_empty_frame_and_ipoc_step() -> None:
     """At 4 ms (IPO_FAST) the IPOC advances by 4 per frame (KR C4 ms stamps) and the
     controller times are 4 ms apart; RSI <= 2.3's initial empty frame is ignored; RIst is
@@ -647,7 +677,9 @@ def test_ipo_fast_legacy_empty_frame_and_ipoc_step() -> None:
 
 def test_twin_config_round_trip_and_validation() -> None:
     """RSITwinConfig round-trips through a JSON dict and refuses bad settings."""
-    cfg = RSITwinConfig(port=50000, period_s=0.004, q0_rad=tuple(Q0), timeout_packets=20)
+    cfg = RSITwinConfig(
+        port=50000, period_s=0.004, q0_rad=tuple(Q0), timeout_packets=20, max_duration_s=5.0
+    )
     again = RSITwinConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
     assert again == cfg
     assert cfg.ipoc_increment == 4

@@ -167,8 +167,15 @@ class RSITwinConfig:
         Include ``RIst``/``RSol``: the flange pose of the actual / set-point axis angles
         from forward kinematics, in the spec's DH base frame (X, Y, Z and KUKA's A, B, C
         as Z-Y-X Euler angles).
-    max_duration_s : float
-        Safety limit: RSI stops ("max_duration") after this much controller time.
+    max_duration_s : float or None
+        Optional safety limit: RSI stops ("max_duration") after this much controller time;
+        ``None`` (default) runs until stopped.
+    wait_for_pc : bool
+        ``False`` (default, as KSS): late cycles count from the first frame, so a PC that is
+        not up yet makes RSI stop with RSITimeout after ``timeout_packets`` cycles.
+        ``True``: frames go out, but the late counter starts with the first answer in time
+        (like an operator who starts the robot program once the PC is listening); for
+        long-running servers such as ``timedexec serve``.
     settle_s : float
         After RSI stops, the physics runs on (faster than real time) until the robot is
         still or this much controller time passed, so the ground truth is complete.
@@ -197,7 +204,8 @@ class RSITwinConfig:
     max_correction_deg: tuple[float, ...] = (90.0,) * 6
     legacy_empty_frame: bool = False
     send_cartesian: bool = True
-    max_duration_s: float = 600.0
+    max_duration_s: float | None = None
+    wait_for_pc: bool = False
     settle_s: float = 1.0
     truth_path: str | None = None
     controller_factory: str | None = None
@@ -241,6 +249,8 @@ class RSITwinConfig:
         object.__setattr__(self, "max_correction_deg", tuple(float(x) for x in limits))
         for name in ("max_duration_s", "settle_s"):
             value = getattr(self, name)
+            if value is None and name == "max_duration_s":
+                continue
             if not (isinstance(value, (int, float)) and value >= 0 and math.isfinite(value)):
                 raise ConfigError(f"{name}={value!r} must be a finite number of s >= 0")
         try:
@@ -476,6 +486,7 @@ class _Engine:
             collections.OrderedDict()
         )
         self.last_applied_ipoc = -1
+        self.pc_seen = not cfg.wait_for_pc
         self.late = 0
         self.late_total = 0
         self.corr_total = np.zeros(6)
@@ -571,7 +582,7 @@ class _Engine:
         stop_decel = float(max(self.spec.qdd_max_rad_s2))
         while not self.rsi_stopped.is_set():
             boundary = float(sim.time_s)
-            if boundary > self.cfg.max_duration_s:
+            if self.cfg.max_duration_s is not None and boundary > self.cfg.max_duration_s:
                 self.stop_rsi("max_duration", f"ran {self.cfg.max_duration_s} s")
                 break
             frame = self._peek()
@@ -708,6 +719,8 @@ class _Engine:
                 return
             with self.lock:
                 del pending[ipoc]
+            if not self.pc_seen:
+                continue  # wait_for_pc: the robot program has not "started" yet
             self.late += 1
             self.late_total += 1
             self._set(_S_LATE, self.late)
@@ -809,6 +822,7 @@ class _Engine:
                 self._inc(_S_STALE)
                 continue
             self._inc(_S_ANSWERS)
+            self.pc_seen = True
             if self.cfg.late_counter == "consecutive" and self.late:
                 self.late = 0
                 self._set(_S_LATE, 0)
