@@ -30,6 +30,7 @@ from timedexec.sim._settings import (
     TrialProfile,
     default_settings,
 )
+from timedexec.sim._sweep import simulate_delays, simulate_sweep, truth_table
 
 if TYPE_CHECKING:
     from timedexec.sim._gyro_twin import GyroFrameSource, GyroTwin
@@ -58,18 +59,14 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "ControllerSim",
-    "GyroFrameSource",
-    "GyroTwin",
-    "RSITwin",
-    "URTwin",
-    "read_rsi_truth",
-    "read_truth",
-    "run_ur_twin",
     "CycleResult",
+    "GyroFrameSource",
     "GyroSettings",
+    "GyroTwin",
     "JointBank",
     "JointParams",
     "MoveJ",
+    "RSITwin",
     "ServoJ",
     "ServoSettings",
     "SimSettings",
@@ -81,7 +78,14 @@ __all__ = [
     "TimingSettings",
     "TrialProfile",
     "TruthEvent",
+    "URTwin",
     "calibration_ranges",
     "default_settings",
     "pulse_profile",
+    "read_rsi_truth",
+    "read_truth",
+    "run_ur_twin",
+    "simulate_delays",
+    "simulate_sweep",
+    "truth_table",
 ]

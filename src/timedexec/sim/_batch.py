@@ -128,11 +128,16 @@ def simulate_block(
     clock: SweepClock,
     rows: NDArray[np.int64],
     seed: int,
+    *,
+    truth_only: bool = False,
 ) -> dict[str, NDArray[Any]]:
     """Simulate the trials ``rows`` (plan indices of one random block).
 
     Returns a batch for :meth:`RecordingWriter.append`: every per-trial field of the
     recording (see ``docs/recording-format.md``) with a leading axis ``len(rows)``.
+    ``truth_only=True`` returns only ``trial``, ``t0_s`` and the ``true_*`` fields and stops
+    integrating once every onset is found (for learning, discrepancy and evaluation work
+    that needs many delays fast); the delays are identical to a full run's.
     """
     rng = np.random.default_rng([seed, 1, int(rows[0])])
     n = len(rows)
@@ -207,6 +212,8 @@ def simulate_block(
     while i < n_phys:
         v_hist[i] = bank.v
         q_hist[i] = bank.q
+        if truth_only and i % 32 == 0 and not np.isnan(bank.onset_s).any():
+            break
         # Past every reference and with every joint at rest, nothing changes any more.
         if i > last_ref and i % 32 == 0 and bank.stuck.all():
             v_hist[i:] = 0.0
@@ -220,6 +227,19 @@ def simulate_block(
 
     # -- ground truth: onset against the commanded ramp reaching the same speed -------------
     actuation = onset - (t_send + onset_level / prof.acceleration_rad_s2)
+
+    if truth_only:
+        return {
+            "trial": rows.astype(np.int64),
+            "t0_s": t0,
+            "true_onset_s": onset,
+            "true_actuation_delay_s": actuation,
+            "true_response_delay_s": np.mean(arrival - sample_t, axis=1),
+            "true_reference_start_s": t_ref,
+            "true_intake_s": intake,
+            "true_gravity_torque_nm": tau_g,
+            "true_inertia_kgm2": j_true,
+        }
 
     # -- reported state packages -------------------------------------------------------------
     pos = (sample_t - g_first[:, None]) / dt_phys

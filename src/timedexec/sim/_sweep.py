@@ -29,7 +29,14 @@ from timedexec.sim._plan import SweepPlan
 from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
 from timedexec.sim._settings import GyroSettings, SimSettings, default_settings
 
-__all__ = ["SweepResult", "gyro_header", "simulate_sweep", "trial_fields", "truth_table"]
+__all__ = [
+    "SweepResult",
+    "gyro_header",
+    "simulate_delays",
+    "simulate_sweep",
+    "trial_fields",
+    "truth_table",
+]
 
 
 def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
@@ -330,3 +337,89 @@ def truth_table(reader: RecordingReader) -> DelayTable:
         "true_response_delay": resp,
     }
     return DelayTable(cols, source=str(reader.path) if hasattr(reader, "path") else "recording")
+
+
+def simulate_delays(
+    robot: str | RobotSpec,
+    q_rad: Any,
+    joint: Any,
+    direction: Any,
+    t_start_s: Any,
+    *,
+    effects: EffectSet | None = None,
+    settings: SimSettings | None = None,
+    seed: int = 0,
+    jobs: int = 1,
+) -> DelayTable:
+    """True delays of the simulated robot for given conditions (no recording, no gyro).
+
+    Parameters
+    ----------
+    robot : str or RobotSpec
+    q_rad : array (n, 6)
+        Start configurations, rad (inside the joint limits).
+    joint, direction : array (n,)
+        Actuated joint (1-based) and direction (+1/-1) per trial.
+    t_start_s : array (n,)
+        Sweep time of each trial, s (for ``thermal_drift``).
+    effects, settings : optional
+        Default: the robot's defaults.
+    seed : int
+        Seeds the timing randomness (packing phase, jitter).
+    jobs : int
+        Worker processes.
+
+    Returns
+    -------
+    DelayTable
+        True delays in ``actuation_delay``/``response_delay`` (and ``true_*``), plus the
+        holding torque ``gravity_torque_nm`` and inertia ``inertia_kgm2`` of each trial.
+    """
+    spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
+    settings = settings or default_settings(spec)
+    effects = effects if effects is not None else default_effects(spec.name)
+    q = np.asarray(q_rad, dtype=float)
+    n = len(q)
+    plan = SweepPlan(
+        robot=spec.name,
+        q_start_rad=q,
+        joint=np.asarray(joint),
+        direction=np.asarray(direction),
+        config_index=np.arange(n),
+        repeat=np.zeros(n, dtype=np.int64),
+    )
+    clock = sweep_clock(plan, settings, seed)
+    clock = SweepClock(**{**clock.__dict__, "t0_s": np.asarray(t_start_s, dtype=float)})
+    blocks = list(iter_blocks(n))
+    if jobs == 1:
+        parts = [
+            simulate_block(spec, settings, effects, plan, clock, rows, seed, truth_only=True)
+            for rows in blocks
+        ]
+    else:
+        from joblib import Parallel, delayed
+
+        parts = Parallel(n_jobs=jobs)(
+            delayed(simulate_block)(
+                spec, settings, effects, plan, clock, rows, seed, truth_only=True
+            )
+            for rows in blocks
+        )
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return DelayTable(
+        {
+            "trial": np.arange(n),
+            "robot": spec.name,
+            "joint": plan.joint,
+            "direction": plan.direction,
+            **{f"q{i + 1}": q[:, i] for i in range(6)},
+            "t_start": clock.t0_s,
+            "actuation_delay": out["true_actuation_delay_s"],
+            "response_delay": out["true_response_delay_s"],
+            "true_actuation_delay": out["true_actuation_delay_s"],
+            "true_response_delay": out["true_response_delay_s"],
+            "gravity_torque_nm": out["true_gravity_torque_nm"],
+            "inertia_kgm2": out["true_inertia_kgm2"],
+        },
+        source=f"simulated {spec.name}",
+    )
