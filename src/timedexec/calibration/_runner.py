@@ -28,7 +28,6 @@ from numpy.typing import NDArray
 
 from timedexec._progress import Progress
 from timedexec._signal import ONSET_FRACTION
-from timedexec._version import __version__
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverTimeout, RecordingError
 from timedexec.sensors import GyroSamples
@@ -333,7 +332,6 @@ def run_calibration(
         "controller_period_s": settings.controller_period_s,
         "gyro": gyro_header(settings.gyro),
         "plan": plan.meta(),
-        "package_version": __version__,
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }
     out = Path(out)

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from timedexec.extraction._extract import METHODS, ExtractionResult, extract_recording
+from timedexec.extraction._extract import (
+    METHODS,
+    ExtractionResult,
+    extract_recording,
+    trial_traces,
+)
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
@@ -12,4 +17,5 @@ __all__ = [
     "analyse_still",
     "design_lowpass",
     "extract_recording",
+    "trial_traces",
 ]

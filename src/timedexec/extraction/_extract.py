@@ -292,7 +292,11 @@ def _sample_times(
 
 
 def _extract_chunk_inner(
-    ctx: _Context, chunk: dict[str, NDArray[Any]], rows: NDArray[np.int64], method: str
+    ctx: _Context,
+    chunk: dict[str, NDArray[Any]],
+    rows: NDArray[np.int64],
+    method: str,
+    traces: bool = False,
 ) -> dict[str, NDArray[Any]]:
     n = len(rows)
     prof = ctx.profile
@@ -396,7 +400,14 @@ def _extract_chunk_inner(
     bad = flag != ""
     act = np.where(bad, np.nan, act)
     resp = np.where(bad, np.nan, resp)
-    return {"actuation_delay": act, "response_delay": resp, "flag": flag, "gyro_gain": gain}
+    out = {"actuation_delay": act, "response_delay": resp, "flag": flag, "gyro_gain": gain}
+    if traces:
+        out.update(
+            gyro_time_s=t_g, gyro_speed_rad_s=y_phys, gyro_filtered_rad_s=filt_phys,
+            state_time_s=host, state_speed_rad_s=qd_rep * direction[:, None],
+            send_time_s=t_send, speed_rad_s=speed,
+        )  # fmt: skip
+    return out
 
 
 ONSET_WINDOW_S = (-0.005, 0.010)  # wider averages more noise; measured bias < 0.03 ms
@@ -504,12 +515,41 @@ def _run_rows(
 
 
 def _extract_chunk(
-    ctx: _Context, chunk: dict[str, NDArray[Any]], rows: NDArray[np.int64], method: str
+    ctx: _Context,
+    chunk: dict[str, NDArray[Any]],
+    rows: NDArray[np.int64],
+    method: str,
+    traces: bool = False,
 ) -> dict[str, NDArray[Any]]:
     """Extract one chunk of trials. Unmeasurable trials carry NaN through the arithmetic
-    and are flagged at the end, so invalid-value warnings are expected and silenced."""
+    and are flagged at the end, so invalid-value warnings are expected and silenced.
+    ``traces=True`` also returns the signals behind the numbers (for figures)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return _extract_chunk_inner(ctx, chunk, rows, method)
+        return _extract_chunk_inner(ctx, chunk, rows, method, traces)
+
+
+def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
+    """Signals of recorded trials as the extraction sees them, for figures: gyro time and
+    speed along the commanded direction (raw and filtered, rad/s), the reported speed at
+    its arrival times, the send time, the commanded speed and the delays (trial time, s).
+    Also the commanded profile (``profile``), the still PSD and the filter taps."""
+    path = os.fspath(path)
+    rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
+    with RecordingReader(path) as reader:
+        ctx, still, cutoff, _ = _context(reader, clock_window_s=120.0, numtaps=161)
+        names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
+        chunk = {name: reader.read(name, rows=rows) for name in names}
+        truth = {
+            k: reader.read(f"true_{k}_s", rows=rows)
+            for k in ("actuation_delay", "response_delay")
+            if f"true_{k}_s" in reader.fields
+        }
+    out = _extract_chunk(ctx, chunk, rows, "fit", traces=True)
+    out.update(
+        profile=dict(ctx.profile), still=still, taps=ctx.taps, cutoff_hz=cutoff,
+        fs_hz=ctx.fs_hz, truth=truth, robot=ctx.robot,
+    )  # fmt: skip
+    return out
 
 
 def extract_recording(

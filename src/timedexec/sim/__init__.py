@@ -22,6 +22,13 @@ from timedexec.sim._controller import (
 )
 from timedexec.sim._physics import JointBank, JointParams, pulse_profile
 from timedexec.sim._plan import SweepPlan, calibration_ranges
+from timedexec.sim._recording import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Field,
+    RecordingReader,
+    RecordingWriter,
+)
 from timedexec.sim._settings import (
     GyroSettings,
     ServoSettings,
@@ -58,8 +65,11 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
     "ControllerSim",
     "CycleResult",
+    "Field",
     "GyroFrameSource",
     "GyroSettings",
     "GyroTwin",
@@ -67,6 +77,8 @@ __all__ = [
     "JointParams",
     "MoveJ",
     "RSITwin",
+    "RecordingReader",
+    "RecordingWriter",
     "ServoJ",
     "ServoSettings",
     "SimSettings",

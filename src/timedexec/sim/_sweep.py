@@ -13,7 +13,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._progress import Progress
-from timedexec._version import __version__
 from timedexec.delays import DelayTable
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError, RecordingError
@@ -256,7 +255,6 @@ def simulate_sweep(
         "effects": effects.to_dict(),
         "plan": plan.meta(),
         "seed": seed,
-        "package_version": __version__,
         "profile": settings.profile.to_dict(),
         "controller_period_s": settings.controller_period_s,
         "gyro": gyro_header(settings.gyro),

@@ -1,0 +1,207 @@
+"""One markdown report from results: recordings, delay tables, CV and evaluation JSON."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from timedexec.delays import DelayTable
+from timedexec.errors import ConfigError, RecordingError
+
+__all__ = ["PUBLISHED_TABLES", "build_report", "delay_summary", "published_table_markdown"]
+
+#: The paper's Tables I (actuation) and II (response): mean error in ms; columns joint 1, 2,
+#: 3, 5 (UR response: 1, 2, 3, 4), combined, average (DESIGN.md §1).
+PUBLISHED_TABLES: dict[str, dict[str, dict[str, tuple[float, ...]]]] = {
+    "actuation_delay": {
+        "kr5": {"median": (2.27, 2.68, 4.61, 3.51, 3.67, 3.35), "nn": (1.79, 2.55, 4.74, 3.37, 3.21, 3.13),
+                "rt": (1.99, 2.48, 3.74, 3.76, 3.33, 3.06), "gpr": (1.85, 2.27, 4.30, 3.39, 3.48, 3.06)},
+        "ur10": {"median": (6.18, 4.64, 6.08, 2.59, 5.33, 4.96), "nn": (4.08, 5.32, 3.86, 2.49, 3.12, 3.77),
+                 "rt": (4.63, 5.41, 4.28, 2.72, 3.42, 4.09), "gpr": (5.01, 4.89, 3.68, 2.47, 3.36, 3.88)},
+    },
+    "response_delay": {
+        "kr5": {"median": (2.13, 2.37, 4.30, 3.09, 3.33, 3.05), "nn": (1.70, 2.32, 4.68, 2.22, 2.36, 2.65),
+                "rt": (1.86, 2.21, 3.62, 2.31, 2.37, 2.47), "gpr": (1.63, 2.17, 4.23, 3.11, 2.63, 2.75)},
+        "ur10": {"median": (4.82, 2.00, 4.08, 4.90, 5.09, 4.18), "nn": (4.11, 2.48, 4.24, 5.22, 4.84, 4.01),
+                 "rt": (4.66, 2.44, 4.47, 5.84, 5.33, 4.35), "gpr": (3.88, 2.44, 3.75, 5.20, 5.05, 3.82)},
+    },
+}  # fmt: skip
+
+
+def delay_summary(table: DelayTable) -> dict[str, Any]:
+    """Per-joint medians and spreads (ms) and the flagged count."""
+    out: dict[str, Any] = {"robots": list(table.robots), "trials": len(table), "joints": {}}
+    flags = table["flag"] if "flag" in table else np.full(len(table), "", dtype=object)
+    out["flagged"] = int(sum(1 for f in flags if f))
+    for j in sorted(set(table["joint"].tolist())):
+        m = table["joint"] == j
+        row = {}
+        for col in ("actuation_delay", "response_delay"):
+            v = table[col][m] * 1e3
+            v = v[np.isfinite(v)]
+            row[col] = {
+                "median_ms": float(np.median(v)) if len(v) else float("nan"),
+                "p2_5_ms": float(np.percentile(v, 2.5)) if len(v) else float("nan"),
+                "p97_5_ms": float(np.percentile(v, 97.5)) if len(v) else float("nan"),
+            }
+        out["joints"][str(j)] = row
+    return out
+
+
+def published_table_markdown(cv: dict[str, Any], robot: str) -> str:
+    """Table I/II layout: our CV errors (ms) with the published value in parentheses."""
+    lines = []
+    for delay, title in (
+        ("actuation_delay", "Table I — actuation"),
+        ("response_delay", "Table II — response"),
+    ):
+        if delay not in cv:
+            continue
+        methods = cv[delay]
+        first = next(iter(methods.values()))
+        cols = list(first)
+        lines += [f"**{title} delay: 10-fold CV error (ms), published in parentheses**", ""]
+        lines.append(
+            "| method | " + " | ".join(f"joint {c}" if c.isdigit() else c for c in cols) + " |"
+        )
+        lines.append("|---" * (len(cols) + 1) + "|")
+        published = PUBLISHED_TABLES.get(delay, {}).get(robot, {})
+        for method, row in methods.items():
+            pub = published.get(method)
+            cells = []
+            for k, c in enumerate(cols):
+                value = row.get(c)
+                cell = "-" if value is None else f"{value:.2f}"
+                if pub is not None and k < len(pub):
+                    cell += f" ({pub[k]:.2f})"
+                cells.append(cell)
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _kind(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
+        return "recording"
+    if suffix == ".csv":
+        return "table"
+    if suffix == ".json":
+        data = json.loads(path.read_text())
+        if "strategies" in data:
+            return "evaluation"
+        if "actuation_delay" in data:
+            return "cv"
+        if "added_effects" in data:
+            return "discrepancy"
+        return "json"
+    raise ConfigError(
+        f"{path}: cannot tell what this result is (expected .h5 recording, .csv delay table or "
+        ".json from train/evaluate/discrepancy)"
+    )
+
+
+def build_report(
+    results: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLike[str], *, trial: int = 0
+) -> Path:
+    """Write ``out_dir/report.md`` with figures (PNG) for the given results.
+
+    Parameters
+    ----------
+    results : paths
+        Any of: recordings (``.h5``: Figs. 3 and 5), delay tables (``.csv``: Figs. 7-10 and
+        per-joint statistics), ``train --json`` output (Tables I-II beside the paper),
+        ``evaluate --json`` output (strategy table).
+    out_dir : path
+        Created if missing.
+    trial : int
+        Which recorded trial Fig. 5 shows (row index).
+    """
+    from timedexec.report._figures import fig_boxplots, fig_histograms, fig_psd, fig_trial
+
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"cannot create report folder {out}: {exc.strerror}") from exc
+    md = ["# timedexec report", ""]
+    robot = ""
+    for raw in results:
+        path = Path(raw)
+        if not path.exists():
+            raise RecordingError(f"result {path} does not exist")
+        kind = _kind(path)
+        stem = path.stem
+        if kind == "recording":
+            from timedexec.extraction import trial_traces
+
+            traces = trial_traces(path, [trial])
+            robot = traces["robot"]
+            f3 = fig_psd(traces, out / f"{stem}-fig3-psd.png")
+            f5 = fig_trial(traces, out / f"{stem}-fig5-trial.png")
+            md += [
+                f"## Recording `{path.name}` ({robot})",
+                "",
+                f"Gyro noise while still, before and after the {traces['cutoff_hz']:.0f} Hz "
+                "low-pass filter designed from it:",
+                "",
+                f"![Fig. 3]({f3.name})",
+                "",
+                f"Trial {trial}: actuation {traces['actuation_delay'][0] * 1e3:.1f} ms, response "
+                f"{traces['response_delay'][0] * 1e3:.1f} ms"
+                + (
+                    f" (ground truth {traces['truth']['actuation_delay'][0] * 1e3:.1f} / "
+                    f"{traces['truth']['response_delay'][0] * 1e3:.1f} ms)"
+                    if traces["truth"]
+                    else ""
+                )
+                + ":",
+                "",
+                f"![Fig. 5]({f5.name})",
+                "",
+            ]
+        elif kind == "table":
+            table = DelayTable.read_csv(path)
+            robot = robot or table.robots[0]
+            summary = delay_summary(table)
+            md += [f"## Delay table `{path.name}` ({', '.join(table.robots)}, {len(table):,} trials, "
+                   f"{summary['flagged']} flagged)", ""]  # fmt: skip
+            md += ["| joint | actuation median (2.5-97.5 %) ms | response median (2.5-97.5 %) ms |",
+                   "|---|---|---|"]  # fmt: skip
+            for j, row in summary["joints"].items():
+                a, r = row["actuation_delay"], row["response_delay"]
+                md.append(
+                    f"| {j} | {a['median_ms']:.1f} ({a['p2_5_ms']:.1f}-{a['p97_5_ms']:.1f}) | "
+                    f"{r['median_ms']:.1f} ({r['p2_5_ms']:.1f}-{r['p97_5_ms']:.1f}) |"
+                )
+            md.append("")
+            for col, fig in (("actuation_delay", 7), ("response_delay", 9)):
+                h = fig_histograms(table, out / f"{stem}-fig{fig}-hist.png", col)
+                b = fig_boxplots(table, out / f"{stem}-fig{fig + 1}-box.png", col)
+                md += [f"![Fig. {fig}]({h.name}) ![Fig. {fig + 1}]({b.name})", ""]
+        elif kind == "cv":
+            data = json.loads(path.read_text())
+            md += [f"## Models: cross-validation `{path.name}`", "",
+                   published_table_markdown(data, robot or "ur10"), ""]  # fmt: skip
+        elif kind == "evaluation":
+            data = json.loads(path.read_text())
+            md += [f"## Timed execution on the simulator `{path.name}` ({data.get('robot', '')})", "",
+                   "| strategy | onset timing RMS (ms) | seam error at 0.5 m/s (cm) |", "|---|---|---|"]  # fmt: skip
+            for name, row in data["strategies"].items():
+                md.append(f"| {name} | {row['timing_rms_ms']:.2f} | {row['seam_error_cm']:.3f} |")
+            if "coverage_95" in data:
+                md += [
+                    "",
+                    f"95 % bounds cover the true onset in {100 * data['coverage_95']:.1f} % of trials.",
+                ]
+            md.append("")
+        else:
+            md += [f"## `{path.name}`", "", "```json", path.read_text()[:4000], "```", ""]
+    report = out / "report.md"
+    report.write_text("\n".join(md))
+    return report
