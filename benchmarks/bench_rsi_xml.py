@@ -110,8 +110,10 @@ def main() -> None:
         _rsi_xml._parse_xml = original
     print(f"frame: {len(FRAME)} bytes")
     print(f"XML stage  hardened expat (flat)   {xml_ours:7.1f} µs")
-    print(f"XML stage  defusedxml tree         {xml_theirs:7.1f} µs   ratio "
-          f"{xml_theirs / xml_ours:.2f}x")
+    print(
+        f"XML stage  defusedxml tree         {xml_theirs:7.1f} µs   ratio "
+        f"{xml_theirs / xml_ours:.2f}x"
+    )
     print(f"parse_rob  hardened expat          {ours:7.1f} µs")
     print(f"parse_rob  on defusedxml           {theirs:7.1f} µs   ratio {theirs / ours:.2f}x")
     corr = np.radians([0.5, -1.0, 0.25, 0.0, 2.0, -0.1])

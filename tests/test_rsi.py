@@ -192,9 +192,7 @@ def test_speedj_integrates_a_trapezoid_in_the_controller_cycle(
     assert np.all(corr[:, [0, 2, 3, 4, 5]] == 0.0)
 
 
-def test_leading_axis_sets_the_acceleration(
-    driver: KukaRSIDriver, robot: ScriptedRobot
-) -> None:
+def test_leading_axis_sets_the_acceleration(driver: KukaRSIDriver, robot: ScriptedRobot) -> None:
     """The joint with the largest speed change ramps at `a`, the others proportionally, so
     all reach their speeds together (the correction ratio is constant)."""
     robot.frame()
@@ -638,9 +636,10 @@ def test_no_pc_means_rsitimeout_unless_waiting_for_it() -> None:
     on KSS; with wait_for_pc the late counter starts only with the first answer, so a
     driver started later finds RSI running."""
     lonely_port, later_port = _free_udp_port(), _free_udp_port()
-    with RSITwin(lonely_port, timeout_packets=20) as lonely, RSITwin(
-        later_port, timeout_packets=20, wait_for_pc=True
-    ) as patient:
+    with (
+        RSITwin(lonely_port, timeout_packets=20) as lonely,
+        RSITwin(later_port, timeout_packets=20, wait_for_pc=True) as patient,
+    ):
         status = lonely.wait_stopped(10.0)
         assert status.reason == "RSITimeout"
         assert status.late_count == 20

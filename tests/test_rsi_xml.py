@@ -204,8 +204,11 @@ def test_entities_and_dtds_are_rejected_without_expansion(payload: bytes) -> Non
 @pytest.mark.parametrize(
     ("data", "match"),
     [
-        (b"x" * (MAX_FRAME_BYTES + 1), rf"{MAX_FRAME_BYTES + 1} bytes, above the limit of "
-         rf"{MAX_FRAME_BYTES} bytes"),
+        (
+            b"x" * (MAX_FRAME_BYTES + 1),
+            rf"{MAX_FRAME_BYTES + 1} bytes, above the limit of "
+            rf"{MAX_FRAME_BYTES} bytes",
+        ),
         (b"", r"empty"),
         (b"   \n", r"empty"),
         (b"<Rob><IPOC>1</IPOC>", r"not well-formed XML: no element found"),
@@ -230,14 +233,14 @@ def test_malformed_frames_name_the_problem(data: bytes, match: str) -> None:
         parse_rob(data)
 
 
-@pytest.mark.parametrize("value", ["nan", "inf", "-Infinity", "1e999", "1_0", "0x10", "1.2.3",
-                                   "", " ", "1e", "١"])
+@pytest.mark.parametrize(
+    "value", ["nan", "inf", "-Infinity", "1e999", "1_0", "0x10", "1.2.3", "", " ", "1e", "١"]
+)
 def test_axis_values_must_be_finite_plain_decimals(value: str) -> None:
     """Values Python's float() would accept (nan, inf, 1_0) or that overflow are refused,
     naming the element and attribute."""
     data = (
-        f'<Rob><AIPos A1="0" A2="0" A3="{value}" A4="0" A5="0" A6="0"/>'
-        "<IPOC>1</IPOC></Rob>"
+        f'<Rob><AIPos A1="0" A2="0" A3="{value}" A4="0" A5="0" A6="0"/><IPOC>1</IPOC></Rob>'
     ).encode()
     with pytest.raises(ProtocolError, match=r"AIPos.A3="):
         parse_rob(data)
@@ -262,8 +265,7 @@ def test_huge_attribute_is_bounded_by_the_size_limit() -> None:
         parse_rob(huge)
     long_value = "1" * 1000
     data = (
-        f'<Rob><AIPos A1="{long_value}" A2="0" A3="0" A4="0" A5="0" A6="0"/>'
-        "<IPOC>1</IPOC></Rob>"
+        f'<Rob><AIPos A1="{long_value}" A2="0" A3="0" A4="0" A5="0" A6="0"/><IPOC>1</IPOC></Rob>'
     ).encode()
     with pytest.raises(ProtocolError, match=r"AIPos.A1='1{37}\.\.\.' is not a decimal"):
         parse_rob(data)
@@ -271,9 +273,7 @@ def test_huge_attribute_is_bounded_by_the_size_limit() -> None:
 
 # ------------------------------------------------------------------ fuzzing
 
-_FUZZ = settings(
-    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow]
-)
+_FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def _parse_both(data: bytes) -> None:
@@ -300,9 +300,23 @@ def _mutated_frames(draw: st.DrawFn) -> bytes:
         elif op == "insert":
             chunk = draw(
                 st.sampled_from(
-                    [b"<", b">", b"&", b"&lol;", b'"', b"<!DOCTYPE x>", b"<![CDATA[x]]>",
-                     b"<!-- c -->", b"\x00", b"\xff\xfe", b"nan", b"1e999", b"<a>" * 20,
-                     b"<IPOC>1</IPOC>", b"<?pi x?>"]
+                    [
+                        b"<",
+                        b">",
+                        b"&",
+                        b"&lol;",
+                        b'"',
+                        b"<!DOCTYPE x>",
+                        b"<![CDATA[x]]>",
+                        b"<!-- c -->",
+                        b"\x00",
+                        b"\xff\xfe",
+                        b"nan",
+                        b"1e999",
+                        b"<a>" * 20,
+                        b"<IPOC>1</IPOC>",
+                        b"<?pi x?>",
+                    ]
                 )
             )
             base[pos:pos] = chunk
@@ -343,8 +357,11 @@ def test_fuzz_structure_nesting_and_attribute_size(depth: int, attr_len: int, ta
     """Arbitrary nesting depth and attribute sizes stay ProtocolError (size, depth) or
     parse; never RecursionError or MemoryError."""
     data = (
-        f'<{tag} TYPE="{"K" * attr_len}">' + "<n>" * depth + "<IPOC>1</IPOC>"
-        + "</n>" * depth + f"</{tag}>"
+        f'<{tag} TYPE="{"K" * attr_len}">'
+        + "<n>" * depth
+        + "<IPOC>1</IPOC>"
+        + "</n>" * depth
+        + f"</{tag}>"
     ).encode()
     _parse_both(data)
 

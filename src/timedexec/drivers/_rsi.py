@@ -357,9 +357,7 @@ class KukaRSIDriver(RobotDriver):
             raise ConfigError(f"port={port!r} must be an integer in 0..65535")
         if mode not in ("absolute", "relative"):
             raise ConfigError(f"mode={mode!r} must be 'absolute' or 'relative' (RSI_ON mode)")
-        max_corr = np.broadcast_to(
-            np.asarray(max_correction_deg, dtype=np.float64), (6,)
-        ).copy()
+        max_corr = np.broadcast_to(np.asarray(max_correction_deg, dtype=np.float64), (6,)).copy()
         if not np.all(np.isfinite(max_corr)) or np.any(max_corr <= 0):
             raise ConfigError(
                 f"max_correction_deg={max_corr.tolist()} must be positive and finite per axis"
@@ -602,9 +600,7 @@ class KukaRSIDriver(RobotDriver):
                 "stopped RSI"
             )
 
-    def speedj(
-        self, qd_rad_s: ArrayLike, acceleration_rad_s2: float, duration_s: float
-    ) -> None:
+    def speedj(self, qd_rad_s: ArrayLike, acceleration_rad_s2: float, duration_s: float) -> None:
         """Move joints at constant speed, speedj style, through RSI corrections.
 
         Parameters
@@ -868,4 +864,3 @@ class KukaRSIDriver(RobotDriver):
                     st["queue_overflows"] += 1
                 self._queue.append(state)
                 self._cond.notify_all()
-

@@ -314,9 +314,7 @@ def parse_rob(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> RobFrame | No
     except ProtocolError:
         raise
     except Exception as exc:  # defensive: any parser surprise is a protocol error
-        raise ProtocolError(
-            f"Rob frame could not be parsed ({type(exc).__name__}: {exc})"
-        ) from exc
+        raise ProtocolError(f"Rob frame could not be parsed ({type(exc).__name__}: {exc})") from exc
 
 
 def _parse_rob(data: bytes, max_bytes: int) -> RobFrame | None:
@@ -363,9 +361,10 @@ def _check_tag(tag: str, what: str) -> None:
 
 
 def _check_attr_value(value: str, what: str) -> None:
-    if len(value) > 64 or any(c in value for c in '<>&"\'') or not value.isprintable():
-        raise ProtocolError(f"{what}={value!r} must be printable, at most 64 characters, "
-                            "without < > & or quotes")
+    if len(value) > 64 or any(c in value for c in "<>&\"'") or not value.isprintable():
+        raise ProtocolError(
+            f"{what}={value!r} must be printable, at most 64 characters, without < > & or quotes"
+        )
 
 
 def build_sen(
@@ -503,9 +502,7 @@ def parse_sen(
     except ProtocolError:
         raise
     except Exception as exc:  # defensive, as in parse_rob
-        raise ProtocolError(
-            f"Sen frame could not be parsed ({type(exc).__name__}: {exc})"
-        ) from exc
+        raise ProtocolError(f"Sen frame could not be parsed ({type(exc).__name__}: {exc})") from exc
 
 
 def _parse_sen(
@@ -528,8 +525,7 @@ def _parse_sen(
     corr_attrib = children.get(correction_tag)
     if corr_attrib is None:
         raise ProtocolError(
-            f"Sen frame has no <{correction_tag}> correction element; "
-            f"found {sorted(children)[:8]}"
+            f"Sen frame has no <{correction_tag}> correction element; found {sorted(children)[:8]}"
         )
     corr = np.array(_vector(corr_attrib, AXIS_NAMES, correction_tag)) * _DEG
     return SenFrame(ipoc=ipoc, type=sen_type, correction_rad=corr)

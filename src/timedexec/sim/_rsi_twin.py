@@ -920,8 +920,13 @@ class _Engine:
             "late_count": self.late,
             "late_total": self.late_total,
         }
-        return {"meta": meta, "truth": truth, "rsi": rsi, "frames": self.frame_log,
-                "answers": self.answer_log}
+        return {
+            "meta": meta,
+            "truth": truth,
+            "rsi": rsi,
+            "frames": self.frame_log,
+            "answers": self.answer_log,
+        }
 
 
 def _write_truth(path: str, results: Mapping[str, Any]) -> None:
