@@ -84,7 +84,7 @@ def fit_shift(
         fx = f(x)
         dfx = df(x)
         r = y - g[:, None] * fx - b[:, None]
-        cols = [-g[:, None] * dfx]  # d(model)/d(tau)
+        cols: list[FloatArray | None] = [-g[:, None] * dfx]  # d(model)/d(tau)
         if fit_gain:
             cols.append(fx)
         if fit_offset:

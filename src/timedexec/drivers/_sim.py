@@ -263,7 +263,7 @@ class VirtualGyro:
         self._ready.append(
             GyroSamples(
                 counter_unwrapped=(self._counter0 + n).astype(np.int64),
-                host_time_s=t_s + g.usb_latency_s,
+                host_time_s=np.asarray(t_s + g.usb_latency_s, dtype=np.float64),
                 rate_rad_s=np.deg2rad(dps),
                 raw=raw,
                 arrival_s=arrival,

@@ -544,7 +544,7 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
             for k in ("actuation_delay", "response_delay")
             if f"true_{k}_s" in reader.fields
         }
-    out = _extract_chunk(ctx, chunk, rows, "fit", traces=True)
+    out: dict[str, Any] = dict(_extract_chunk(ctx, chunk, rows, "fit", traces=True))
     out.update(
         profile=dict(ctx.profile), still=still, taps=ctx.taps, cutoff_hz=cutoff,
         fs_hz=ctx.fs_hz, truth=truth, robot=ctx.robot,

@@ -110,7 +110,7 @@ def fig_histograms(table: DelayTable, path: str | os.PathLike[str], column: str)
     bins = np.linspace(np.nanpercentile(values, 0.5), np.nanpercentile(values, 99.5), 50)
     for j in joints:
         m = ok & (table["joint"] == j)
-        ax.hist(values[m], bins=bins, histtype="step", lw=1.3, label=f"joint {j}")
+        ax.hist(values[m], bins=bins.tolist(), histtype="step", lw=1.3, label=f"joint {j}")
     ax.set_xlabel(f"{_DELAY_LABEL[column]} (ms)")
     ax.set_ylabel("trials")
     fig_no = 7 if column == "actuation_delay" else 9

@@ -383,7 +383,7 @@ class ControllerSim:
                 else:
                     act.traj_linear_s = cmd.time_s
             if event is not None:
-                target = self._target_speed_hint(cmd, j)
+                target = self._target_speed_hint(cmd, int(j))
                 if was_still[j] and target != 0.0:
                     event.armed[j] = True
                     event.onset_s[j] = np.nan
@@ -478,7 +478,7 @@ class ControllerSim:
             self._params_time_s = t_boundary
         axes = self._axes
         kpos = self.settings.servo.position_gain_1_s
-        times = t_boundary + np.arange(self.n_sub) * self.dt_s
+        times = (t_boundary + np.arange(self.n_sub) * self.dt_s).astype(np.float64)
         rates = np.empty((self.n_sub, 3))
         for i, t in enumerate(times):
             if self._activations:

@@ -299,7 +299,7 @@ class TrialProfile(_DictMixin):
         return 2.0 * self.pulse_s + self.pause_s
 
     @property
-    def template(self) -> dict[str, float]:
+    def template(self) -> dict[str, Any]:
         """Keyword arguments of :func:`~timedexec.sim.pulse_profile` for this motion."""
         return {
             "speed_rad_s": self.speed_rad_s,
