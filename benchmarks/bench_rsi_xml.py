@@ -1,4 +1,4 @@
-"""RSI XML codec and answer latency (timedexec.drivers._rsi_xml, _rsi).
+"""RSI XML codec and answer latency (timedexec._rsi_xml, _rsi).
 
 Prints, per frame:
 
@@ -24,9 +24,9 @@ import xml.etree.ElementTree as ET
 import defusedxml.ElementTree as DET
 import numpy as np
 
-from timedexec.drivers import _rsi_xml
+from timedexec import _rsi_xml
 from timedexec.drivers._rsi import KukaRSIDriver
-from timedexec.drivers._rsi_xml import AXIS_NAMES, build_rob, build_sen, parse_rob
+from timedexec._rsi_xml import AXIS_NAMES, build_rob, build_sen, parse_rob
 
 FRAME = build_rob(
     123645634563,

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from timedexec.drivers._rsi import KukaRSIDriver, RSIState
-from timedexec.drivers._rsi_xml import SenFrame, build_rob, parse_sen
+from timedexec._rsi_xml import SenFrame, build_rob, parse_sen
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.robots import forward_kinematics, get_robot
 from timedexec.sim._rsi_twin import RSITwin, RSITwinConfig, read_rsi_truth

@@ -1,4 +1,4 @@
-"""KUKA RSI XML frames: round trips, IPOC echo, hardening, fuzzing (timedexec.drivers._rsi_xml)."""
+"""KUKA RSI XML frames: round trips, IPOC echo, hardening, fuzzing (timedexec._rsi_xml)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from timedexec.drivers._rsi_xml import (
+from timedexec._rsi_xml import (
     MAX_FRAME_BYTES,
     RobFrame,
     build_rob,

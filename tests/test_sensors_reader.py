@@ -308,7 +308,9 @@ def _run_against_twin(duration_s: float) -> dict[str, float]:
     }
 
 
-def _check_twin_run(r: dict[str, float], rate_ppm_bound: float) -> None:
+def _check_twin_run(
+    r: dict[str, float], rate_ppm_bound: float, lat_min_bound_s: float = -1e-4
+) -> None:
     # Every sample present and intact.
     assert r["missing"] == 0
     # Values: residual = noise + the calibration's bias error. Mean within 4 standard
@@ -323,9 +325,9 @@ def _check_twin_run(r: dict[str, float], rate_ppm_bound: float) -> None:
     # Clock rate.
     assert abs(r["rate_ppm"]) < rate_ppm_bound
     # Timing: host time minus the sample's true time is the minimum transport latency
-    # (read wake-up and scheduling of a pty polled every 20 ms): between -0.1 ms (slope
-    # error times the record length) and 2 ms.
-    assert r["lat_min_s"] > -1e-4
+    # (read wake-up and scheduling of a pty polled every 20 ms): between the slope error
+    # times the record length (lat_min_bound_s) and 2 ms.
+    assert r["lat_min_s"] > lat_min_bound_s
     assert r["lat_max_s"] < 2e-3
     # The step is located in host time to within that latency plus one sample period
     # and the noise-limited threshold crossing (a few samples): -0.1 ms .. 3 ms.
@@ -336,7 +338,8 @@ def test_reader_recovers_rate_and_clock_from_pty_twin_fast() -> None:
     """2.5 s through the pty twin (+3000 ppm clock): sine and step recovered to the noise
     floor, samples timed to within 2 ms of truth, clock rate within 300 ppm (end points of
     a 1.5 s fit pinned to about ±0.2 ms)."""
-    _check_twin_run(_run_against_twin(2.5), rate_ppm_bound=300.0)
+    # A 1.5 s fit within 300 ppm pins its end points to about +-0.2 ms (docstring).
+    _check_twin_run(_run_against_twin(2.5), rate_ppm_bound=300.0, lat_min_bound_s=-2e-4)
 
 
 @pytest.mark.slow

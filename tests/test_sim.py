@@ -282,3 +282,18 @@ def test_plan_layout_and_bad_input():
         SweepPlan.generate("ur10", 0)
     with pytest.raises(ConfigError, match="unknown robot 'ur5'"):
         SweepPlan.generate("ur5", 10)
+
+
+def test_stepped_controller_takes_commands_at_their_own_boundary():
+    """A command that arrives after a boundary must not replace one that arrived before it,
+    even when both are submitted before that boundary is cycled (a twin running late)."""
+    c = ControllerSim("ur10", effects=EffectSet())
+    period = c.period_s
+    first = c.submit(SpeedJ((0.1, 0, 0, 0, 0, 0), 5.0), arrival_s=0.5 * period)
+    second = c.submit(SpeedJ((0.2, 0, 0, 0, 0, 0), 5.0), arrival_s=1.5 * period)
+    for _ in range(4):
+        c.cycle()
+    by_id = {e.id: e for e in c.truth}
+    assert by_id[first].intake_s == pytest.approx(period)
+    assert not by_id[first].superseded
+    assert by_id[second].intake_s == pytest.approx(2 * period)

@@ -174,7 +174,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         return 0
     from timedexec.sim import RSITwin
 
-    options: dict[str, Any] = {"host": args.host, "seed": args.seed, "truth_path": args.truth}
+    # Wait for the PC's first answer before counting late answers (else RSI stops with
+    # RSITimeout 1.2 s after start when no PC listens yet, as a real KSS would).
+    options: dict[str, Any] = {
+        "host": args.host, "seed": args.seed, "truth_path": args.truth, "wait_for_pc": True,
+    }  # fmt: skip
     if args.period:
         options["period_s"] = args.period
     if args.imu_link:

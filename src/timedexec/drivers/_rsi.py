@@ -77,7 +77,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.drivers._base import RobotDriver, RobotState
-from timedexec.drivers._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
+from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
 

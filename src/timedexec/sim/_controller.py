@@ -239,7 +239,8 @@ class ControllerSim:
         self._active = [_Active() for _ in range(6)]
         for a in self._active:
             a.traj_q0 = q0.copy()
-        self._pending_register: tuple[Command, int] | None = None
+        # Commands that reached the controller, in arrival order, not yet taken at a boundary.
+        self._pending: list[tuple[float, Command, int]] = []
         self._pipeline: deque[tuple[int, Command, int]] = deque()
         self._activations: list[tuple[FloatArray, Command, int, NDArray[np.bool_]]] = []
         self._next_id = 1
@@ -264,7 +265,7 @@ class ControllerSim:
             np.all(self._bank.stuck)
             and not self._pipeline
             and not self._activations
-            and self._pending_register is None
+            and not self._pending
             and np.all(np.abs(self._ref_v) < 1e-9)
         )
 
@@ -332,9 +333,8 @@ class ControllerSim:
         arrival = self.time_s if arrival_s is None else float(arrival_s)
         cid = self._next_id
         self._next_id += 1
-        if self._pending_register is not None:
-            self._truth_by_id[self._pending_register[1]].superseded = True
-        self._pending_register = (cmd, cid)
+        self._pending.append((arrival, cmd, cid))
+        self._pending.sort(key=lambda item: item[0])
         event = TruthEvent(id=cid, kind=type(cmd).__name__, arrival_s=arrival)
         self.truth.append(event)
         self._truth_by_id[cid] = event
@@ -458,12 +458,16 @@ class ControllerSim:
         bank = self._bank
         packet = self.peek_packet()
         # Intake: the register as it stands at this boundary.
-        if self._pending_register is not None:
-            cmd, cid = self._pending_register
-            if self._truth_by_id[cid].arrival_s <= t_boundary + 1e-12:
-                self._pending_register = None
-                self._truth_by_id[cid].intake_s = t_boundary
-                self._pipeline.append((k + self.settings.timing.pipeline_cycles, cmd, cid))
+        # Like a register sampled once per cycle: of the commands that arrived by this
+        # boundary only the last is seen; later arrivals wait for their own boundary.
+        due = [p for p in self._pending if p[0] <= t_boundary + 1e-12]
+        if due:
+            self._pending = self._pending[len(due) :]
+            for _, _, old_id in due[:-1]:
+                self._truth_by_id[old_id].superseded = True
+            _, cmd, cid = due[-1]
+            self._truth_by_id[cid].intake_s = t_boundary
+            self._pipeline.append((k + self.settings.timing.pipeline_cycles, cmd, cid))
         while self._pipeline and self._pipeline[0][0] <= k:
             _, cmd, cid = self._pipeline.popleft()
             starts = t_boundary + self._offset_s
