@@ -585,8 +585,8 @@ def extract_recording(
         raise ConfigError(
             f"unknown extraction method {method!r}; choose one of {', '.join(METHODS)}"
         )
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ConfigError(f"jobs={jobs!r} must be a positive integer")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or (jobs < 1 and jobs != -1):
+        raise ConfigError(f"jobs={jobs!r} must be a positive integer, or -1 for every worker")
     path = os.fspath(path)
     with RecordingReader(path) as reader:
         ctx, still, cutoff, rate = _context(reader, clock_window_s=clock_window_s, numtaps=numtaps)

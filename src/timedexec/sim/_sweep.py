@@ -240,8 +240,8 @@ def simulate_sweep(
     effects = effects if effects is not None else default_effects(spec.name)
     if plan is None:
         plan = SweepPlan.generate(spec, n_trials, seed=seed, joints=joints, repeats=repeats)
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ConfigError(f"jobs={jobs!r} must be a positive integer")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or (jobs < 1 and jobs != -1):
+        raise ConfigError(f"jobs={jobs!r} must be a positive integer, or -1 for every worker")
     out = Path(out)
     if truth_path is not None:
         tp = Path(truth_path)
