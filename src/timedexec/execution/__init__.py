@@ -1,5 +1,52 @@
-"""timedexec.execution (see docs/architecture.md)."""
+"""timedexec.execution: delay-compensated, timed trajectory execution (see docs/execution.md).
+
+:class:`TimedExecutor` wraps any :class:`~timedexec.drivers.RobotDriver` and a delay model:
+jerk-limited Ruckig plans, per-joint command streams shifted by the predicted actuation
+delay, states back-dated by the predicted response delay, timing bounds from the model's
+uncertainty, and :meth:`TimedExecutor.plan_to_meet` for deadlines.
+"""
 
 from __future__ import annotations
 
-__all__: list[str] = []
+from timedexec.execution._bounds import TimingBounds, delay_cdf, delay_quantile
+from timedexec.execution._executor import (
+    CycleLog,
+    ExecutionResult,
+    MeetPlan,
+    StaleStateError,
+    StateEstimate,
+    TimedExecutor,
+    UnreachableError,
+)
+from timedexec.execution._model import (
+    DelayPredictions,
+    DelayPredictor,
+    FixedDelays,
+    check_model_robot,
+    load_delay_model,
+    predict_delays,
+)
+from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
+
+__all__ = [
+    "CycleLog",
+    "DelayPredictions",
+    "DelayPredictor",
+    "ExecutionLimits",
+    "ExecutionResult",
+    "FixedDelays",
+    "JointPlan",
+    "MeetPlan",
+    "StaleStateError",
+    "StateEstimate",
+    "TimedExecutor",
+    "TimingBounds",
+    "UnreachableError",
+    "check_model_robot",
+    "check_target",
+    "delay_cdf",
+    "delay_quantile",
+    "load_delay_model",
+    "plan_motion",
+    "predict_delays",
+]

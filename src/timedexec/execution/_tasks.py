@@ -1,0 +1,361 @@
+"""Applications of the timed executor: conveyor (seam) tracking and interception.
+
+**Seam tracking.** A seam rides a round conveyor (a carousel) around the robot's base at
+``speed_m_s``; the robot's base joint turns so the tool centre follows it (the tool stays
+at its radius ``r`` from the base axis, the joint speed is ``speed / r``). The plan
+accelerates joint 1 from rest, jerk-limited, to the belt speed and meets the seam at the
+end of the ramp; afterwards it cruises with the belt. With a velocity interface (speedj) a
+timing error ``δ`` of the motion's start leaves the tool ``speed · δ`` behind (or ahead of)
+the seam for the rest of the cruise: the welding error the published work measured.
+
+**Interception.** An object moves on a known trajectory; the robot must have its tool at the
+object's position at a chosen time. :func:`intercept` solves the position inverse
+kinematics for the meeting point, asks :meth:`TimedExecutor.plan_to_meet` for the latest
+plan that arrives by the meeting time with the requested probability, and runs it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from timedexec.drivers import RobotState
+from timedexec.errors import ConfigError
+from timedexec.execution._executor import ExecutionResult, MeetPlan, TimedExecutor
+from timedexec.robots import RobotSpec, check_configuration, forward_kinematics
+
+__all__ = [
+    "InterceptResult",
+    "SeamResult",
+    "intercept",
+    "solve_position_ik",
+    "tool_radius_m",
+    "track_seam",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+def tool_radius_m(spec: RobotSpec, q_rad: ArrayLike) -> float:
+    """Horizontal distance of the flange from the base axis, m."""
+    p = forward_kinematics(spec, np.asarray(q_rad, dtype=float))[6, :3, 3]
+    return float(math.hypot(p[0], p[1]))
+
+
+def _physical_probe(executor: TimedExecutor) -> Callable[[], tuple[float, FloatArray]] | None:
+    """(host time, physical q) of a simulated driver's controller, or None."""
+    driver: Any = executor.driver
+    if not hasattr(driver, "controller") or not getattr(driver, "virtual", False):
+        return None
+
+    def probe() -> tuple[float, FloatArray]:
+        sim = driver.controller
+        return float(sim.time_s), np.asarray(sim.q_rad, dtype=float)
+
+    return probe
+
+
+@dataclass(frozen=True)
+class SeamResult:
+    """Outcome of :func:`track_seam`.
+
+    Attributes
+    ----------
+    speed_m_s, radius_m, joint_speed_rad_s : float
+        Belt speed, tool radius and the base joint's cruise speed.
+    sync_time_s : float
+        Host time at which the tool should be on the moving seam, s.
+    times_s : ndarray (n,)
+        Host times of the cruise samples, s.
+    lag_m : ndarray (n,)
+        Physical tool position behind the seam along the belt (negative: ahead), m; from the
+        simulator's physical state (a ``sim://`` driver) or, for other drivers, from the
+        executor's back-dated estimate.
+    estimated_lag_m : ndarray (n,)
+        The same from the executor's estimate (what the robot believes).
+    physical : bool
+        Whether ``lag_m`` is the physical truth.
+    execution : ExecutionResult
+    """
+
+    speed_m_s: float
+    radius_m: float
+    joint_speed_rad_s: float
+    sync_time_s: float
+    times_s: FloatArray
+    lag_m: FloatArray
+    estimated_lag_m: FloatArray
+    physical: bool
+    execution: ExecutionResult = field(repr=False)
+
+    @property
+    def mean_error_m(self) -> float:
+        """Mean distance of the tool from the seam during the cruise, m."""
+        return float(np.mean(np.abs(self.lag_m))) if len(self.lag_m) else math.nan
+
+    @property
+    def mean_lag_m(self) -> float:
+        """Mean signed lag during the cruise, m."""
+        return float(np.mean(self.lag_m)) if len(self.lag_m) else math.nan
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe summary."""
+        return {
+            "speed_m_s": self.speed_m_s,
+            "radius_m": self.radius_m,
+            "joint_speed_rad_s": self.joint_speed_rad_s,
+            "mean_error_cm": self.mean_error_m * 100,
+            "mean_lag_cm": self.mean_lag_m * 100,
+            "estimated_mean_lag_cm": float(np.mean(self.estimated_lag_m)) * 100
+            if len(self.estimated_lag_m)
+            else math.nan,
+            "physical": self.physical,
+            "actuation_shift_ms": float(self.execution.actuation_s[0]) * 1e3,
+        }
+
+
+def track_seam(
+    executor: TimedExecutor,
+    *,
+    speed_m_s: float = 0.5,
+    direction: int | None = None,
+    lead_s: float = 0.15,
+    cruise_s: float = 0.4,
+    settle_s: float = 0.1,
+) -> SeamResult:
+    """Follow a seam moving at ``speed_m_s`` on a round conveyor with the base joint.
+
+    Parameters
+    ----------
+    executor : TimedExecutor
+        Connected, robot at rest.
+    speed_m_s : float
+        Belt (seam) speed, m/s.
+    direction : {+1, -1}, optional
+        Direction of joint 1; default: away from its nearer limit.
+    lead_s : float
+        Time from now to the planned start of the motion, s (must exceed the actuation delay).
+    cruise_s : float
+        Cruise time after the ramp, s; the error is measured over it after ``settle_s``.
+
+    Raises
+    ------
+    ConfigError
+        If the tool is too close to the base axis for this speed (joint 1 would exceed its
+        speed limit) or the motion would leave the joint limits.
+    """
+    spec = executor.spec
+    est = executor.estimate()
+    q0 = est.q_rad.copy()
+    r = tool_radius_m(spec, q0)
+    vmax = float(executor.limits.velocity(spec)[0])
+    omega = speed_m_s / r if r > 0 else math.inf
+    if not omega <= 0.9 * vmax:
+        raise ConfigError(
+            f"the tool is {r:.3f} m from the base axis: following {speed_m_s} m/s needs joint 1 "
+            f"at {omega:.3g} rad/s, above 90 % of its limit {vmax:.3g} rad/s; move the tool "
+            "further out or lower the speed"
+        )
+    if direction is None:
+        room_hi = spec.q_max_rad[0] - q0[0]
+        room_lo = q0[0] - spec.q_min_rad[0]
+        direction = 1 if room_hi >= room_lo else -1
+    if direction not in (1, -1):
+        raise ConfigError(f"direction={direction!r} must be +1 or -1")
+    a = float(executor.limits.acceleration(spec)[0])
+    target = q0.copy()
+    target[0] += direction * (omega**2 / (2 * a) + omega * 0.02)
+    qd_end = np.zeros(6)
+    qd_end[0] = direction * omega
+    plan = executor.plan(target, target_qd_rad_s=qd_end, start_q_rad=q0)
+    end_q1 = q0[0] + direction * omega * (plan.duration_s + cruise_s + settle_s + 0.2)
+    if not spec.q_min_rad[0] <= end_q1 <= spec.q_max_rad[0]:
+        raise ConfigError(
+            f"the cruise would take joint 1 to {end_q1:.4g} rad, outside "
+            f"[{spec.q_min_rad[0]:.4g}, {spec.q_max_rad[0]:.4g}] rad; shorten cruise_s"
+        )
+    start = executor.now() + max(lead_s, executor.lead_time_s(plan) + 3 * executor.period_s)
+    sync = start + plan.duration_s
+    probe = _physical_probe(executor)
+    times: list[float] = []
+    q_phys: list[float] = []
+    q_est: list[float] = []
+
+    def record(state: RobotState) -> None:
+        now = executor.now()
+        if now < sync + settle_s:
+            return
+        if probe is not None:
+            t, q = probe()
+            times.append(t)
+            q_phys.append(float(q[0]))
+            q_est.append(float(executor.estimate(t).q_rad[0]))
+        else:
+            times.append(now)
+            q_est.append(float(executor.estimate(now).q_rad[0]))
+
+    result = executor.execute(plan.at(start), until_s=sync + settle_s + cruise_s, on_step=record)
+    t_arr = np.asarray(times)
+    seam = target[0] + direction * omega * (t_arr - sync)
+    est_lag = direction * (seam - np.asarray(q_est)) * r
+    lag = direction * (seam - np.asarray(q_phys)) * r if probe is not None else est_lag
+    return SeamResult(
+        speed_m_s=float(speed_m_s),
+        radius_m=r,
+        joint_speed_rad_s=omega,
+        sync_time_s=sync,
+        times_s=t_arr,
+        lag_m=lag,
+        estimated_lag_m=est_lag,
+        physical=probe is not None,
+        execution=result,
+    )
+
+
+def solve_position_ik(
+    spec: RobotSpec,
+    target_m: ArrayLike,
+    q_seed_rad: ArrayLike,
+    *,
+    joints: tuple[int, ...] = (1, 2, 3),
+    tol_m: float = 1e-5,
+) -> FloatArray:
+    """Joint angles that put the flange origin at ``target_m`` (base frame, m).
+
+    Damped least squares on ``joints`` (others stay at the seed), inside the joint limits.
+
+    Raises
+    ------
+    ConfigError
+        If no solution within ``tol_m`` is found from this seed (target out of reach).
+    """
+    from scipy.optimize import least_squares
+
+    target = np.asarray(target_m, dtype=float).reshape(3)
+    seed = check_configuration(spec, q_seed_rad).astype(float)
+    idx = np.asarray(joints) - 1
+
+    def residual(x: FloatArray) -> FloatArray:
+        q = seed.copy()
+        q[idx] = x
+        return np.asarray(forward_kinematics(spec, q)[6, :3, 3] - target)
+
+    lo = np.asarray(spec.q_min_rad)[idx]
+    hi = np.asarray(spec.q_max_rad)[idx]
+    sol = least_squares(residual, np.clip(seed[idx], lo, hi), bounds=(lo, hi), xtol=1e-12)
+    err = float(np.linalg.norm(sol.fun))
+    if err > tol_m:
+        raise ConfigError(
+            f"no joint configuration puts the flange at {target.round(4).tolist()} m from this "
+            f"seed (closest {err * 1e3:.1f} mm away); the point is out of reach"
+        )
+    q = seed.copy()
+    q[idx] = sol.x
+    return q
+
+
+@dataclass(frozen=True)
+class InterceptResult:
+    """Outcome of :func:`intercept`.
+
+    Attributes
+    ----------
+    meet_time_s : float
+        Chosen meeting time (host clock), s.
+    meet : MeetPlan
+        The plan (arrival bounds, probability, first send time).
+    target_q_rad : ndarray (6,)
+        Meeting configuration.
+    distance_m : float
+        Tool-object distance at the meeting time, m (physical for ``sim://`` drivers, else
+        from the executor's estimate).
+    arrival_s : float
+        When the tool came within ``arrival_tol_m`` of the meeting point and stayed, s
+        (NaN: never).
+    physical : bool
+        Whether the figures are the simulator's physical truth.
+    """
+
+    meet_time_s: float
+    meet: MeetPlan
+    target_q_rad: FloatArray
+    distance_m: float
+    arrival_s: float
+    physical: bool
+    execution: ExecutionResult = field(repr=False)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe summary."""
+        return {
+            "meet_time_s": self.meet_time_s,
+            "distance_mm": self.distance_m * 1e3,
+            "arrival_before_meet_ms": (self.meet_time_s - self.arrival_s) * 1e3,
+            "probability": self.meet.probability,
+            "physical": self.physical,
+        }
+
+
+def intercept(
+    executor: TimedExecutor,
+    object_position: Callable[[float], ArrayLike],
+    meet_time_s: float,
+    *,
+    confidence: float = 0.95,
+    arrival_tol_m: float = 0.002,
+) -> InterceptResult:
+    """Put the tool where the object will be at ``meet_time_s`` (host clock), by then.
+
+    ``object_position(t)`` gives the object's position (m, base frame) at host time ``t``.
+
+    Raises
+    ------
+    ConfigError, UnreachableError
+        Before any motion, if the point is out of reach, outside the limits or cannot be
+        reached in time at ``confidence`` (the message says by how much it misses).
+    """
+    spec = executor.spec
+    point = np.asarray(object_position(meet_time_s), dtype=float)
+    q0 = executor.estimate().q_rad
+    q_target = solve_position_ik(spec, point, q0)
+    meet = executor.plan_to_meet(q_target, meet_time_s, confidence)
+    probe = _physical_probe(executor)
+    samples: list[tuple[float, FloatArray]] = []
+
+    def record(state: RobotState) -> None:
+        if probe is not None:
+            samples.append(probe())
+        else:
+            t = executor.now()
+            samples.append((t, executor.estimate(t).q_rad))
+
+    result = executor.execute(meet, until_s=meet_time_s + 0.05, on_step=record)
+    t = np.asarray([s[0] for s in samples])
+    q = np.asarray([s[1] for s in samples])
+    tool = forward_kinematics(spec, q)[:, 6, :3, 3]
+    dist = np.linalg.norm(tool - point, axis=1)
+    k = int(np.searchsorted(t, meet_time_s))
+    k = min(max(k, 0), len(t) - 1)
+    if k > 0 and t[k] != meet_time_s:
+        f = (meet_time_s - t[k - 1]) / (t[k] - t[k - 1])
+        tool_at = (1 - f) * tool[k - 1] + f * tool[k]
+    else:
+        tool_at = tool[k]
+    obj_at = point
+    far = np.flatnonzero(dist > arrival_tol_m)
+    arrival = float(t[far[-1] + 1]) if len(far) and far[-1] + 1 < len(t) else math.nan
+    if not len(far):
+        arrival = float(t[0])
+    return InterceptResult(
+        meet_time_s=float(meet_time_s),
+        meet=meet,
+        target_q_rad=q_target,
+        distance_m=float(np.linalg.norm(tool_at - obj_at)),
+        arrival_s=arrival,
+        physical=probe is not None,
+        execution=result,
+    )
