@@ -125,7 +125,7 @@ def test_plan_respects_limits_and_refuses_targets_outside() -> None:
     is a ConfigError naming the joint, the value and the range."""
     spec = get_robot("kr5")
     q0 = np.array(spec.home_q_rad)
-    target = [*q0, 1.0, 0.3, -0.4, 0.5, 0.2, 1.0]
+    target = q0 + np.array([1.0, 0.3, -0.4, 0.5, 0.2, 1.0])
     plan = plan_motion(spec, ExecutionLimits(), q0, target)
     t = np.linspace(0, plan.duration_s, 400)
     q, v = plan.sample_many(t)
