@@ -668,8 +668,11 @@ def test_kill_at_random_moments(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_kill_at_random_moments_long(tmp_path: Path) -> None:
-    """100 SIGKILLs at seeded random moments (slow variant of the test above)."""
-    kill_many(tmp_path, n_kills=100, seed=5, n_plan=100_000)
+    """Many SIGKILLs at seeded random moments (slow variant of the test above): 40 in CI
+    (~75 s; bounded so .ci/run stays under 15 minutes), more with TIMEDEXEC_LONG_KILLS
+    (100 passed in 180 s when the store was written)."""
+    n_kills = int(os.environ.get("TIMEDEXEC_LONG_KILLS", "40"))
+    kill_many(tmp_path, n_kills=n_kills, seed=5, n_plan=100_000)
 
 
 def test_readers_during_a_running_sweep(tmp_path: Path) -> None:
