@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import json
 import os
 import sys
@@ -25,6 +26,18 @@ __all__ = ["main"]
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="timedexec",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(
+            "workflow:\n"
+            "  timedexec calibrate --robot-url ur://HOST --imu /dev/ttyUSB0 --trials N --out rec.h5\n"
+            "      (or: timedexec simulate --robot ur10 --trials N --out rec.h5)\n"
+            "  timedexec extract rec.h5 --out delays.csv\n"
+            "  timedexec train delays.csv --out model/ --json cv.json\n"
+            "  timedexec evaluate --robot ur10 --model model/\n"
+            "  timedexec report rec.h5 delays.csv cv.json --out report/\n\n"
+            "`timedexec COMMAND --help` describes each command. Exit codes: 0 success, "
+            "2 bad input (the message says what and how to fix it), 1 other failures."
+        ),
         description=(
             "Measure, model and compensate the actuation and response delays of industrial "
             "robot arms. Every command runs on the embedded simulated robots when no robot "
@@ -38,8 +51,24 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_calibrate(sub)
     _add_extract(sub)
     _add_report(sub)
+    for module in _SUBCOMMAND_MODULES:
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as exc:  # only the module itself may be absent
+            if exc.name != module:
+                raise
+            continue
+        mod.add_parser(sub, _Formatter, _emit)
     _add_demo(sub)
     return parser
+
+
+#: Subcommands that live beside the layer they drive (each has add_parser(sub, fmt, emit)).
+_SUBCOMMAND_MODULES = (
+    "timedexec._cli_train",
+    "timedexec._cli_evaluate",
+    "timedexec._cli_discrepancy",
+)
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
