@@ -1,0 +1,433 @@
+"""The discrepancy report: markdown plus PNG figures, for a robot engineer who does not
+know the code."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from timedexec.delays import DELAY_COLUMNS
+from timedexec.effects import make_effect
+from timedexec.errors import RecordingError
+
+if TYPE_CHECKING:
+    from timedexec.discrepancy._locate import Variable
+    from timedexec.discrepancy._workflow import DiscrepancyResult
+
+__all__ = ["write_report"]
+
+_WORDS = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _jitter(x: NDArray[np.float64], kind: str, seed: int = 0) -> NDArray[np.float64]:
+    if kind != "binary":
+        return x
+    rng = np.random.default_rng(seed)
+    out: NDArray[np.float64] = x + rng.uniform(-0.15, 0.15, len(x))
+    return out
+
+
+def _residual_panel(
+    ax: Any,
+    var: Variable,
+    resid_ms: NDArray[np.float64],
+    joints: NDArray[np.int64],
+    floor_ms: float,
+    title: str,
+    mask: NDArray[np.bool_] | None = None,
+) -> None:
+    sel = np.ones(len(resid_ms), dtype=bool) if mask is None else mask
+    x = _jitter(var.values, var.kind)
+    for j in np.unique(joints[sel]):
+        m = sel & (joints == j)
+        ax.scatter(x[m], resid_ms[m], s=8, alpha=0.6, label=f"joint {j}")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.axhspan(-floor_ms, floor_ms, color="0.85", zorder=0, label="± noise floor")
+    if var.kind != "binary" and sel.sum() > 20:
+        xs = var.values[sel]
+        edges = np.quantile(xs, np.linspace(0, 1, 11))
+        idx = np.clip(np.searchsorted(edges, xs, side="right") - 1, 0, 9)
+        centres = [xs[idx == k].mean() for k in range(10) if np.any(idx == k)]
+        means = [resid_ms[sel][idx == k].mean() for k in range(10) if np.any(idx == k)]
+        ax.plot(centres, means, color="k", lw=2, label="binned mean")
+    ax.set_xlabel(f"{var.label} ({var.unit})")
+    ax.set_ylabel("measured - simulated mean (ms)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+
+
+def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
+    plt = _plt()
+    labels = ["start"] + [f"+ {s.effect}" for s in result.steps]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    floor = result.noise_floor_ms
+    for ax, d in zip(axes, DELAY_COLUMNS, strict=True):
+        values = [result.gap_before_ms[d]] + [s.gap_after_ms[d] for s in result.steps]
+        ax.bar(range(len(values)), values, color="tab:blue")
+        ax.axhline(floor[d], color="k", ls="--", label=f"noise floor {floor[d]:.2f} ms")
+        ax.axhline(1.25 * floor[d], color="tab:red", ls=":", label="noise floor + 25 %")
+        ax.set_xticks(range(len(values)), labels, rotation=20, ha="right")
+        ax.set_ylabel("gap: RMS of measured - simulated mean (ms)")
+        ax.set_title(_WORDS[d])
+        ax.legend(fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _where_figure(result: DiscrepancyResult, path: Path) -> None:
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    for ax, d in zip(axes, DELAY_COLUMNS, strict=True):
+        before = result.locations_before[d]["by_joint_direction"]
+        after = result.locations_after[d]["by_joint_direction"]
+        names = [f"J{g['joint']} {'+' if g['direction'] > 0 else '-'}" for g in before]
+        x = np.arange(len(names))
+        ax.bar(x - 0.2, [g["rms_ms"] for g in before], 0.4, label="start model")
+        ax.bar(x + 0.2, [g["rms_ms"] for g in after], 0.4, label="final model")
+        ax.plot(x, [g["noise_ms"] for g in before], "k_", ms=18, mew=2, label="noise floor")
+        ax.set_xticks(x, names)
+        ax.set_ylabel("RMS of measured - simulated mean (ms)")
+        ax.set_title(f"{_WORDS[d]} per joint and direction")
+        ax.legend(fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
+    from timedexec.discrepancy._workflow import EFFECT_VARIABLE
+
+    plt = _plt()
+    step = result.steps[k]
+    var = result.variables[EFFECT_VARIABLE[step.effect]]
+    floor = result.noise_floor_ms[step.acts_on]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True, constrained_layout=True)
+    joints = result.cond.joint
+    _residual_panel(
+        axes[0], var, step.resid_before_s * 1e3, joints, floor, f"before adding {step.effect}"
+    )
+    _residual_panel(
+        axes[1], var, step.resid_after_s * 1e3, joints, floor, f"after adding {step.effect}"
+    )
+    axes[1].legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{_WORDS[step.acts_on]}: residuals against {var.label}", fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    d = entry["delay"]
+    cond = result.cond
+    mask = np.isin(cond.joint, entry["joints"])
+    if entry["direction"] != "both":
+        mask &= cond.direction == int(entry["direction"])
+    key = entry["variable"] or "time"
+    var = result.variables[key]
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    _residual_panel(
+        ax,
+        var,
+        result.after.resid_s[d] * 1e3,
+        cond.joint,
+        result.noise_floor_ms[d],
+        f"unexplained {_WORDS[d]}",
+        mask,
+    )
+    ax.legend(fontsize=7)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt_p(p: float) -> str:
+    return f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
+
+
+def _lines_intro(result: DiscrepancyResult) -> list[str]:
+    fl = result.noise_floor_ms
+    out = [
+        f"# Where the simulated {result.robot} disagrees with the measurement",
+        "",
+        f"Measured data: `{result.source}` — {result.n_trials:,} trials in "
+        f"{result.n_conditions:,} conditions (a condition is one start configuration, one "
+        "moving joint and one direction; its repeats are averaged).",
+        f"Start model: **{result.start}** "
+        f"({', '.join(result.start_effects) or 'the base timing of the controller only'}).",
+        "",
+        "## In short",
+        "",
+    ]
+    if result.steps:
+        out.append(
+            f"The simulation was missing {len(result.steps)} effect"
+            f"{'s' if len(result.steps) > 1 else ''}, found in this order:"
+        )
+        out.append("")
+        for k, s in enumerate(result.steps, 1):
+            out.append(f"{k}. **{s.effect}** — {make_effect(s.effect).meaning}. {s.explanation}.")
+        out.append("")
+    else:
+        out.append(
+            "No effect of the vocabulary is missing: no candidate explains a significant part "
+            "of the disagreement."
+        )
+        out.append("")
+    for d in DELAY_COLUMNS:
+        out.append(
+            f"- {_WORDS[d].capitalize()}: gap {result.gap_before_ms[d]:.2f} ms before, "
+            f"{result.gap_after_ms[d]:.2f} ms after; the noise floor is {fl[d]:.2f} ms "
+            f"({result.gap_after_ms[d] / fl[d]:.2f} x the floor)."
+        )
+    out.append("")
+    if result.unexplained:
+        out.append(
+            "Something remains that no effect of the vocabulary explains (see *Unexplained* "
+            "below); it is reported where it sits, not forced onto a name."
+        )
+    else:
+        out.append("Nothing significant remains unexplained.")
+    out.append("")
+    return out
+
+
+def _lines_terms() -> list[str]:
+    return [
+        "## What the numbers mean",
+        "",
+        "- **Actuation delay**: from the command leaving the PC to the joint physically "
+        "moving (10 % of the commanded speed, measured by the gyro).",
+        "- **Response delay**: how old the state the controller publishes is when it "
+        "arrives (the motion shows up this much later in the reported joint positions).",
+        "- **Gap**: the root mean square, over all conditions, of the measured mean delay "
+        "minus the simulated mean delay (ms).",
+        "- **Noise floor**: the gap that the scatter of the repeats alone would give, "
+        "sqrt(mean over conditions of s²/n) with s the standard deviation of a condition's "
+        "repeats and n their number. A perfect simulation has a gap at the noise floor.",
+        "- **Lack-of-fit test**: whether the gap is larger than the noise floor by more than "
+        "chance (F test of the condition-mean residuals against the repeat scatter); a "
+        "small p-value means something is missing.",
+        "- **Share of the gap explained**: how much of the gap *above the noise floor* "
+        "(gap² - floor²) an added effect removed.",
+        "",
+    ]
+
+
+def _lines_summary_table(result: DiscrepancyResult) -> list[str]:
+    out = [
+        "| delay | gap at start (ms) | gap at end (ms) | noise floor (ms) | lack of fit p, start | lack of fit p, end |",
+        "|---|---|---|---|---|---|",
+    ]
+    for d in DELAY_COLUMNS:
+        out.append(
+            f"| {_WORDS[d]} | {result.gap_before_ms[d]:.3f} | {result.gap_after_ms[d]:.3f} | "
+            f"{result.noise_floor_ms[d]:.3f} | {_fmt_p(result.lack_of_fit_before[d]['p_value'])} | "
+            f"{_fmt_p(result.lack_of_fit_after[d]['p_value'])} |"
+        )
+    return [*out, "", "![gap per step](gap_per_step.png)", ""]
+
+
+def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
+    out: list[str] = []
+    for k, s in enumerate(result.steps):
+        e = make_effect(s.effect)
+        ev = s.evidence
+        out += [
+            f"## Step {k + 1}: {s.effect}",
+            "",
+            f"*{e.meaning}* (acts on the {_WORDS[s.acts_on]}; follows {e.variable}).",
+            "",
+            f"{s.explanation}.",
+            "",
+            "Evidence: with the effect, the cross-validated error of the condition means "
+            f"(5 folds of conditions) falls from {ev['cv_mse_without_ms2']:.3f} to "
+            f"{ev['cv_mse_with_ms2']:.3f} ms², {100 * ev['cv_share_of_excess_explained']:.0f} % "
+            f"of its excess over the noise; F = {ev['f_statistic']:.1f}, p = "
+            f"{_fmt_p(ev['p_value'])} (significant below {result.settings['alpha']} / number "
+            "of candidates). After recalibration the gap fell significantly (p = "
+            f"{_fmt_p(ev['confirmation']['p_value'])}).",
+            "",
+            "| candidate | share of excess explained (CV) | p-value | significant |",
+            "|---|---|---|---|",
+        ]
+        for r in ev["ranking"]:
+            out.append(
+                f"| {r['effect']} | {100 * r['cv_share_of_excess_explained']:.0f} % | "
+                f"{_fmt_p(r['p_value'])} | {'yes' if r['significant'] else 'no'} |"
+            )
+        out += ["", f"Fitted parameters: `{_compact(s.parameters)}`", ""]
+        out += [f"![step {k + 1}]({figures[k]})", ""]
+    return out
+
+
+def _compact(d: dict[str, Any]) -> str:
+    def fmt(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{k}: {fmt(x)}" for k, x in v.items()) + "}"
+        return str(v)
+
+    return ", ".join(f"{k} = {fmt(v)}" for k, v in d.items())
+
+
+def _lines_unexplained(result: DiscrepancyResult, figures: list[str]) -> list[str]:
+    out = ["## Unexplained", ""]
+    if not result.unexplained:
+        lof = result.lack_of_fit_after
+        out.append(
+            "Nothing: the final model's gap is at the noise floor (lack-of-fit p = "
+            + ", ".join(f"{_fmt_p(lof[d]['p_value'])} for the {_WORDS[d]}" for d in DELAY_COLUMNS)
+            + ")."
+        )
+        return [*out, ""]
+    for entry, fig in zip(result.unexplained, figures, strict=True):
+        out += [f"- {entry['description']}", "", f"  ![unexplained]({fig})", ""]
+    out.append(
+        "These disagreements are real (beyond the repeat scatter) but no effect of the "
+        "vocabulary reproduces them; look for a cause outside the simulator's physics "
+        "(a mechanical or controller property of this robot, or the measurement set-up)."
+    )
+    return [*out, ""]
+
+
+def _lines_where(result: DiscrepancyResult) -> list[str]:
+    out = [
+        "## Where the disagreement sat",
+        "",
+        "Per joint and direction: mean and RMS of measured minus simulated condition "
+        "means, the noise floor of that group and the p-value of a chi-square test against "
+        "the noise (small: the group disagrees beyond the scatter).",
+        "",
+        "![per joint and direction](where.png)",
+        "",
+    ]
+    for label, where in (
+        ("start model", result.locations_before),
+        ("final model", result.locations_after),
+    ):
+        for d in DELAY_COLUMNS:
+            out += [
+                f"**{_WORDS[d].capitalize()}, {label}**",
+                "",
+                "| joint | direction | conditions | mean (ms) | RMS (ms) | noise (ms) | p |",
+                "|---|---|---|---|---|---|---|",
+            ]
+            for g in where[d]["by_joint_direction"]:
+                out.append(
+                    f"| {g['joint']} | {'+' if g['direction'] > 0 else '-'} | {g['conditions']} | "
+                    f"{g['mean_ms']:+.2f} | {g['rms_ms']:.2f} | {g['noise_ms']:.2f} | {_fmt_p(g['p_value'])} |"
+                )
+            out += ["", "| sweep time (s) | mean (ms) | RMS (ms) | p |", "|---|---|---|---|"]
+            for t in where[d]["by_time"]:
+                out.append(
+                    f"| {t['from_s']:.0f} - {t['to_s']:.0f} | {t['mean_ms']:+.2f} | "
+                    f"{t['rms_ms']:.2f} | {_fmt_p(t['p_value'])} |"
+                )
+            out.append("")
+    return out
+
+
+def _lines_model(result: DiscrepancyResult) -> list[str]:
+    out = ["## The calibrated model", ""]
+    for label, cal in (("start", result.calibration_before), ("final", result.calibration_after)):
+        out.append(
+            f"- {label}: robot constants actuation {cal['actuation_offset_ms']:+.2f} ms, "
+            f"response {cal['response_offset_ms']:+.2f} ms (added to the simulator's base "
+            "timing, whose pipeline and packing phase are not known for a real robot); "
+            "effects: " + ("; ".join(_compact(e) for e in cal["effects"]) or "none")
+        )
+    out.append("")
+    if result.rejected:
+        out.append(
+            "Candidates that looked significant but did not reduce the gap significantly "
+            "once calibrated (not added): " + ", ".join(r["effect"] for r in result.rejected)
+        )
+        out.append("")
+    return out
+
+
+def _lines_method(result: DiscrepancyResult) -> list[str]:
+    nf = result.noise.to_dict()
+    out = ["## How this was computed", ""]
+    out.append(
+        "The simulator ran every measured condition (start configuration, joint, direction, "
+        "time in the sweep) with the controller's timing randomness replaced by its mean. Its "
+        "effect parameters were calibrated to the measured condition means by least squares "
+        "with the simulator in the loop. Each effect of the vocabulary that the model lacked "
+        "was then scored against the residuals: its signature (how switching it on changes "
+        "every condition) was fitted to the residuals, cross-validated over 5 folds of "
+        "conditions and F-tested against the repeat scatter (Bonferroni over the candidates). "
+        "The best significant one was added, everything recalibrated, and the loop repeated "
+        "until no candidate was significant."
+    )
+    out.append("")
+    out.append(
+        f"Noise floor source: {nf['source']} (pure-error degrees of freedom: "
+        f"{nf['pure_error_df']}); trial-to-trial standard deviation "
+        + ", ".join(f"{v:.2f} ms ({_WORDS[k]})" for k, v in nf["trial_sd_ms"].items())
+        + "."
+    )
+    out.append("")
+    if result.warnings:
+        out += ["## Warnings", ""] + [f"- {w}" for w in result.warnings] + [""]
+    out.append(
+        f"Runtime {result.runtime_s:.1f} s, {result.simulations['runs']} simulator runs "
+        f"({result.simulations['conditions_simulated']:,} simulated conditions)."
+    )
+    return [*out, ""]
+
+
+def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -> Path:
+    """Write ``report.md`` and its PNG figures into ``directory`` (created if missing).
+
+    Returns the path of the markdown file.
+    """
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(
+            f"cannot create the report folder {out}: {exc.strerror or exc}"
+        ) from exc
+    _gap_figure(result, out / "gap_per_step.png")
+    _where_figure(result, out / "where.png")
+    step_figs = []
+    for k, s in enumerate(result.steps):
+        name = f"step{k + 1}_{s.effect}.png"
+        _step_figure(result, k, out / name)
+        step_figs.append(name)
+    un_figs = []
+    for k, entry in enumerate(result.unexplained):
+        name = f"unexplained{k + 1}.png"
+        _unexplained_figure(result, entry, out / name)
+        un_figs.append(name)
+    lines = (
+        _lines_intro(result)
+        + _lines_terms()
+        + _lines_summary_table(result)
+        + _lines_steps(result, step_figs)
+        + _lines_unexplained(result, un_figs)
+        + _lines_where(result)
+        + _lines_model(result)
+        + _lines_method(result)
+    )
+    md = out / "report.md"
+    try:
+        md.write_text("\n".join(lines), encoding="utf-8")
+    except OSError as exc:
+        raise RecordingError(f"cannot write {md}: {exc.strerror or exc}") from exc
+    return md
