@@ -45,24 +45,25 @@ def oracle_ur10() -> SimulatedOracle:
 
 # ---------------------------------------------------------------------------- bounds
 def test_mixture_quantiles_match_monte_carlo() -> None:
-    """For delays spread by a full cycle's uniform wait plus Gaussian noise (the bounds'
-    assumption), the mixture's quantiles match sampled ones and its central 95 % interval
-    covers 95 % of samples, where a Gaussian interval covers ~100 % of a pure uniform."""
+    """For delays spread by a full cycle's uniform wait plus Gaussian noise holding at least
+    the 20 % of the variance the bounds reserve for it (model error), the mixture's
+    quantiles match sampled ones and its central 95 % interval covers 95 % of samples; a
+    pure uniform spread is over-covered (the documented price of that reserve), as a
+    Gaussian interval would too."""
     rng = np.random.default_rng(0)
     period = 0.008
-    for w, sg in [(0.008, 0.0), (0.008, 0.002), (0.008, 0.005)]:
+    for w, sg in [(0.008, 0.0012), (0.008, 0.002), (0.008, 0.005)]:
         x = rng.uniform(-w / 2, w / 2, 200_000) + rng.normal(0, sg, 200_000)
         std = x.std()
         b = TimingBounds.around(0.0, std, 0.95, period)
         cov = np.mean(b.contains(x))
-        # 200k samples: binomial std of a 95 % fraction is 0.05 %; 0.4 % allows the
-        # width split's approximation (w = min(T, sqrt(12) std)).
-        assert cov == pytest.approx(0.95, abs=0.004)
+        # 200k samples: the binomial std of a 95 % fraction is 0.05 %; 0.3 % is 6 sigma.
+        assert cov == pytest.approx(0.95, abs=0.003)
         q90 = delay_quantile(0.9, std, period)
-        assert np.mean(x <= q90) == pytest.approx(0.9, abs=0.004)
+        assert np.mean(x <= q90) == pytest.approx(0.9, abs=0.003)
     x = rng.uniform(-0.004, 0.004, 100_000)
-    gauss = TimingBounds.around(0.0, x.std(), 0.95, None)
-    assert np.mean(gauss.contains(x)) == 1.0  # the reason for the mixture
+    assert np.mean(TimingBounds.around(0.0, x.std(), 0.95, period).contains(x)) > 0.99
+    assert np.mean(TimingBounds.around(0.0, x.std(), 0.95, None).contains(x)) == 1.0
     assert float(delay_cdf(0.0, 0.002, period)) == pytest.approx(0.5)
 
 

@@ -131,11 +131,14 @@ class SimulatedOracle:
             )
             act[k] = tab["actuation_delay"]
             resp[k] = tab["response_delay"]
+        # Predictive std of a new trial: the spread of the draws plus the uncertainty of
+        # their mean (sqrt(1 + 1/draws)).
+        inflate = math.sqrt(1.0 + 1.0 / self.draws)
         return DelayPredictions(
             actuation_mean=act.mean(axis=0),
-            actuation_std=act.std(axis=0, ddof=1),
+            actuation_std=act.std(axis=0, ddof=1) * inflate,
             response_mean=resp.mean(axis=0),
-            response_std=resp.std(axis=0, ddof=1),
+            response_std=resp.std(axis=0, ddof=1) * inflate,
         )
 
     def predict(self, *, joint: int, direction: int, q: ArrayLike) -> DelayPredictions:
