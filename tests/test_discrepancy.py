@@ -7,7 +7,6 @@ vocabulary, the KR 5) is in ``test_discrepancy_hidden.py`` (slow).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from collections.abc import Callable
@@ -26,7 +25,7 @@ from timedexec.discrepancy import (
 )
 from timedexec.discrepancy._model import deterministic_settings
 from timedexec.effects import EFFECT_NAMES, EffectSet, GravityLoad, default_effects, make_effect
-from timedexec.errors import ConfigError, TimedExecError
+from timedexec.errors import ConfigError
 from timedexec.robots import get_robot
 from timedexec.sim import SweepPlan, default_settings, simulate_delays
 
@@ -68,27 +67,10 @@ def _all_finite(obj: Any) -> bool:
 
 
 def run_cli(argv: list[str]) -> int:
-    """``timedexec discrepancy ...`` through the real CLI once it is wired, else through
-    this module's parser with the same contract (TimedExecError -> message, exit 2/1)."""
-    from timedexec import cli
+    """The ``timedexec`` command line, in process."""
+    from timedexec.cli import main
 
-    parser = cli._build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    if "discrepancy" in sub.choices:
-        return cli.main(argv)
-    from timedexec._cli_discrepancy import add_parser
-
-    parser = argparse.ArgumentParser(prog="timedexec")
-    subs = parser.add_subparsers(dest="command")
-    add_parser(subs, argparse.RawDescriptionHelpFormatter, cli._emit)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args))
-    except TimedExecError as exc:
-        import sys
-
-        print(f"timedexec {args.command}: error: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, ValueError | OSError) else 1
+    return main(argv)
 
 
 @pytest.fixture(scope="module")

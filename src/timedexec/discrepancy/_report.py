@@ -178,7 +178,7 @@ def _lines_intro(result: DiscrepancyResult) -> list[str]:
         )
         out.append("")
         for k, s in enumerate(result.steps, 1):
-            out.append(f"{k}. **{s.effect}** — {make_effect(s.effect).meaning}. {s.explanation}.")
+            out.append(f"{k}. **{s.effect}** ({make_effect(s.effect).meaning}): {s.explanation}.")
         out.append("")
     else:
         out.append(
@@ -250,10 +250,10 @@ def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
             "",
             f"*{e.meaning}* (acts on the {_WORDS[s.acts_on]}; follows {e.variable}).",
             "",
-            f"{s.explanation}.",
+            f"What it does: {s.explanation}.",
             "",
-            "Evidence: with the effect, the cross-validated error of the condition means "
-            f"(5 folds of conditions) falls from {ev['cv_mse_without_ms2']:.3f} to "
+            f"Evidence ({_method_words(ev['method'])}): with the effect, the "
+            "cross-validated error of the condition means (5 folds of conditions) falls from {ev['cv_mse_without_ms2']:.3f} to "
             f"{ev['cv_mse_with_ms2']:.3f} ms², {100 * ev['cv_share_of_excess_explained']:.0f} % "
             f"of its excess over the noise; F = {ev['f_statistic']:.1f}, p = "
             f"{_fmt_p(ev['p_value'])} (significant below {result.settings['alpha']} / number "
@@ -271,6 +271,12 @@ def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
         out += ["", f"Fitted parameters: `{_compact(s.parameters)}`", ""]
         out += [f"![step {k + 1}]({figures[k]})", ""]
     return out
+
+
+def _method_words(method: str) -> str:
+    if method == "refit":
+        return "the whole model recalibrated with the effect added"
+    return "the effect's signature fitted to the residuals"
 
 
 def _compact(d: dict[str, Any]) -> str:

@@ -327,12 +327,6 @@ def _describe_parameters(effect: Effect, model: SimModel) -> dict[str, Any]:
     return effect.to_dict()
 
 
-def _slope(x: FloatArray, y: FloatArray) -> float:
-    if len(x) < 2 or np.ptp(x) <= 0:
-        return 0.0
-    return float(np.polyfit(x, y, 1)[0])
-
-
 def _observed(
     name: str,
     model: SimModel,
@@ -389,22 +383,24 @@ def _observed(
         )
     var = variables[EFFECT_VARIABLE[name]]
     slopes: dict[str, float] = {}
-    rows: list[tuple[float, int, float, float]] = []
+    rows: list[tuple[float, str]] = []
     for j in joints:
         mk = cond.joint == j
         if np.sqrt(np.mean(contrib[mk] ** 2)) < 0.02:
             continue  # the effect does (next to) nothing on this joint
-        slope = _slope(var.values[mk], contrib[mk])
-        slopes[f"joint {j}"] = slope
-        far = float(var.values[mk][np.argmax(np.abs(var.values[mk]))])
-        rows.append((abs(slope * far), j, slope, far))
+        x, y = var.values[mk], contrib[mk]
+        slope, intercept = np.polyfit(x, y, 1) if np.ptp(x) > 0 else (0.0, float(y.mean()))
+        slopes[f"joint {j}"] = float(slope)
+        lo, hi = float(x.min()), float(x.max())
+        text = (
+            f"joint {j} by {slope:+.3f} ms per {var.unit} ({intercept + slope * lo:+.2f} ms at "
+            f"{lo:.3g} to {intercept + slope * hi:+.2f} ms at {hi:.3g} {var.unit})"
+        )
+        rows.append((float(np.ptp(y)), text))
     rows.sort(reverse=True)
     verb = "grows" if name in ("gravity_load", "inertia") else "changes"
-    texts = [
-        f"joint {j} by {slope:+.3f} ms per {var.unit} ({slope * far:+.2f} ms at {far:.3g} {var.unit})"
-        for _, j, slope, far in rows
-    ]
     head = f"actuation delay {verb} with the {var.label}"
+    texts = [t for _, t in rows]
     return {f"slope_ms_per_{var.unit}": slopes}, head + (": " + "; ".join(texts) if texts else "")
 
 
