@@ -22,6 +22,11 @@ Criterion:
 
 A candidate is *significant* when its p-value is below ``alpha / n_candidates``, its
 cross-validated gain is positive and it removes at least ``min_share`` of the excess.
+
+When no signature is significant although the model does not fit, the calibration may have
+bent the present effects' parameters to mimic the missing one beyond what a linearised
+signature can undo; :func:`refit_candidates` then recalibrates the whole model with each
+simulated candidate and applies the same criteria to the recalibrated models.
 """
 
 from __future__ import annotations

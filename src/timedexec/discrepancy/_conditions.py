@@ -8,7 +8,7 @@ workflow compares works on condition means.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -62,7 +62,6 @@ class Conditions:
     var_s2: dict[str, FloatArray]
     row_condition: NDArray[np.int64]
     n_dropped: int = 0
-    row_values_s: dict[str, FloatArray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.joint)
@@ -132,7 +131,6 @@ def group_conditions(table: DelayTable, *, robot: str | None = None) -> Conditio
     n = np.bincount(cond, minlength=m).astype(np.int64)
     mean: dict[str, FloatArray] = {}
     var: dict[str, FloatArray] = {}
-    rows: dict[str, FloatArray] = {}
     for name in DELAY_COLUMNS:
         y = table[name][keep].astype(float)
         mu = np.bincount(cond, weights=y, minlength=m) / n
@@ -140,7 +138,6 @@ def group_conditions(table: DelayTable, *, robot: str | None = None) -> Conditio
         with np.errstate(invalid="ignore", divide="ignore"):
             var[name] = np.where(n > 1, ss / np.maximum(n - 1, 1), np.nan)
         mean[name] = mu
-        rows[name] = y
     _, config = np.unique(config_rows[first], return_inverse=True)
     return Conditions(
         robot=robot,
@@ -154,7 +151,6 @@ def group_conditions(table: DelayTable, *, robot: str | None = None) -> Conditio
         var_s2=var,
         row_condition=cond.astype(np.int64),
         n_dropped=n_dropped,
-        row_values_s=rows,
     )
 
 
