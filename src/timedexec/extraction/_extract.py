@@ -33,6 +33,7 @@ Steps, vectorised across the trials of a chunk:
 
 from __future__ import annotations
 
+import itertools
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -211,7 +212,7 @@ def _context(
     keep = np.stack(
         [
             lo + np.argmin(resid[:, lo:hi], axis=1)
-            for lo, hi in zip(edges_b[:-1], edges_b[1:], strict=True)
+            for lo, hi in itertools.pairwise(edges_b)
         ],
         axis=1,
     )
