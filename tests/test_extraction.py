@@ -62,8 +62,9 @@ def test_parallel_jobs_give_the_same_table(recordings):
 
 
 def test_unmeasurable_trials_are_flagged_not_guessed(recordings):
-    """Clipping, a gap in the gyro stream, no motion and a missing package each give NaN
-    delays and a named flag; the other trials are untouched."""
+    """Clipping, a gap in the gyro stream, no motion and a long silence of the state stream
+    during the motion each give NaN delays and a named flag; the other trials are
+    untouched, and a single lost package is not a reason to flag."""
     path = recordings["ur10"]
     with RecordingReader(path) as reader:
         ctx, *_ = _context(reader, clock_window_s=120.0, numtaps=161)
@@ -74,11 +75,17 @@ def test_unmeasurable_trials_are_flagged_not_guessed(recordings):
     chunk["gyro_raw"][0, 1000:1010, 0] = 32767
     chunk["gyro_counter"][1, 2000:] += 3  # three samples lost
     chunk["gyro_raw"][2] = chunk["gyro_raw"][2, :10].mean(axis=0).astype(np.int16)  # still
-    chunk["state_host_time_s"][3, 20] = np.nan
+    # A 40 ms silence in the stream while the joint starts (one lost package is harmless).
+    send = chunk["cmd_send_time_s"][3]
+    host = chunk["state_host_time_s"][3]
+    chunk["state_host_time_s"][3, (host > send + 0.03) & (host < send + 0.07)] = np.nan
+    chunk["state_host_time_s"][4, 20] = np.nan  # one lost package
     res = _extract_chunk(ctx, chunk, rows, "fit")
-    assert list(res["flag"][:4]) == ["clipped", "gyro_gap", "no_motion", "package_gap"]
+    assert list(res["flag"][:5]) == ["clipped", "gyro_gap", "no_motion", "package_gap", ""]
     assert np.all(np.isnan(res["actuation_delay"][:4]))
     np.testing.assert_array_equal(res["actuation_delay"][4:], clean["actuation_delay"][4:])
+    # The lost package costs the response fit one sample: within 0.1 ms of the clean fit.
+    assert abs(res["response_delay"][4] - clean["response_delay"][4]) < 1e-4
 
 
 def test_cli_extract_writes_the_delay_table(recordings, tmp_path, capsys):

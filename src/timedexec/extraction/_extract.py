@@ -359,9 +359,19 @@ def _extract_chunk_inner(
     host = chunk["state_host_time_s"]
     q_rep = chunk["state_q_rad"][np.arange(n), :, joint].astype(np.float64)
     qd_rep = chunk["state_qd_rad_s"][np.arange(n), :, joint].astype(np.float64)
-    package_gap = ~np.all(np.isfinite(host), axis=1) | np.any(
-        np.diff(host, axis=1) > 2.5 * ctx.period_s, axis=1
+    # Lost or late packages: the response fit takes irregular samples, so a trial is only
+    # unmeasurable when most packages are missing or a long silence (> max(3 periods,
+    # 25 ms)) falls inside the out pulse, where the motion is timed.
+    present = np.isfinite(host)
+    arrived = np.where(present, host, np.inf)
+    order = np.sort(arrived, axis=1)
+    gaps = np.diff(order, axis=1)
+    gap_mid = order[:, :-1] + 0.5 * gaps
+    in_pulse_window = (gap_mid > t_send[:, None]) & (gap_mid < (t_send + pulse + 0.15)[:, None])
+    long_gap = np.any(
+        np.isfinite(gaps) & (gaps > max(3 * ctx.period_s, 0.025)) & in_pulse_window, axis=1
     )
+    package_gap = (present.mean(axis=1) < 0.5) | long_gap
 
     # Filtered speed (zero phase), coarse onset and delay.
     # Zero phase: the FIR is symmetric (linear phase) and "same" centres its output.
@@ -502,6 +512,9 @@ def _response_fit(
         return interp_rows(y, (x - first[:, None]) / dt)
 
     ok = np.isfinite(host) & (host > (first + 0.03)[:, None])
+    # Lost packages carry NaN times: they are weighted out (their y is NaN), but the
+    # template is still evaluated there, so give them a harmless finite time.
+    host = np.where(ok, host, (first + 0.1)[:, None])
     tau, _, _, _ = fit_shift(
         host,
         np.where(ok, q_rel, np.nan),
