@@ -18,6 +18,7 @@ stopped at once and :class:`StaleStateError` raised.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections import deque
@@ -366,6 +367,9 @@ class TimedExecutor:
         self._tau_std = np.zeros(6)
         self._v_prev = np.zeros(6)
         self._fault: str | None = None
+        self._streaming_since = -math.inf
+        self._last_send_s = math.nan
+        self._cache: dict[tuple[bytes, bytes], DelayPredictions] = {}
         self.log = CycleLog()
         self.clip_count = 0
 
@@ -442,6 +446,19 @@ class TimedExecutor:
         """
         q = np.asarray(q_rad, dtype=float).reshape(6)
         d = np.ones(6, np.int64) if directions is None else np.asarray(directions, np.int64)
+        # Predictions are cached per configuration (to 0.1 mrad) and directions: a model
+        # query may take milliseconds, and a plan is prepared more than once.
+        key = (np.round(q, 4).tobytes(), d.tobytes())
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        out = self._predict_uncached(q, d)
+        if len(self._cache) > 256:
+            self._cache.clear()
+        self._cache[key] = out
+        return out
+
+    def _predict_uncached(self, q: FloatArray, d: NDArray[np.int64]) -> DelayPredictions:
         joints = np.arange(1, 7)
         try:
             return predict_delays(self.model, joints, d, np.tile(q, (6, 1)))
@@ -471,17 +488,26 @@ class TimedExecutor:
     def _fault_stop(self, message: str) -> None:
         self._fault = message
         self._plan = None
+        decel = self._decel()
         try:
-            self.driver.stop(self._decel())
+            # A zero-speed speedj goes out at once (realtime command); the drivers' stop()
+            # may first wait for the controller's acknowledgement of the previous command
+            # (ur_rtde's speedStop: ~30 ms when the stream has stalled).
+            self.driver.speedj(np.zeros(6), decel, 0.0)
         finally:
             self._v_prev = np.zeros(6)
+            with contextlib.suppress(DriverError):
+                self.driver.stop(decel)
         raise StaleStateError(message)
 
     def _read(self) -> RobotState:
         if self._fault is not None:
             raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
         limit = self.stale_periods * self._period
-        deadline = self._last_arrival + limit
+        if self._plan is None and not np.any(self._v_prev != 0):
+            # Idle at rest: gaps in reading are the caller's, not the stream's.
+            return self.driver.read_state(timeout_s=max(limit, 0.5))
+        deadline = max(self._last_arrival, self._streaming_since) + limit
         timeout = deadline - self.now()
         if timeout <= 0:
             self._fault_stop(
@@ -740,6 +766,8 @@ class TimedExecutor:
                 f"(actuation delay {lead * 1e3:.1f} ms plus one period); start at least "
                 f"{late * 1e3:.1f} ms later"
             )
+        if self._plan is None and not np.any(self._v_prev != 0):
+            self._streaming_since = self.now()
         self._plan = p
         self._last_plan = p
         self._tau = np.asarray(p.meta["actuation_s"], float)
@@ -761,6 +789,7 @@ class TimedExecutor:
         a = self._ramp_acceleration(v)
         self.driver.speedj(v, a, (self.stale_periods + 2.0) * self._period)
         self._v_prev = v
+        self._last_send_s = now
         self.log.add(state, now, v, clipped)
         return state
 
@@ -779,7 +808,10 @@ class TimedExecutor:
         vmax = self.limits.velocity(spec)
         amax = self.limits.acceleration(spec)
         v = np.clip(target, -vmax, vmax)
-        step = amax * period
+        # The speed may change by the acceleration limit times the time since the previous
+        # command (more than one period when packages were missed).
+        since = now - self._last_send_s if math.isfinite(self._last_send_s) else period
+        step = amax * min(max(period, since), 4.0 * period)
         v = np.clip(v, self._v_prev - step, self._v_prev + step)
         # Position guard: where this command acts (after the joint's delay), the joint must
         # still be able to stop before its limit.
@@ -841,8 +873,12 @@ class TimedExecutor:
             settle = float(np.max(self._tau)) + 3 * self._period if settle_s is None else settle_s
             until_s = p.end_time_s + settle
         first_send = math.nan
+        ends_at_rest = not np.any(p.qd_end_rad_s != 0)
+        give_up = until_s + 1.0
         try:
-            while self.now() < until_s:
+            while self.now() < until_s or (
+                ends_at_rest and np.any(self._v_prev != 0) and self.now() < give_up
+            ):
                 state = self.step()
                 if on_step is not None:
                     on_step(state)
