@@ -135,14 +135,7 @@ class _Session:
         return st
 
     def samples(self) -> GyroSamples:
-        parts = list(self.buffer)
-        return GyroSamples(
-            counter_unwrapped=np.concatenate([p.counter_unwrapped for p in parts]),
-            host_time_s=np.concatenate([p.host_time_s for p in parts]),
-            rate_rad_s=np.concatenate([p.rate_rad_s for p in parts]),
-            raw=np.concatenate([p.raw for p in parts]),
-            arrival_s=np.concatenate([p.arrival_s for p in parts]),
-        )
+        return GyroSamples.concatenate(list(self.buffer))
 
     def wait_still(
         self, *, min_s: float, speed_eps: float = 2e-3, packages: int = 10

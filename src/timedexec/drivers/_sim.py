@@ -18,7 +18,6 @@ import heapq
 import math
 import time
 from collections import deque
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -240,7 +239,7 @@ class VirtualGyro:
         g = self.settings
         # Samples whose (delayed) physical instant is inside the history.
         t_last = t_all[-1] + g.group_delay_s
-        n_end = int(math.floor(t_last / self.period_s))
+        n_end = math.floor(t_last / self.period_s)
         n_end -= (n_end - self._next_n) % g.block_samples
         if n_end <= self._next_n:
             return
@@ -277,10 +276,10 @@ class VirtualGyro:
         parts = self._ready
         if not parts:
             return _empty()
-        allp = _concat(parts)
+        allp = GyroSamples.concatenate(parts)
         keep = allp.arrival_s <= now
-        out = _take(allp, keep)
-        rest = _take(allp, ~keep)
+        out = allp.select(keep)
+        rest = allp.select(~keep)
         self._ready = [rest] if len(rest) else []
         return out
 
@@ -297,26 +296,4 @@ def _empty() -> GyroSamples:
         rate_rad_s=np.zeros((0, 3)),
         raw=np.zeros((0, 3), np.int16),
         arrival_s=z,
-    )
-
-
-def _concat(parts: list[GyroSamples]) -> GyroSamples:
-    if len(parts) == 1:
-        return parts[0]
-    return GyroSamples(
-        counter_unwrapped=np.concatenate([p.counter_unwrapped for p in parts]),
-        host_time_s=np.concatenate([p.host_time_s for p in parts]),
-        rate_rad_s=np.concatenate([p.rate_rad_s for p in parts]),
-        raw=np.concatenate([p.raw for p in parts]),
-        arrival_s=np.concatenate([p.arrival_s for p in parts]),
-    )
-
-
-def _take(s: GyroSamples, mask: NDArray[np.bool_]) -> GyroSamples:
-    return GyroSamples(
-        counter_unwrapped=s.counter_unwrapped[mask],
-        host_time_s=s.host_time_s[mask],
-        rate_rad_s=s.rate_rad_s[mask],
-        raw=s.raw[mask],
-        arrival_s=s.arrival_s[mask],
     )

@@ -544,9 +544,14 @@ def _run_rows(
     path: str, ctx: _Context, rows: NDArray[np.int64], method: str
 ) -> dict[str, NDArray[Any]]:
     with RecordingReader(path) as reader:
-        names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
-        chunk = {name: reader.read(name, rows=rows) for name in names}
+        chunk = _read_chunk(reader, rows)
     return _extract_chunk(ctx, chunk, rows, method)
+
+
+def _read_chunk(reader: RecordingReader, rows: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
+    """The fields extraction needs for ``rows`` (``session`` where the recording has it)."""
+    names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
+    return {name: reader.read(name, rows=rows) for name in names}
 
 
 def _extract_chunk(
@@ -572,8 +577,7 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
     with RecordingReader(path) as reader:
         ctx, still, cutoff, _ = _context(reader, clock_window_s=120.0, numtaps=161)
-        names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
-        chunk = {name: reader.read(name, rows=rows) for name in names}
+        chunk = _read_chunk(reader, rows)
         truth = {
             k: reader.read(f"true_{k}_s", rows=rows)
             for k in ("actuation_delay", "response_delay")

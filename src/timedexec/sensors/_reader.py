@@ -25,7 +25,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from types import TracebackType
 from typing import Any, Protocol, Self
@@ -239,6 +239,29 @@ class GyroSamples:
     def __iter__(self):  # type: ignore[no-untyped-def]
         """Unpack as ``host_time_s, rate_rad_s``."""
         return iter((self.host_time_s, self.rate_rad_s))
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[GyroSamples]) -> GyroSamples:
+        """The samples of ``parts`` in order, as one."""
+        if len(parts) == 1:
+            return parts[0]
+        return cls(
+            counter_unwrapped=np.concatenate([p.counter_unwrapped for p in parts]),
+            host_time_s=np.concatenate([p.host_time_s for p in parts]),
+            rate_rad_s=np.concatenate([p.rate_rad_s for p in parts]).reshape(-1, 3),
+            raw=np.concatenate([p.raw for p in parts]).reshape(-1, 3),
+            arrival_s=np.concatenate([p.arrival_s for p in parts]),
+        )
+
+    def select(self, mask: NDArray[np.bool_] | slice) -> GyroSamples:
+        """The samples where ``mask`` holds (or a slice of them)."""
+        return GyroSamples(
+            counter_unwrapped=self.counter_unwrapped[mask],
+            host_time_s=self.host_time_s[mask],
+            rate_rad_s=self.rate_rad_s[mask],
+            raw=self.raw[mask],
+            arrival_s=self.arrival_s[mask],
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -228,18 +228,17 @@ def simulate_block(
     # -- ground truth: onset against the commanded ramp reaching the same speed -------------
     actuation = onset - (t_send + onset_level / prof.acceleration_rad_s2)
 
+    truth = {
+        "true_onset_s": onset,
+        "true_actuation_delay_s": actuation,
+        "true_response_delay_s": np.mean(arrival - sample_t, axis=1),
+        "true_reference_start_s": t_ref,
+        "true_intake_s": intake,
+        "true_gravity_torque_nm": tau_g,
+        "true_inertia_kgm2": j_true,
+    }
     if truth_only:
-        return {
-            "trial": rows.astype(np.int64),
-            "t0_s": t0,
-            "true_onset_s": onset,
-            "true_actuation_delay_s": actuation,
-            "true_response_delay_s": np.mean(arrival - sample_t, axis=1),
-            "true_reference_start_s": t_ref,
-            "true_intake_s": intake,
-            "true_gravity_torque_nm": tau_g,
-            "true_inertia_kgm2": j_true,
-        }
+        return {"trial": rows.astype(np.int64), "t0_s": t0, **truth}
 
     # -- reported state packages -------------------------------------------------------------
     pos = (sample_t - g_first[:, None]) / dt_phys
@@ -296,13 +295,7 @@ def simulate_block(
         "gyro_raw": gyro_raw,
         "gyro_counter": counter,
         "gyro_block_host_time_s": blocks.astype(np.float32),
-        "true_onset_s": onset,
-        "true_actuation_delay_s": actuation,
-        "true_response_delay_s": np.mean(arrival - sample_t, axis=1),
-        "true_reference_start_s": t_ref,
-        "true_intake_s": intake,
-        "true_gravity_torque_nm": tau_g,
-        "true_inertia_kgm2": j_true,
+        **truth,
     }
 
 
