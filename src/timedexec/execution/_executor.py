@@ -56,6 +56,10 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
+#: Window of the lower-envelope clock model (arrival minus controller time), s.
+ENVELOPE_S = 0.5
+
+
 class StaleStateError(DriverTimeout):
     """The state stream is older than the executor allows; the robot was stopped."""
 
@@ -153,13 +157,14 @@ class CycleLog:
     """Per-cycle record of the loop: one row per state package handled.
 
     Columns (numpy arrays from :meth:`arrays`): ``arrival_s`` (host arrival), ``controller_s``
-    (controller time stamp), ``sequence``, ``send_s`` (host time the command left; NaN when
-    none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported, ``clipped`` (a limit clipped
-    the command).
+    (controller time stamp of the cycle commanded), ``sequence``, ``send_s`` (host time the
+    command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
+    ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
+    command went out from the estimate, the row repeats the previous package).
     """
 
     def __init__(self) -> None:
-        self._rows: list[tuple[float, float, int, float, bool]] = []
+        self._rows: list[tuple[float, float, int, float, bool, bool]] = []
         self._qd: list[FloatArray] = []
         self._q: list[FloatArray] = []
 
@@ -167,11 +172,18 @@ class CycleLog:
         return len(self._rows)
 
     def add(
-        self, state: RobotState, send_s: float, qd_cmd: FloatArray | None, clipped: bool
+        self,
+        state: RobotState,
+        send_s: float,
+        qd_cmd: FloatArray | None,
+        clipped: bool,
+        *,
+        controller_s: float | None = None,
     ) -> None:
-        self._rows.append(
-            (state.host_time_s, state.controller_time_s, state.sequence, send_s, clipped)
-        )
+        """Append a row (``controller_s``: the cycle commanded, default the package's)."""
+        ctrl = state.controller_time_s if controller_s is None else controller_s
+        coasted = controller_s is not None and controller_s != state.controller_time_s
+        self._rows.append((state.host_time_s, ctrl, state.sequence, send_s, clipped, coasted))
         self._qd.append(np.full(6, np.nan) if qd_cmd is None else qd_cmd)
         self._q.append(state.q)
 
@@ -192,6 +204,7 @@ class CycleLog:
                 "sequence": np.zeros(0, np.int64),
                 "send_s": z,
                 "clipped": np.zeros(0, bool),
+                "coasted": np.zeros(0, bool),
                 "qd_cmd": np.zeros((0, 6)),
                 "q": np.zeros((0, 6)),
             }
@@ -202,6 +215,7 @@ class CycleLog:
             "sequence": np.asarray([r[2] for r in rows], dtype=np.int64),
             "send_s": np.asarray([r[3] for r in rows]),
             "clipped": np.asarray([r[4] for r in rows], dtype=bool),
+            "coasted": np.asarray([r[5] for r in rows], dtype=bool),
             "qd_cmd": np.asarray(self._qd[start:]),
             "q": np.asarray(self._q[start:]),
         }
@@ -223,19 +237,20 @@ class CycleLog:
             return {"cycles": len(arr["arrival_s"]), "missed": 0}
         ctrl = arr["controller_s"]
         period = float(np.median(np.diff(ctrl)))
-        off = arr["arrival_s"] - ctrl
+        off = np.where(arr["coasted"], np.inf, arr["arrival_s"] - ctrl)
         size = max(1, round(window_s / period))
         env = minimum_filter1d(off, size=size, mode="nearest")
         sent = np.isfinite(arr["send_s"])
         err = (arr["send_s"] - (ctrl + env))[sent]
-        proc = (arr["send_s"] - arr["arrival_s"])[sent]
-        gaps = np.diff(arr["sequence"])
+        proc = (arr["send_s"] - arr["arrival_s"])[sent & ~arr["coasted"]]
+        gaps = np.diff(arr["sequence"][~arr["coasted"]])
         q = [50, 90, 99, 99.9]
         return {
             "cycles": len(ctrl),
             "expected_cycles": int(arr["sequence"][-1] - arr["sequence"][0] + 1),
             "missed": int(np.sum(np.maximum(gaps - 1, 0))),
             "commands": int(sent.sum()),
+            "coasted": int(arr["coasted"].sum()),
             "period_s": period,
             "send_error_s": {f"p{p:g}": float(np.percentile(err, p)) for p in q}
             | {"mean": float(err.mean()), "max": float(err.max())},
@@ -315,6 +330,12 @@ class TimedExecutor:
         False streams the plan without any shift (the "none" strategy).
     stop_deceleration_rad_s2 : float, optional
         Deceleration of a fault stop (default: the spec's largest acceleration limit).
+    coast : bool
+        Experimental. While streaming, send each cycle's command on the controller's clock
+        even when its package is late: if no package has arrived half a period after the earliest time
+        the cycle's package can arrive (lower-envelope clock model), the command goes out
+        from the estimate, and the late package is then only read (real-time drivers only;
+        a virtual-time simulator never has late packages).
 
     Examples
     --------
@@ -335,6 +356,7 @@ class TimedExecutor:
         position_gain_1_s: float = 0.0,
         compensate: bool = True,
         stop_deceleration_rad_s2: float | None = None,
+        coast: bool = False,
     ) -> None:
         self.confidence = check_confidence(confidence)
         if not stale_periods >= 1:
@@ -370,6 +392,11 @@ class TimedExecutor:
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
         self._cache: dict[tuple[bytes, bytes], DelayPredictions] = {}
+        self._envelope: deque[tuple[float, float]] = deque()
+        self._ctrl_ref = math.nan
+        self._served = -1  # last controller cycle a command was sent for
+        self.coast = bool(coast) and not bool(getattr(driver, "virtual", False))
+        self.coasted = 0
         self.log = CycleLog()
         self.clip_count = 0
 
@@ -481,7 +508,19 @@ class TimedExecutor:
     def _ingest(self, state: RobotState) -> None:
         self._last = state
         self._last_arrival = state.host_time_s
-        self._offset_min = min(self._offset_min, state.host_time_s - state.controller_time_s)
+        # Lower envelope of (arrival - controller time) over the last ENVELOPE_S: the
+        # fastest packages' offset, i.e. the host time of each controller cycle boundary
+        # plus the shortest sampling-to-arrival time (follows a slowly drifting phase).
+        off = state.host_time_s - state.controller_time_s
+        env = self._envelope
+        while env and env[-1][1] >= off:
+            env.pop()
+        env.append((state.host_time_s, off))
+        while env[0][0] < state.host_time_s - ENVELOPE_S:
+            env.popleft()
+        self._offset_min = env[0][1]
+        if not math.isfinite(self._ctrl_ref):
+            self._ctrl_ref = state.controller_time_s
         t_phys = state.host_time_s - self._response_s
         self._samples.append((t_phys, np.asarray(state.q, float), np.asarray(state.qd, float)))
 
@@ -500,7 +539,7 @@ class TimedExecutor:
                 self.driver.stop(decel)
         raise StaleStateError(message)
 
-    def _read(self) -> RobotState:
+    def _read(self, coast_at: float | None = None) -> RobotState | None:
         if self._fault is not None:
             raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
         limit = self.stale_periods * self._period
@@ -514,6 +553,12 @@ class TimedExecutor:
                 f"no state package for {(self.now() - self._last_arrival) * 1e3:.1f} ms "
                 f"(> {self.stale_periods:g} periods of {self._period * 1e3:g} ms); robot stopped"
             )
+        if coast_at is not None and coast_at < deadline:
+            try:
+                got = self.driver.read_state(timeout_s=max(coast_at - self.now(), 0.0))
+            except DriverTimeout:
+                return None
+            return self._check_age(got)
         try:
             state = self.driver.read_state(timeout_s=timeout)
         except DriverTimeout as exc:
@@ -521,6 +566,10 @@ class TimedExecutor:
                 f"the state stream stalled: no package within {self.stale_periods:g} periods "
                 f"({limit * 1e3:.1f} ms) of the last one ({exc}); robot stopped"
             )
+        return self._check_age(state)
+
+    def _check_age(self, state: RobotState) -> RobotState:
+        limit = self.stale_periods * self._period
         age = (state.host_time_s - state.controller_time_s) - self._offset_min
         if math.isfinite(age) and age > limit:
             self._fault_stop(
@@ -776,22 +825,44 @@ class TimedExecutor:
         return p
 
     def step(self) -> RobotState:
-        """Handle one state package: read it (stale check), back-date it, and send the
-        command of the active plan (nothing when idle and at rest)."""
-        state = self._read()
-        self._ingest(state)
+        """Handle one controller cycle: read its package (stale check), back-date it, and
+        send the command of the active plan (nothing when idle and at rest). With
+        ``coast``, a cycle whose package is late gets its command from the estimate."""
         plan = self._plan
-        if plan is None and not np.any(self._v_prev != 0):
+        streaming = plan is not None or bool(np.any(self._v_prev != 0))
+        coast_at = None
+        if streaming and self.coast and math.isfinite(self._ctrl_ref) and self._served >= 0:
+            due = self._ctrl_ref + (self._served + 1) * self._period + self._offset_min
+            coast_at = due + 0.5 * self._period
+        got = self._read(coast_at)
+        if got is None:  # the cycle's package is late: command it from the estimate
+            assert self._last is not None
+            self._served += 1
+            self.coasted += 1
+            self._send(plan, self._last, self._ctrl_ref + self._served * self._period)
+            return self._last
+        state = got
+        self._ingest(state)
+        cycle = round((state.controller_time_s - self._ctrl_ref) / self._period)
+        if not streaming:
+            self._served = cycle
             self.log.add(state, math.nan, None, False)
             return state
+        if cycle <= self._served:  # this cycle was already commanded (coasted)
+            self.log.add(state, math.nan, None, False)
+            return state
+        self._served = cycle
+        self._send(plan, state, state.controller_time_s)
+        return state
+
+    def _send(self, plan: JointPlan | None, state: RobotState, controller_s: float) -> None:
         now = self.now()
         v, clipped = self._command(plan, now)
         a = self._ramp_acceleration(v)
         self.driver.speedj(v, a, (self.stale_periods + 2.0) * self._period)
         self._v_prev = v
         self._last_send_s = now
-        self.log.add(state, now, v, clipped)
-        return state
+        self.log.add(state, now, v, clipped, controller_s=controller_s)
 
     def _command(self, plan: JointPlan | None, now: float) -> tuple[FloatArray, bool]:
         spec = self.spec
