@@ -24,6 +24,7 @@ from timedexec.execution._model import (
     FixedDelays,
     check_model_robot,
     load_delay_model,
+    model_period_s,
     predict_delays,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
@@ -47,6 +48,7 @@ __all__ = [
     "delay_cdf",
     "delay_quantile",
     "load_delay_model",
+    "model_period_s",
     "plan_motion",
     "predict_delays",
 ]

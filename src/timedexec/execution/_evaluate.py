@@ -43,6 +43,7 @@ from timedexec.execution._model import (
     FixedDelays,
     check_model_robot,
     load_delay_model,
+    model_period_s,
     predict_delays,
 )
 from timedexec.robots import get_robot
@@ -383,7 +384,7 @@ def evaluate(
             "response_rms_ms": float(np.sqrt(np.mean((true_resp - responses[name]) ** 2))) * 1e3,
         }
     bounds = TimingBounds.around(
-        pred.actuation_mean, pred.actuation_std, confidence, predictor.controller_period_s
+        pred.actuation_mean, pred.actuation_std, confidence, model_period_s(predictor)
     )
     inside = bounds.contains(true_act)
     coverage = float(np.mean(inside))

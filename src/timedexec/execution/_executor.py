@@ -490,7 +490,7 @@ class TimedExecutor:
         try:
             return predict_delays(self.model, joints, d, np.tile(q, (6, 1)))
         except (ConfigError, ModelError, KeyError, IndexError, ValueError):
-            covered = np.array([1, 2, 3, 5])
+            covered = np.array(getattr(self.model, "joints", (1, 2, 3, 5)), dtype=np.int64)
             part = predict_delays(self.model, covered, d[covered - 1], np.tile(q, (4, 1)))
             out = {}
             for name in ("actuation_mean", "actuation_std", "response_mean", "response_std"):

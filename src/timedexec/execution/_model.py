@@ -2,7 +2,7 @@
 
 The executor talks to any object with the delay-model interface of
 :class:`timedexec.learning.DelayModel` (structural typing, :class:`DelayPredictor`):
-``robot``, ``controller_period_s`` and ``predict_many(joint, direction, q)`` returning an
+``robot``, ``controller_period_s`` (or ``period_s``) and ``predict_many(joint, direction, q)`` returning an
 object with ``actuation_mean``, ``actuation_std``, ``response_mean``, ``response_std`` (s;
 the std is that of a single trial's delay). :class:`FixedDelays` is such an object with
 constant delays (MoveIt Servo's single latency, or per-joint medians).
@@ -27,6 +27,7 @@ __all__ = [
     "FixedDelays",
     "check_model_robot",
     "load_delay_model",
+    "model_period_s",
     "predict_delays",
 ]
 
@@ -40,10 +41,6 @@ class DelayPredictor(Protocol):
     @property
     def robot(self) -> str:
         """Robot spec name the model was trained for."""
-
-    @property
-    def controller_period_s(self) -> float:
-        """Controller period of the training data, s."""
 
     def predict_many(self, joint: Any, direction: Any, q: Any) -> Any:
         """Vectorised predictions for ``joint`` (n,), ``direction`` (n,), ``q`` (n, 6)."""
@@ -167,6 +164,18 @@ class FixedDelays:
         return self.predict_many([joint], [direction], np.asarray(q, dtype=float).reshape(1, 6))
 
 
+def model_period_s(model: Any) -> float:
+    """The controller period a model was trained at, s (``controller_period_s``, or the
+    ``period_s`` of :class:`timedexec.learning.DelayModel`)."""
+    for name in ("controller_period_s", "period_s"):
+        value = getattr(model, name, None)
+        if value is not None:
+            return float(value)
+    raise ModelError(
+        f"{type(model).__name__} does not say its controller period (controller_period_s)"
+    )
+
+
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:
     """A delay model object, loading a bundle directory with ``DelayModel.load`` if given a
     path.
@@ -191,11 +200,9 @@ def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPre
             ) from exc
         loaded: Any = DelayModel.load(path)
         return loaded  # type: ignore[no-any-return]
-    missing = [
-        name
-        for name in ("robot", "controller_period_s", "predict_many")
-        if not hasattr(model, name)
-    ]
+    missing = [name for name in ("robot", "predict_many") if not hasattr(model, name)]
+    if not (hasattr(model, "controller_period_s") or hasattr(model, "period_s")):
+        missing.append("controller_period_s")
     if missing:
         raise ModelError(
             f"{type(model).__name__} is not a delay model: it lacks {missing}; pass a "
@@ -218,11 +225,10 @@ def check_model_robot(model: DelayPredictor, robot: str, period_s: float | None 
             f"the delay model is for robot {model.robot!r} but the driver talks to {robot!r}; "
             f"load the bundle for {robot} (e.g. models/{robot}-sim) or train one on {robot} data"
         )
-    if period_s is not None and not np.isclose(
-        float(model.controller_period_s), float(period_s), rtol=1e-6, atol=1e-9
-    ):
+    trained = model_period_s(model)
+    if period_s is not None and not np.isclose(trained, float(period_s), rtol=1e-6, atol=1e-9):
         raise ModelError(
             f"the delay model was trained at a controller period of "
-            f"{float(model.controller_period_s) * 1e3:g} ms but the {robot} driver runs at "
+            f"{trained * 1e3:g} ms but the {robot} driver runs at "
             f"{period_s * 1e3:g} ms; retrain at this period or change the controller's period"
         )
