@@ -46,7 +46,7 @@ def oracle_ur10() -> SimulatedOracle:
 # ---------------------------------------------------------------------------- bounds
 def test_mixture_quantiles_match_monte_carlo() -> None:
     """For delays spread by a full cycle's uniform wait plus Gaussian noise holding at least
-    the 20 % of the variance the bounds reserve for it (model error), the mixture's
+    the 12.5 % of the variance the bounds reserve for it (model error), the mixture's
     quantiles match sampled ones and its central 95 % interval covers 95 % of samples; a
     pure uniform spread is over-covered (the documented price of that reserve), as a
     Gaussian interval would too."""
