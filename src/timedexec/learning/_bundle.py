@@ -1,0 +1,610 @@
+"""Model bundles: trained delay models as numeric arrays plus a JSON manifest; a fast predictor.
+
+A bundle is a directory with two files (DESIGN.md, "Model bundle"):
+
+``arrays.npz``
+    Numeric arrays only, loaded with ``allow_pickle=False``. Written deterministically
+    (sorted members, fixed time stamps): the same training gives the same bytes.
+``manifest.json``
+    Robot, controller period, feature order, units, training-data hashes, CV scores and
+    noise floor, model summaries, package version and the sha256 of ``arrays.npz``.
+
+Loading checks the arrays' hash and, when asked, the robot and controller period; a
+mismatch raises :class:`~timedexec.errors.ModelError`. Nothing at load or predict time
+needs scikit-learn or pickle: Gaussian processes are stored as their sufficient statistics
+(condition inputs, means, counts) and hyperparameters and re-conditioned at load with the
+same code that trained them (:func:`~timedexec.learning._gpcore.build_predictor`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import tempfile
+import zipfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from timedexec._version import __version__
+from timedexec.errors import ConfigError, ModelError
+from timedexec.learning._features import encode_inputs, feature_names
+from timedexec.learning._forward import nn_forward, tree_predict
+from timedexec.learning._gpcore import GPPredictor, predictor_from_arrays
+from timedexec.learning._threads import BLAS_PIN
+
+__all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
+
+FloatArray = NDArray[np.float64]
+
+BUNDLE_FORMAT = "timedexec-delay-model"
+BUNDLE_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+ARRAYS_NAME = "arrays.npz"
+_DELAYS = ("actuation_delay", "response_delay")
+_METHODS = ("median", "nn", "rt", "gpr")
+
+
+@dataclass(frozen=True)
+class DelayPrediction:
+    """Predicted delays for one command (floats) or many (arrays of shape (n,)), s.
+
+    Attributes
+    ----------
+    actuation_mean, response_mean : float or ndarray
+        Expected delay, s.
+    actuation_std, response_std : float or ndarray
+        Standard deviation of the delay of a single future trial, s: for the GP
+        ``sqrt(latent variance + trial noise variance)``; for the other methods their
+        cross-validated RMS error (their training RMS error without CV). This is what
+        timing bounds are built from.
+    actuation_latent_std, response_latent_std : float or ndarray
+        GP only: standard deviation of the *mean* delay at this input (model uncertainty
+        without the trial-to-trial scatter), s; NaN for the other methods.
+    """
+
+    actuation_mean: Any
+    actuation_std: Any
+    response_mean: Any
+    response_std: Any
+    actuation_latent_std: Any
+    response_latent_std: Any
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (arrays become lists)."""
+        return {
+            k: (v.tolist() if isinstance(v, np.ndarray) else float(v))
+            for k, v in self.__dict__.items()
+        }
+
+
+# ------------------------------------------------------------- predictors
+
+
+class _MeanModel:
+    """A non-GP model: mean from its arrays, a constant trial std."""
+
+    def __init__(self, mean: Callable[[FloatArray], FloatArray], std_s: float) -> None:
+        self.mean = mean
+        self.std_s = std_s
+
+
+def _nn_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
+    active = a["active"].astype(bool)
+    x_mean, x_scale = a["x_mean"], a["x_scale"]
+    W1, b1, W2 = a["W1"], a["b1"], a["W2"]
+    b2, y_mean, y_std = (float(v) for v in a["scalars"])
+
+    def mean(X: FloatArray) -> FloatArray:
+        Xs = ((X - x_mean) / x_scale)[:, active]
+        return y_mean + y_std * nn_forward(Xs, W1, b1, W2, b2)
+
+    return mean
+
+
+def _rt_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
+    active = a["active"].astype(bool)
+    x_mean, x_scale = a["x_mean"], a["x_scale"]
+    y_mean, y_std = (float(v) for v in a["scalars"])
+    parts = (a["feature"], a["threshold"], a["left"], a["right"], a["coef"])
+
+    def mean(X: FloatArray) -> FloatArray:
+        Xs = ((X - x_mean) / x_scale)[:, active]
+        return y_mean + y_std * tree_predict(Xs, *parts)
+
+    return mean
+
+
+def _median_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
+    value = float(a["scalars"][0])
+
+    def mean(X: FloatArray) -> FloatArray:
+        return np.full(len(X), value)
+
+    return mean
+
+
+_MEAN_BUILDERS = {"nn": _nn_mean, "rt": _rt_mean, "median": _median_mean}
+
+
+# ------------------------------------------------------------------ files
+
+
+def _npz_bytes(arrays: Mapping[str, NDArray[Any]]) -> bytes:
+    """A deterministic .npz: sorted members, fixed time stamps, deflate."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(arrays):
+            arr = np.asarray(arrays[name])
+            if not arr.flags.c_contiguous:  # (ascontiguousarray would turn 0-d into 1-d)
+                arr = arr.copy(order="C")
+            if arr.dtype == object:
+                raise ModelError(f"bundle array {name!r} has dtype object; only numbers are stored")
+            member = io.BytesIO()
+            np.lib.format.write_array(member, arr, allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _robot_of(robot: Any) -> tuple[str | None, float | None]:
+    if robot is None:
+        return None, None
+    if isinstance(robot, str):
+        return robot, None
+    name = getattr(robot, "name", None)
+    period = getattr(robot, "controller_period_s", None)
+    if not isinstance(name, str):
+        raise ConfigError(f"robot must be a name or a RobotSpec, got {robot!r}")
+    return name, float(period) if period is not None else None
+
+
+# ------------------------------------------------------------------ model
+
+
+class DelayModel:
+    """Trained delay models of one robot at one controller period, fast to query.
+
+    Build one with :func:`~timedexec.learning.train_delay_models` (or ``timedexec
+    train``), or :meth:`load` a bundle. :meth:`predict` answers one command in a few tens
+    of µs with the per-joint Gaussian processes by default.
+
+    Examples
+    --------
+    >>> model = DelayModel.load("models/ur10-sim", robot="ur10")  # doctest: +SKIP
+    >>> p = model.predict(joint=2, direction=1, q=[0, -1.57, 1.2, -1.2, -1.57, 0])  # doctest: +SKIP
+    >>> p.actuation_mean, p.actuation_std  # s  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        manifest: Mapping[str, Any],
+        arrays: Mapping[str, NDArray[Any]],
+        *,
+        path: Path | None = None,
+    ) -> None:
+        self.manifest: dict[str, Any] = dict(manifest)
+        self._arrays = dict(arrays)
+        self.path = path
+        self.robot: str = str(manifest["robot"])
+        self.period_s: float = float(manifest["controller_period_s"])
+        self.joints: tuple[int, ...] = tuple(int(j) for j in manifest["joints"])
+        self.methods: tuple[str, ...] = tuple(manifest["methods"])
+        self.keys: tuple[str, ...] = tuple(manifest["models"])
+        self._gp: dict[tuple[str, str], GPPredictor] = {}
+        self._other: dict[tuple[str, str, str], _MeanModel] = {}
+        self._fast: dict[tuple[int, bool], tuple[GPPredictor, GPPredictor, bool]] = {}
+
+    # ---------------------------------------------------------- building
+    @classmethod
+    def from_training(
+        cls,
+        finals: Mapping[tuple[str, str, str], Mapping[str, Any]],
+        *,
+        robot: str,
+        period_s: float,
+        joints: Sequence[int],
+        keys: Sequence[str],
+        methods: Sequence[str],
+        cv: Any,
+        training: Mapping[str, Any],
+    ) -> DelayModel:
+        """Assemble a model from final fits ``{(method, delay, key): {"arrays", "train_rmse_s", "info"}}``."""
+        arrays: dict[str, NDArray[Any]] = {}
+        models: dict[str, Any] = {}
+        for (method, delay, key), out in sorted(finals.items()):
+            for name, arr in out["arrays"].items():
+                arrays[f"{method}.{delay}.{key}.{name}"] = np.asarray(arr)
+            entry = models.setdefault(method, {}).setdefault(delay, {})
+            entry[key] = {"train_rmse_ms": 1e3 * float(out["train_rmse_s"]), **out["info"]}
+        manifest: dict[str, Any] = {
+            "format": BUNDLE_FORMAT,
+            "format_version": BUNDLE_VERSION,
+            "robot": robot,
+            "controller_period_s": float(period_s),
+            "joints": [int(j) for j in joints],
+            "models": list(keys),
+            "methods": list(methods),
+            "delays": list(_DELAYS),
+            "units": {
+                "q": "rad",
+                "direction": "+1 or -1",
+                "delays": "s",
+                "cv_scores": "ms",
+                "train_rmse": "ms",
+            },
+            "inputs": (
+                "start configuration q1..q6 as sin/cos pairs, direction (+1/-1); the combined "
+                "model adds one-hot joint columns"
+            ),
+            "feature_order": {
+                "per_joint": list(feature_names()),
+                "combined": list(feature_names(tuple(int(j) for j in joints))),
+            },
+            "training_data": dict(training),
+            "cv": None
+            if cv is None
+            else {
+                "folds": cv.folds,
+                "grouping": "start configuration",
+                "scores_ms": cv.to_dict(),
+                "noise_floor_ms": cv.noise_floor_ms,
+            },
+            "model_info": models,
+            "package_version": __version__,
+        }
+        return cls(manifest, arrays)
+
+    # -------------------------------------------------------------- files
+    def save(self, directory: str | os.PathLike[str]) -> Path:
+        """Write ``arrays.npz`` and ``manifest.json`` into ``directory`` (created); return it."""
+        out = Path(directory)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot create the bundle directory {out}: {exc.strerror or exc}"
+            ) from exc
+        data = _npz_bytes(self._arrays)
+        manifest = dict(self.manifest)
+        manifest["arrays"] = {
+            "file": ARRAYS_NAME,
+            "sha256": hashlib.sha256(data).hexdigest(),
+            "bytes": len(data),
+        }
+        try:
+            _write_atomic(out / ARRAYS_NAME, data)
+            _write_atomic(
+                out / MANIFEST_NAME, (json.dumps(manifest, indent=2) + "\n").encode("utf-8")
+            )
+        except OSError as exc:
+            raise ConfigError(f"cannot write the bundle to {out}: {exc.strerror or exc}") from exc
+        self.manifest = manifest
+        self.path = out
+        return out
+
+    @classmethod
+    def load(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        robot: Any = None,
+        period_s: float | None = None,
+    ) -> DelayModel:
+        """Load a bundle (its directory or its manifest) and check it.
+
+        Parameters
+        ----------
+        path : path
+            Bundle directory, or its ``manifest.json``.
+        robot : str or RobotSpec, optional
+            Refuse a bundle trained for another robot. A RobotSpec also fixes the period.
+        period_s : float, optional
+            Refuse a bundle trained at another controller period, s.
+
+        Raises
+        ------
+        ModelError
+            Missing or unreadable files, an unknown format, arrays whose sha256 differs from
+            the manifest's, or a bundle for another robot or period.
+        """
+        p = Path(path)
+        manifest_path = p / MANIFEST_NAME if p.is_dir() else p
+        try:
+            manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ModelError(
+                f"no model bundle at {p}: {manifest_path} does not exist (train one with "
+                "`timedexec train DELAYS.csv --out DIR`)"
+            ) from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelError(f"cannot read the bundle manifest {manifest_path}: {exc}") from exc
+        if not isinstance(manifest, dict) or manifest.get("format") != BUNDLE_FORMAT:
+            raise ModelError(f"{manifest_path} is not a timedexec delay-model manifest")
+        version = manifest.get("format_version")
+        if not isinstance(version, int) or version > BUNDLE_VERSION:
+            raise ModelError(
+                f"{manifest_path}: bundle format version {version!r} is newer than this "
+                f"timedexec supports ({BUNDLE_VERSION}); upgrade timedexec"
+            )
+        info = manifest.get("arrays") or {}
+        arrays_path = manifest_path.parent / str(info.get("file", ARRAYS_NAME))
+        try:
+            data = arrays_path.read_bytes()
+        except OSError as exc:
+            raise ModelError(
+                f"cannot read the bundle arrays {arrays_path}: {exc.strerror or exc}"
+            ) from exc
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != info.get("sha256"):
+            raise ModelError(
+                f"{arrays_path}: sha256 {digest} does not match the manifest's "
+                f"{info.get('sha256')}; the arrays are corrupt or were replaced — retrain or "
+                "restore the bundle"
+            )
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            raise ModelError(f"cannot read the bundle arrays {arrays_path}: {exc}") from exc
+        try:
+            model = cls(manifest, arrays, path=manifest_path.parent)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"{manifest_path}: incomplete manifest ({exc})") from exc
+        model.check(robot, period_s)
+        return model
+
+    def check(self, robot: Any = None, period_s: float | None = None) -> None:
+        """Raise ModelError unless the bundle is for ``robot`` (name or RobotSpec) at ``period_s``."""
+        name, spec_period = _robot_of(robot)
+        period = period_s if period_s is not None else spec_period
+        where = f"model bundle {self.path}" if self.path else "the delay model"
+        mine = f"{self.robot!r} at a controller period of {self.period_s * 1e3:g} ms"
+        if name is not None and name != self.robot:
+            raise ModelError(
+                f"{where} is for robot {mine}; refusing it for robot {name!r}: train a model "
+                f"on {name}'s delay table (timedexec train)"
+            )
+        if period is not None and not math.isclose(float(period), self.period_s, rel_tol=1e-9):
+            raise ModelError(
+                f"{where} is for robot {mine}; refusing it at {float(period) * 1e3:g} ms: the "
+                "delays depend on the controller period; train a model at this period"
+            )
+
+    # ------------------------------------------------------------ queries
+    @property
+    def cv_scores_ms(self) -> dict[str, Any] | None:
+        """CV scores ``{delay: {method: {column: ms}}}`` of the training run, or None."""
+        cv = self.manifest.get("cv")
+        return None if cv is None else cv["scores_ms"]  # type: ignore[no-any-return]
+
+    @property
+    def noise_floor_ms(self) -> dict[str, Any] | None:
+        """Replicate scatter ``{delay: {column: ms}}``, or None."""
+        cv = self.manifest.get("cv")
+        return None if cv is None else cv["noise_floor_ms"]  # type: ignore[no-any-return]
+
+    def _key(self, joint: int, combined: bool) -> str:
+        if combined:
+            if "combined" not in self.keys:
+                raise ModelError(
+                    f"this bundle has no combined model (models: {', '.join(self.keys)})"
+                )
+            if joint not in self.joints:
+                raise ModelError(
+                    f"joint {joint!r} is unknown to this bundle; it models joints "
+                    f"{', '.join(map(str, self.joints))}"
+                )
+            return "combined"
+        if str(joint) not in self.keys:
+            raise ModelError(
+                f"joint {joint!r} is unknown to this bundle; it models joints "
+                f"{', '.join(map(str, self.joints))} (calibrate and train that joint)"
+            )
+        return str(joint)
+
+    def _group(self, method: str, delay: str, key: str) -> dict[str, NDArray[Any]]:
+        prefix = f"{method}.{delay}.{key}."
+        out = {k[len(prefix) :]: v for k, v in self._arrays.items() if k.startswith(prefix)}
+        if not out:
+            raise ModelError(f"the bundle holds no {method} model of {delay} for model {key!r}")
+        return out
+
+    def _gp_predictor(self, delay: str, key: str) -> GPPredictor:
+        pred = self._gp.get((delay, key))
+        if pred is None:
+            pred = predictor_from_arrays(self._group("gpr", delay, key))
+            self._gp[(delay, key)] = pred
+        return pred
+
+    def _mean_model(self, method: str, delay: str, key: str) -> _MeanModel:
+        mm = self._other.get((method, delay, key))
+        if mm is None:
+            mean = _MEAN_BUILDERS[method](self._group(method, delay, key))
+            cv = self.cv_scores_ms
+            if cv is not None and not math.isnan(cv[delay][method][key]):
+                std_s = cv[delay][method][key] * 1e-3
+            else:
+                std_s = self.manifest["model_info"][method][delay][key]["train_rmse_ms"] * 1e-3
+            mm = _MeanModel(mean, std_s)
+            self._other[(method, delay, key)] = mm
+        return mm
+
+    def _check_method(self, method: str) -> None:
+        if method not in self.methods:
+            raise ModelError(
+                f"method {method!r} is not in this bundle; it holds {', '.join(self.methods)}"
+            )
+
+    def predict(
+        self,
+        *,
+        joint: int,
+        direction: int,
+        q: ArrayLike,
+        method: str = "gpr",
+        combined: bool = False,
+    ) -> DelayPrediction:
+        """Delays of one single-joint command: means and standard deviations, s.
+
+        Parameters
+        ----------
+        joint : int
+            Actuated joint (1-based); must be one the bundle models.
+        direction : int
+            +1 or -1.
+        q : array, shape (6,)
+            Start configuration, rad.
+        method : str
+            "gpr" (default), "nn", "rt" or "median".
+        combined : bool
+            Use the combined model instead of the joint's own.
+
+        Returns
+        -------
+        DelayPrediction
+            Floats in s.
+        """
+        if method == "gpr":
+            fast = self._fast.get((joint, combined))
+            if fast is None:
+                self._check_method("gpr")
+                key = self._key(joint, combined)
+                fast = (
+                    self._gp_predictor("actuation_delay", key),
+                    self._gp_predictor("response_delay", key),
+                    combined,
+                )
+                self._fast[(joint, combined)] = fast
+            x = self._encode_one(joint, direction, q, combined)
+            act, resp = fast[0], fast[1]
+            BLAS_PIN.enter()
+            try:
+                am, av = act.predict_one(x)
+                rm, rv = resp.predict_one(x)
+            finally:
+                BLAS_PIN.exit()
+            return DelayPrediction(
+                actuation_mean=am,
+                actuation_std=math.sqrt(av + act.noise_var_s2),
+                response_mean=rm,
+                response_std=math.sqrt(rv + resp.noise_var_s2),
+                actuation_latent_std=math.sqrt(av),
+                response_latent_std=math.sqrt(rv),
+            )
+        out = self.predict_many(
+            joint, direction, np.asarray(q, dtype=float)[None, :], method=method, combined=combined
+        )
+        return DelayPrediction(**{k: float(v[0]) for k, v in out.__dict__.items()})
+
+    def _encode_one(self, joint: int, direction: int, q: ArrayLike, combined: bool) -> FloatArray:
+        qa = np.asarray(q, dtype=float)
+        if qa.shape != (6,):
+            raise ConfigError(f"q must hold 6 joint angles (rad), got shape {qa.shape}")
+        if not math.isfinite(float(qa.sum())):
+            bad = int(np.flatnonzero(~np.isfinite(qa))[0])
+            raise ConfigError(f"q{bad + 1} is {qa[bad]}; joint angles must be finite (rad)")
+        if direction != 1 and direction != -1:
+            raise ConfigError(f"direction {direction!r} must be +1 or -1")
+        n = 13 + (len(self.joints) if combined else 0)
+        x = np.empty(n)
+        x[0:12:2] = np.sin(qa)
+        x[1:12:2] = np.cos(qa)
+        x[12] = direction
+        if combined:
+            x[13:] = [1.0 if j == joint else 0.0 for j in self.joints]
+        return x
+
+    def predict_many(
+        self,
+        joint: ArrayLike,
+        direction: ArrayLike,
+        q: ArrayLike,
+        *,
+        method: str = "gpr",
+        combined: bool = False,
+    ) -> DelayPrediction:
+        """Vectorised :meth:`predict`: joints and directions (scalars or (n,)), q (n, 6).
+
+        Returns
+        -------
+        DelayPrediction
+            Arrays of shape (n,), s.
+        """
+        self._check_method(method)
+        qa = np.asarray(q, dtype=float)
+        if qa.ndim != 2 or qa.shape[1] != 6:
+            raise ConfigError(f"q must have shape (n, 6) (rad), got {qa.shape}")
+        n = len(qa)
+        bad = ~np.isfinite(qa)
+        if bad.any():
+            row, col = (int(v) for v in np.argwhere(bad)[0])
+            raise ConfigError(
+                f"q row {row}: q{col + 1} is {qa[row, col]}; joint angles must be finite"
+            )
+        dirs = np.broadcast_to(np.asarray(direction), (n,))
+        okd = (dirs == 1) | (dirs == -1)
+        if not okd.all():
+            row = int(np.flatnonzero(~okd)[0])
+            raise ConfigError(f"row {row}: direction {dirs[row]!r} must be +1 or -1")
+        joints = np.broadcast_to(np.asarray(joint), (n,))
+        out = {
+            f"{d}_{k}": np.full(n, np.nan)
+            for d in ("actuation", "response")
+            for k in ("mean", "std", "latent_std")
+        }
+        for j in np.unique(joints):
+            key = self._key(int(j), combined)
+            rows = np.flatnonzero(joints == j)
+            if key == "combined":
+                X = encode_inputs(qa[rows], dirs[rows], joints[rows], self.joints)
+            else:
+                X = encode_inputs(qa[rows], dirs[rows])
+            for delay in _DELAYS:
+                short = delay.split("_")[0]
+                if method == "gpr":
+                    pred = self._gp_predictor(delay, key)
+                    mean, var = pred.predict(X)
+                    out[f"{short}_mean"][rows] = mean
+                    out[f"{short}_std"][rows] = np.sqrt(var + pred.noise_var_s2)
+                    out[f"{short}_latent_std"][rows] = np.sqrt(var)
+                else:
+                    mm = self._mean_model(method, delay, key)
+                    out[f"{short}_mean"][rows] = mm.mean(X)
+                    out[f"{short}_std"][rows] = mm.std_s
+        return DelayPrediction(**out)
+
+    def gp_predictor(self, delay: str, joint: int | None = None) -> GPPredictor:
+        """The GP predictor of ``delay`` for ``joint`` (None: the combined model)."""
+        key = "combined" if joint is None else self._key(joint, False)
+        return self._gp_predictor(delay, key)
+
+    def __repr__(self) -> str:
+        return (
+            f"DelayModel(robot={self.robot!r}, period_s={self.period_s}, joints={self.joints}, "
+            f"methods={self.methods})"
+        )
