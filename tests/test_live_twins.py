@@ -196,12 +196,6 @@ def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    raises=ConfigError,
-    reason="KukaRSIDriver.speedj refuses duration_s=0, which run_calibration sends for "
-    "'hold until the next command' (URScript speedj and ControllerSim.SpeedJ semantics)",
-)
 def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> None:
     """20 trials through the RSI driver (``rsi://PORT``) against the KR 5 RSI twin, with a
     gyro twin in the RSI twin's process fed by its physics (``rsi_gyro_factory``): every
@@ -299,11 +293,6 @@ _LAGGING_GYRO_RUN = textwrap.dedent(
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="run_calibration's gyro wait loop re-reads the buffer after dropping its oldest "
-    "chunks but keeps the old start index: the window slides, or the loop never ends",
-)
 def test_runner_keeps_the_gyro_window_when_the_gyro_lags(tmp_path: Path) -> None:
     """A gyro whose blocks reach the host 30 ms after sampling (the header says so) still
     gives delays within 1 ms of the truth: the runner waits for the end of the window

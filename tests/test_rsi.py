@@ -242,7 +242,7 @@ def test_relative_mode_sends_increments() -> None:
         ([0, 0.1, 0, 0, 0], 1.0, 1.0, r"shape \(5,\); expected \(6,\)"),
         ([0, math.nan, 0, 0, 0, 0], 1.0, 1.0, r"non-finite"),
         ([0, 0.1, 0, 0, 0, 0], 0.0, 1.0, r"acceleration_rad_s2=0.0 must be > 0"),
-        ([0, 0.1, 0, 0, 0, 0], 1.0, 0.0, r"duration_s=0.0 must be > 0"),
+        ([0, 0.1, 0, 0, 0, 0], 1.0, -1.0, r"duration_s=-1.0 must be >= 0"),
     ],
 )
 def test_commands_beyond_the_spec_are_refused(

@@ -235,9 +235,15 @@ def _trial(
         st = sess.state()
     samples = sess.samples()
     start = int(np.searchsorted(samples.host_time_s, t0 - prof.pre_s))
+    first = (
+        int(samples.counter_unwrapped[start])
+        if start < len(samples)
+        else int(samples.counter_unwrapped[-1]) + 1
+    )
     while len(samples) - start < lay.n_gyro:
-        sess.state()
+        sess.state()  # may drop the oldest buffered chunks: find the window's start again
         samples = sess.samples()
+        start = int(np.searchsorted(samples.counter_unwrapped, first))
     sel = slice(start, start + lay.n_gyro)
     block = settings.gyro.block_samples
     arrivals = samples.arrival_s[sel][block - 1 :: block] - t0

@@ -87,7 +87,8 @@ class RobotDriver(abc.ABC):
     @abc.abstractmethod
     def speedj(self, qd_rad_s: FloatArray, acceleration_rad_s2: float, duration_s: float) -> None:
         """Command joint speeds (rad/s) with the leading axis' acceleration (rad/s²) for
-        ``duration_s`` (s); returns as soon as the command is sent (non-blocking)."""
+        ``duration_s`` (s; 0 holds them until the next command, as URScript ``speedj``);
+        returns as soon as the command is sent (non-blocking)."""
 
     @abc.abstractmethod
     def stop(self, deceleration_rad_s2: float = 10.0) -> None:

@@ -76,8 +76,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec.drivers._base import RobotDriver, RobotState
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
+from timedexec.drivers._base import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
 
@@ -633,8 +633,13 @@ class KukaRSIDriver(RobotDriver):
         if not (math.isfinite(accel) and accel > 0.0):
             raise ConfigError(f"acceleration_rad_s2={acceleration_rad_s2!r} must be > 0")
         duration = float(duration_s)
-        if math.isnan(duration) or duration <= 0.0:
-            raise ConfigError(f"duration_s={duration_s!r} must be > 0 (math.inf: until stop)")
+        if math.isnan(duration) or duration < 0.0:
+            raise ConfigError(
+                f"duration_s={duration_s!r} must be >= 0 (0 or math.inf: hold until the next "
+                "command, as URScript speedj)"
+            )
+        if duration == 0.0:
+            duration = math.inf
         prof = self._profile
         for j in range(6):
             if abs(qd[j]) > prof.qd_max[j]:

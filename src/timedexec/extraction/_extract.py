@@ -419,6 +419,7 @@ def _extract_chunk_inner(
         resp = t_rep - t_meas
 
     reasons = [
+        (pre.sum(axis=1) < 0.01 * ctx.fs_hz, "no_baseline"),  # < 10 ms of zero-rate samples
         (clipped, "clipped"),
         (gyro_gap, "gyro_gap"),
         (package_gap, "package_gap"),

@@ -509,7 +509,8 @@ class ControllerSim:
                 self._watch.remove(event)
         self.cycle_index = k + 1
         self.time_s = (k + 1) * period
-        return CycleResult(packet=packet, substep_time_s=times, flange_rate_rad_s=rates)
+        # Each rate is the joint speed at the end of its step.
+        return CycleResult(packet=packet, substep_time_s=times + self.dt_s, flange_rate_rad_s=rates)
 
 
 def _trapezoid(t: float, t_acc: float, t_cruise: float, v_peak: float) -> tuple[float, float]:
