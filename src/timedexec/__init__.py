@@ -7,6 +7,8 @@ trajectories so that the physical motion happens when it was planned.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from timedexec._version import __version__
 from timedexec.errors import (
     ConfigError,
@@ -19,8 +21,12 @@ from timedexec.errors import (
     TimedExecError,
 )
 
+if TYPE_CHECKING:
+    from timedexec.learning import DelayModel
+
 __all__ = [
     "ConfigError",
+    "DelayModel",
     "DriverError",
     "DriverTimeout",
     "ModelError",
@@ -30,3 +36,12 @@ __all__ = [
     "TimedExecError",
     "__version__",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    # The fast predictor loads on first use: `import timedexec` stays light.
+    if name == "DelayModel":
+        from timedexec.learning import DelayModel
+
+        return DelayModel
+    raise AttributeError(f"module 'timedexec' has no attribute {name!r}")
