@@ -75,6 +75,12 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
         help="controller period the table was measured at, s (default: the robot's; kr5: "
         "0.012 or 0.004)",
     )
+    p.add_argument(
+        "--time-input",
+        action="store_true",
+        help="add the sweep time (t_start) as an input beside the published ones: separates "
+        "warm-up drift from pose dependence; the bundle predicts at the end of the sweep (warm)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the folds and the estimators")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=lambda args: _cmd_train(args, emit))
@@ -111,6 +117,7 @@ def _cmd_train(args: argparse.Namespace, emit: Emit) -> int:
         period_s=args.period,
         source=str(path),
         source_sha256=digest,
+        time_input=args.time_input,
     )
     model = result.model
     model.save(out)

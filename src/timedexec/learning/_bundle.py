@@ -215,6 +215,9 @@ class DelayModel:
         self.joints: tuple[int, ...] = tuple(int(j) for j in manifest["joints"])
         self.methods: tuple[str, ...] = tuple(manifest["methods"])
         self.keys: tuple[str, ...] = tuple(manifest["models"])
+        self.time_input: bool = bool(manifest.get("time_input", False))
+        default = manifest.get("time_default_s")
+        self.time_default_s: float | None = None if default is None else float(default)
         self._gp: dict[tuple[str, str], GPPredictor] = {}
         self._other: dict[tuple[str, str, str], _MeanModel] = {}
         self._fast: dict[tuple[int, bool], tuple[GPPredictor, GPPredictor, bool]] = {}
@@ -232,6 +235,8 @@ class DelayModel:
         methods: Sequence[str],
         cv: Any,
         training: Mapping[str, Any],
+        time_input: bool = False,
+        time_range_s: tuple[float, float] = (0.0, 0.0),
     ) -> DelayModel:
         """Assemble a model from final fits ``{(method, delay, key): {"arrays", "train_rmse_s", "info"}}``."""
         arrays: dict[str, NDArray[Any]] = {}
@@ -260,11 +265,16 @@ class DelayModel:
             "inputs": (
                 "start configuration q1..q6 as sin/cos pairs, direction (+1/-1); the combined "
                 "model adds one-hot joint columns"
+                + ("; last, the sweep time t_h in hours" if time_input else "")
             ),
             "feature_order": {
-                "per_joint": list(feature_names()),
-                "combined": list(feature_names(tuple(int(j) for j in joints))),
+                "per_joint": list(feature_names(None, time_input)),
+                "combined": list(feature_names(tuple(int(j) for j in joints), time_input)),
             },
+            "time_input": bool(time_input),
+            # predictions default to the end of the calibration sweep: the warm robot
+            "time_default_s": float(time_range_s[1]) if time_input else None,
+            "time_range_s": [float(time_range_s[0]), float(time_range_s[1])],
             "training_data": dict(training),
             "cv": None
             if cv is None
@@ -466,6 +476,7 @@ class DelayModel:
         joint: int,
         direction: int,
         q: ArrayLike,
+        t_s: float | None = None,
         method: str = "gpr",
         combined: bool = False,
     ) -> DelayPrediction:
@@ -479,6 +490,10 @@ class DelayModel:
             +1 or -1.
         q : array, shape (6,)
             Start configuration, rad.
+        t_s : float, optional
+            Bundles with a time input (``time_input`` in the manifest): time since the robot
+            started working, s, on the calibration sweep's clock; default the end of the
+            sweep (warm). Refused for bundles without a time input.
         method : str
             "gpr" (default), "nn", "rt" or "median".
         combined : bool
@@ -500,7 +515,7 @@ class DelayModel:
                     combined,
                 )
                 self._fast[(joint, combined)] = fast
-            x = self._encode_one(joint, direction, q, combined)
+            x = self._encode_one(joint, direction, q, combined, t_s)
             act, resp = fast[0], fast[1]
             BLAS_PIN.enter()
             try:
@@ -517,11 +532,32 @@ class DelayModel:
                 response_latent_std=math.sqrt(rv),
             )
         out = self.predict_many(
-            joint, direction, np.asarray(q, dtype=float)[None, :], method=method, combined=combined
+            joint,
+            direction,
+            np.asarray(q, dtype=float)[None, :],
+            t_s=t_s,
+            method=method,
+            combined=combined,
         )
         return DelayPrediction(**{k: float(v[0]) for k, v in out.__dict__.items()})
 
-    def _encode_one(self, joint: int, direction: int, q: ArrayLike, combined: bool) -> FloatArray:
+    def _time_h(self, t_s: Any) -> Any:
+        if not self.time_input:
+            if t_s is not None:
+                raise ConfigError(
+                    "this bundle has no time input (trained without --time-input); drop t_s"
+                )
+            return None
+        if t_s is None:
+            return self.time_default_s / 3600.0  # type: ignore[operator]
+        t = np.asarray(t_s, dtype=float)
+        if not np.all(np.isfinite(t)):
+            raise ConfigError(f"t_s={t_s!r}: the time must be finite seconds")
+        return t / 3600.0
+
+    def _encode_one(
+        self, joint: int, direction: int, q: ArrayLike, combined: bool, t_s: float | None = None
+    ) -> FloatArray:
         qa = np.asarray(q, dtype=float)
         if qa.shape != (6,):
             raise ConfigError(f"q must hold 6 joint angles (rad), got shape {qa.shape}")
@@ -530,13 +566,15 @@ class DelayModel:
             raise ConfigError(f"q{bad + 1} is {qa[bad]}; joint angles must be finite (rad)")
         if direction != 1 and direction != -1:
             raise ConfigError(f"direction {direction!r} must be +1 or -1")
-        n = 13 + (len(self.joints) if combined else 0)
-        x = np.empty(n)
+        n_hot = len(self.joints) if combined else 0
+        x = np.empty(13 + n_hot + (1 if self.time_input else 0))
         x[0:12:2] = np.sin(qa)
         x[1:12:2] = np.cos(qa)
         x[12] = direction
         if combined:
-            x[13:] = [1.0 if j == joint else 0.0 for j in self.joints]
+            x[13 : 13 + n_hot] = [1.0 if j == joint else 0.0 for j in self.joints]
+        if self.time_input or t_s is not None:
+            x[-1] = float(self._time_h(t_s))
         return x
 
     def predict_many(
@@ -545,10 +583,11 @@ class DelayModel:
         direction: ArrayLike,
         q: ArrayLike,
         *,
+        t_s: ArrayLike | None = None,
         method: str = "gpr",
         combined: bool = False,
     ) -> DelayPrediction:
-        """Vectorised :meth:`predict`: joints and directions (scalars or (n,)), q (n, 6).
+        """Vectorised :meth:`predict`: joints, directions (and times) scalars or (n,), q (n, 6).
 
         Returns
         -------
@@ -572,6 +611,8 @@ class DelayModel:
             row = int(np.flatnonzero(~okd)[0])
             raise ConfigError(f"row {row}: direction {dirs[row]!r} must be +1 or -1")
         joints = np.broadcast_to(np.asarray(joint), (n,))
+        t_h = self._time_h(t_s)
+        t_all = None if t_h is None else np.broadcast_to(np.asarray(t_h, dtype=float), (n,))
         out = {
             f"{d}_{k}": np.full(n, np.nan)
             for d in ("actuation", "response")
@@ -580,10 +621,11 @@ class DelayModel:
         for j in np.unique(joints):
             key = self._key(int(j), combined)
             rows = np.flatnonzero(joints == j)
+            t_rows = None if t_all is None else t_all[rows]
             if key == "combined":
-                X = encode_inputs(qa[rows], dirs[rows], joints[rows], self.joints)
+                X = encode_inputs(qa[rows], dirs[rows], joints[rows], self.joints, t_h=t_rows)
             else:
-                X = encode_inputs(qa[rows], dirs[rows])
+                X = encode_inputs(qa[rows], dirs[rows], t_h=t_rows)
             for delay in _DELAYS:
                 short = delay.split("_")[0]
                 if method == "gpr":

@@ -8,6 +8,8 @@ the same pose, which raw angles would place far apart. The direction is ±1. A c
 model (all joints in one) adds a one-hot column per joint it was trained on. Columns that
 are constant in the training data (q6 = 0 throughout a sweep: the flange carries the gyro)
 are kept in the order but carry no information; every estimator tolerates them.
+Optionally (``time_input``) the sweep time in hours is the last column: it lets a model
+separate the warm-up drift of the delays from their pose dependence.
 
 Replicates
 ----------
@@ -40,18 +42,24 @@ FloatArray = NDArray[np.float64]
 _N_JOINTS = 6
 
 
-def feature_names(joints: tuple[int, ...] | None = None) -> tuple[str, ...]:
+def feature_names(
+    joints: tuple[int, ...] | None = None, time_input: bool = False
+) -> tuple[str, ...]:
     """Column names of :func:`encode_inputs`, in order.
 
     Parameters
     ----------
     joints : tuple of int, optional
         The joints of a combined model (one-hot columns ``joint_J``); None for a per-joint model.
+    time_input : bool
+        Whether the sweep time ``t_h`` (hours since the sweep started) is the last column.
     """
     names = [f"{f}_q{i}" for i in range(1, _N_JOINTS + 1) for f in ("sin", "cos")]
     names.append("direction")
     if joints is not None:
         names.extend(f"joint_{j}" for j in joints)
+    if time_input:
+        names.append("t_h")
     return tuple(names)
 
 
@@ -60,6 +68,7 @@ def encode_inputs(
     direction: ArrayLike,
     joint: ArrayLike | None = None,
     joints: tuple[int, ...] | None = None,
+    t_h: ArrayLike | None = None,
 ) -> FloatArray:
     """Encode start configuration, direction (and joint) as model inputs.
 
@@ -74,10 +83,12 @@ def encode_inputs(
     joints : tuple of int, optional
         Joints of a combined model: adds one one-hot column per joint. A joint outside
         ``joints`` raises :class:`~timedexec.errors.ConfigError`.
+    t_h : array, shape (n,) or scalar, optional
+        Sweep time, hours since the sweep started (models with a time input): last column.
 
     Returns
     -------
-    ndarray, shape (n, 13) or (n, 13 + len(joints))
+    ndarray, shape (n, 13 [+ len(joints)] [+ 1])
         Columns as :func:`feature_names` lists them.
     """
     q = np.asarray(q_rad, dtype=float)
@@ -87,7 +98,8 @@ def encode_inputs(
         raise ConfigError(f"start configurations must have shape (n, 6), got {q.shape}")
     n = q.shape[0]
     d = np.broadcast_to(np.asarray(direction, dtype=float), (n,))
-    cols = 2 * _N_JOINTS + 1 + (len(joints) if joints is not None else 0)
+    n_hot = len(joints) if joints is not None else 0
+    cols = 2 * _N_JOINTS + 1 + n_hot + (1 if t_h is not None else 0)
     out = np.empty((n, cols))
     out[:, 0 : 2 * _N_JOINTS : 2] = np.sin(q)
     out[:, 1 : 2 * _N_JOINTS : 2] = np.cos(q)
@@ -103,7 +115,11 @@ def encode_inputs(
                 f"row {row}: joint {jt[row]} is not one of the model's joints "
                 f"{', '.join(map(str, joints))}"
             )
-        out[:, 2 * _N_JOINTS + 1 :] = jt[:, None] == np.asarray(joints)[None, :]
+        out[:, 2 * _N_JOINTS + 1 : 2 * _N_JOINTS + 1 + n_hot] = (
+            jt[:, None] == np.asarray(joints)[None, :]
+        )
+    if t_h is not None:
+        out[:, -1] = np.broadcast_to(np.asarray(t_h, dtype=float), (n,))
     return out
 
 

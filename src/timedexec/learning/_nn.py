@@ -254,8 +254,11 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
     the biases): the objective is ``½ Σ_i n_i (ȳ_i - f(x_i))² + ½ λ ||w||²`` in normalised
     units with ``λ = alpha · N`` (N trials). ``alpha="auto"`` instead re-estimates ``λ``
     by MacKay's evidence framework (MATLAB's ``trainbr``); on simulated sweeps it was
-    slower and no more accurate. Of ``n_restarts`` random starts the one with the lowest
-    validation error (or evidence / objective without validation) is kept.
+    slower and no more accurate. By default the ``n_restarts`` = 2 nets form a committee
+    (their average; each has its own validation split), which halves the variance a net
+    picks up from noisy means — on a joint without pose signal a single net lost to the
+    median, the committee did not; a member that does not beat the training mean on its
+    validation conditions is replaced by that mean.
 
     Parameters
     ----------
@@ -269,6 +272,10 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         15 %); 0 trains on all conditions until convergence.
     max_fail : int
         Accepted LM steps without a lower validation error before stopping (MATLAB: 6).
+    committee : bool
+        True: average the ``n_restarts`` nets, each early-stopped on its own random
+        validation split (the average of K nets of H units is one net of K·H units); False:
+        keep the one with the lowest validation error.
     n_restarts : int
         Random starts (>= 1).
     max_iter : int
@@ -299,6 +306,9 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         Score of the kept start: minus the log evidence (``auto``) or the objective.
     decay_ : float
         Final ``λ`` (normalised units).
+    constant_ : bool
+        True when no net beat the training mean on the validation conditions and the mean
+        was kept (the delay showed no dependence on the inputs).
     """
 
     def __init__(
@@ -311,6 +321,7 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         tol: float = 1e-5,
         validation_fraction: float = 0.15,
         max_fail: int = 6,
+        committee: bool = True,
         solver: str = "marquardt",
         random_state: int | np.random.Generator | None = None,
     ) -> None:
@@ -321,6 +332,7 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         self.tol = tol
         self.validation_fraction = validation_fraction
         self.max_fail = max_fail
+        self.committee = committee
         self.solver = solver
         self.random_state = random_state
 
@@ -362,46 +374,78 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         auto = self.alpha == "auto"
         decay = 1.0 if auto else float(self.alpha) * col.n
         wss = col.within_ss / self.y_std_**2
-        val: _Net | None = None
+        H = int(self.hidden_units)
         vf = float(self.validation_fraction)
-        if vf > 0 and len(ys) >= 10:
+        use_val = vf > 0 and len(ys) >= 10
+
+        def split() -> tuple[_Net, _Net | None]:
+            if not use_val:
+                return _Net(Xs, ys, col.count, wss, H, decay), None
             is_val = np.zeros(len(ys), dtype=bool)
             is_val[rng.choice(len(ys), size=max(1, round(vf * len(ys))), replace=False)] = True
             tr = ~is_val
             wss_tr = wss * float(col.count[tr].sum() / col.n)  # pro rata; only used by auto
-            net = _Net(Xs[tr], ys[tr], col.count[tr], wss_tr, int(self.hidden_units), decay)
-            val = _Net(Xs[is_val], ys[is_val], col.count[is_val], 0.0, int(self.hidden_units), 0.0)
-        else:
-            net = _Net(Xs, ys, col.count, wss, int(self.hidden_units), decay)
-        solve = _marquardt if self.solver == "marquardt" else _scipy_lm
-        best: tuple[float, FloatArray, int, float] | None = None
+            return (
+                _Net(Xs[tr], ys[tr], col.count[tr], wss_tr, H, decay),
+                _Net(Xs[is_val], ys[is_val], col.count[is_val], 0.0, H, 0.0),
+            )
+
+        def train(net: _Net, val: _Net | None) -> tuple[FloatArray, float, int]:
+            if self.solver == "marquardt":
+                return _marquardt(
+                    net,
+                    net.initial(rng),
+                    max_iter=int(self.max_iter),
+                    tol=float(self.tol),
+                    auto=auto,
+                    val=val,
+                    max_fail=int(self.max_fail),
+                )
+            return _scipy_lm(
+                net, net.initial(rng), max_iter=int(self.max_iter), tol=float(self.tol), auto=auto
+            )
+
+        def keep_or_constant(
+            net: _Net, val: _Net | None, theta: FloatArray, score: float
+        ) -> tuple[FloatArray, bool]:
+            # A net that does not beat the training mean on the held-out conditions has
+            # found no dependence on the inputs: keep the mean instead.
+            if val is None:
+                return theta, False
+            c = float(np.average(net.y, weights=net.sw**2))
+            if float(np.sum(val.sw**2 * (c - val.y) ** 2)) > score:
+                return theta, False
+            theta = theta.copy()
+            theta[H * net.d + H : H * net.d + 2 * H] = 0.0
+            theta[-1] = c
+            return theta, True
+
+        members: list[tuple[float, FloatArray, int, float, bool]] = []
         with single_threaded_blas():
+            shared = split()
             for _ in range(int(self.n_restarts)):
-                net.set_decay(decay)
-                if solve is _marquardt:
-                    t, score, it = _marquardt(
-                        net,
-                        net.initial(rng),
-                        max_iter=int(self.max_iter),
-                        tol=float(self.tol),
-                        auto=auto,
-                        val=val,
-                        max_fail=int(self.max_fail),
-                    )
-                else:
-                    t, score, it = _scipy_lm(
-                        net,
-                        net.initial(rng),
-                        max_iter=int(self.max_iter),
-                        tol=float(self.tol),
-                        auto=auto,
-                    )
-                if best is None or score < best[0]:
-                    best = (score, t, it, net.lam)
-        assert best is not None
-        self.objective_, theta, self.n_iter_, self.decay_ = best
-        W1, b1, W2, b2 = net.unpack(theta)
-        self.W1_, self.b1_, self.W2_, self.b2_ = W1.copy(), b1.copy(), W2.copy(), b2
+                net, val = split() if self.committee else shared
+                theta, score, it = train(net, val)
+                theta, const = keep_or_constant(net, val, theta, score)
+                members.append((score, theta, it, net.lam, const))
+        proto = _Net(Xs[:1], ys[:1], col.count[:1], 0.0, H, 0.0)
+        if self.committee:
+            # The average of K nets of H units is one net of K·H units.
+            parts = [proto.unpack(m[1]) for m in members]
+            K = len(parts)
+            self.W1_ = np.vstack([p[0] for p in parts])
+            self.b1_ = np.concatenate([p[1] for p in parts])
+            self.W2_ = np.concatenate([p[2] for p in parts]) / K
+            self.b2_ = float(np.mean([p[3] for p in parts]))
+            self.objective_ = float(np.mean([m[0] for m in members]))
+            self.n_iter_ = int(sum(m[2] for m in members))
+            self.decay_ = float(np.mean([m[3] for m in members]))
+            self.constant_ = all(m[4] for m in members)
+        else:
+            score, theta, it, lam, const = min(members, key=lambda m: m[0])
+            W1, b1, W2, b2 = proto.unpack(theta)
+            self.W1_, self.b1_, self.W2_, self.b2_ = W1.copy(), b1.copy(), W2.copy(), b2
+            self.objective_, self.n_iter_, self.decay_, self.constant_ = score, it, lam, const
         return self
 
     def predict(self, X: ArrayLike) -> FloatArray:

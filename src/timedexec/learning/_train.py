@@ -136,6 +136,8 @@ class _Data:
     joints: tuple[int, ...]
     robot: str
     sha256: str
+    t_h: FloatArray  # sweep time per trial: its condition's mean t_start, hours
+    time_input: bool
 
     def rows(self, key: str) -> NDArray[np.intp]:
         if key == "combined":
@@ -143,12 +145,15 @@ class _Data:
         return np.flatnonzero(self.joint == int(key))
 
     def X(self, key: str, rows: NDArray[np.intp]) -> FloatArray:
+        t = self.t_h[rows] if self.time_input else None
         if key == "combined":
-            return encode_inputs(self.q[rows], self.direction[rows], self.joint[rows], self.joints)
-        return encode_inputs(self.q[rows], self.direction[rows])
+            return encode_inputs(
+                self.q[rows], self.direction[rows], self.joint[rows], self.joints, t_h=t
+            )
+        return encode_inputs(self.q[rows], self.direction[rows], t_h=t)
 
 
-def _prepare(table: DelayTable) -> _Data:
+def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     if not isinstance(table, DelayTable):
         raise ConfigError(f"expected a DelayTable, got {type(table).__name__}")
     keep = np.ones(len(table), dtype=bool)
@@ -178,6 +183,10 @@ def _prepare(table: DelayTable) -> _Data:
     config = np.unique(q, axis=0, return_inverse=True)[1].reshape(-1)
     key = np.column_stack([config, joint, direction])
     condition = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)
+    # The condition's mean start time: its repeats run back to back (seconds apart, against
+    # an hour-long warm-up), so one time per condition keeps replicates identical rows.
+    t_start = t["t_start"].astype(float)
+    t_h = (np.bincount(condition, weights=t_start) / np.bincount(condition))[condition] / 3600.0
     h = hashlib.sha256()
     for arr in (q, joint, direction, y["actuation_delay"], y["response_delay"]):
         h.update(np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<")).tobytes())
@@ -191,6 +200,8 @@ def _prepare(table: DelayTable) -> _Data:
         joints=tuple(sorted({int(j) for j in joint})),
         robot=robots[0],
         sha256=h.hexdigest(),
+        t_h=t_h,
+        time_input=time_input,
     )
 
 
@@ -325,6 +336,10 @@ class CVResult:
         Size of the data.
     seconds : float
         Wall time of the run.
+    fit_seconds : dict
+        CPU-side seconds spent in fits, per method.
+    time_input : bool
+        Whether the sweep time was an input.
     """
 
     scores_ms: dict[str, dict[str, dict[str, float]]]
@@ -336,6 +351,7 @@ class CVResult:
     n_configurations: int
     seconds: float = 0.0
     fit_seconds: dict[str, float] = field(default_factory=dict)
+    time_input: bool = False
 
     def to_dict(self) -> dict[str, dict[str, dict[str, float]]]:
         """The CV.json content: ``{delay: {method: {column: ms}}}``."""
@@ -372,9 +388,10 @@ class CVResult:
             if family == "ur" and delay == "response_delay" and "5" in cols:
                 lines.append("(paper's UR response table has joint 4 in the J5 column)")
             lines.append("")
+        inputs = "configuration, joint, direction" + (" and sweep time" if self.time_input else "")
         lines.append(
             "floor: replicate scatter, sqrt of the pooled within-condition variance (no model "
-            "can beat it). Folds split by start configuration."
+            f"can beat it). Folds split by start configuration. Inputs: {inputs}."
         )
         return "\n".join(lines)
 
@@ -493,6 +510,7 @@ def cross_validate(
     jobs: int = 1,
     random_state: int = 0,
     progress: bool = False,
+    time_input: bool = False,
 ) -> CVResult:
     """K-fold cross-validation of every method, per joint and combined, both delays.
 
@@ -510,6 +528,8 @@ def cross_validate(
         Seeds the fold assignment and the estimators.
     progress : bool
         Progress on stderr.
+    time_input : bool
+        Add the sweep time as an input (see :func:`train_delay_models`).
     """
     return train_delay_models(
         table,
@@ -519,6 +539,7 @@ def cross_validate(
         random_state=random_state,
         progress=progress,
         final=False,
+        time_input=time_input,
     ).cv  # type: ignore[return-value]
 
 
@@ -534,6 +555,7 @@ def train_delay_models(
     source: str | None = None,
     source_sha256: str | None = None,
     final: bool = True,
+    time_input: bool = False,
 ) -> TrainResult:
     """Cross-validate (``folds`` > 0) and train every method on all data into a bundle.
 
@@ -550,6 +572,10 @@ def train_delay_models(
         Where the table came from and the sha256 of its file, for the manifest.
     final : bool
         Train the final models (False: CV only, ``model`` is None).
+    time_input : bool
+        Add the sweep time (``t_start`` averaged per condition, hours) as an input beside
+        the published ones: separates the warm-up drift from the pose dependence. The
+        bundle then predicts at the end of the sweep (warm) unless given a time.
 
     Returns
     -------
@@ -562,7 +588,7 @@ def train_delay_models(
     jobs = _check_jobs(jobs)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
         raise ConfigError(f"folds={folds!r} must be 0 (no cross-validation) or an integer >= 2")
-    data = _prepare(table)
+    data = _prepare(table, time_input=bool(time_input))
     try:
         spec = get_robot(data.robot, period_s=period_s)
     except ConfigError as exc:
@@ -583,6 +609,7 @@ def train_delay_models(
             n_configurations=int(data.config.max()) + 1,
             seconds=time.perf_counter() - start,
             fit_seconds=fit_s,
+            time_input=data.time_input,
         )
     model = None
     if final:
@@ -597,6 +624,8 @@ def train_delay_models(
             keys=_keys(data),
             methods=methods,
             cv=cv,
+            time_input=data.time_input,
+            time_range_s=(float(data.t_h.min() * 3600.0), float(data.t_h.max() * 3600.0)),
             training={
                 "arrays_sha256": data.sha256,
                 "file_sha256": source_sha256,
