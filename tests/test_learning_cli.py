@@ -159,3 +159,17 @@ def test_bad_options_exit_2(
     assert "does not exist" in capsys.readouterr().err
     assert run(["train", str(csv_path), "--out", out, "--folds", "20", "--quiet"]) == 2
     assert "at least 20 distinct start configurations" in capsys.readouterr().err
+
+
+def test_train_time_input_flag(csv_path: Path, tmp_path: Path) -> None:
+    """--time-input puts the sweep time last in the inputs; the bundle predicts warm."""
+    out = tmp_path / "b"
+    code = run(
+        ["train", str(csv_path), "--out", str(out), "--folds", "0", "--methods", "gpr",
+         "--time-input", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["time_input"] is True
+    assert manifest["feature_order"]["combined"][-1] == "t_h"
+    assert manifest["time_default_s"] == manifest["time_range_s"][1]
