@@ -429,12 +429,12 @@ def test_bundle_round_trip_and_fast_predict(
     for method in METHODS:
         a = model.predict_many(j, d, q, method=method)
         b = loaded.predict_many(j, d, q, method=method)
-        for name, value in a.__dict__.items():
+        for name, value in a._asdict().items():
             np.testing.assert_array_equal(value, getattr(b, name))
     for i in range(5):
         p = loaded.predict(joint=int(j[i]), direction=int(d[i]), q=q[i])
         many = loaded.predict_many(j[i : i + 1], d[i : i + 1], q[i : i + 1])
-        for name, value in p.__dict__.items():
+        for name, value in p._asdict().items():
             # fast path folds constants differently: rounding only
             assert value == pytest.approx(float(getattr(many, name)[0]), rel=1e-9, abs=1e-15)
         assert p.actuation_std > p.actuation_latent_std > 0
@@ -629,3 +629,26 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
     for m in METHODS:
         # within 3 % of the replicate scatter (10-fold CV noise on ~2,000 trials per joint)
         assert resp[m]["combined"] <= 1.03 * cv.noise_floor_ms["response_delay"]["combined"]
+
+
+def test_fused_pair_predictor_matches_separate_predictors() -> None:
+    """A joint's actuation and response GPs evaluated together (one kernel product) give the
+    numbers of the separate predictors, exact or with a variance subset."""
+    from timedexec.learning._gpcore import GPPairPredictor
+
+    table = synthetic_table(n_cfg=60, repeats=3)
+    for mvc in (None, 40):
+        model = train_delay_models(table, folds=0, methods="gpr", time_input=True).model
+        for k in list(model._arrays):
+            if k.endswith(".max_variance_conditions"):
+                model._arrays[k] = np.array(0 if mvc is None else mvc)
+        a = model.gp_predictor("actuation_delay", 3)
+        b = model.gp_predictor("response_delay", 3)
+        pair = GPPairPredictor.from_pair(a, b)
+        assert pair is not None
+        assert (a.var_index is None) == (mvc is None)
+        for q in table.q[:10]:
+            x = encode_inputs(q[None, :], [1], t_h=0.1)[0]
+            fused = pair.predict_one(x)
+            sep = (*a.predict_one(x), *b.predict_one(x))
+            np.testing.assert_allclose(fused, sep, rtol=1e-9, atol=1e-15)  # rounding only

@@ -26,9 +26,8 @@ import os
 import tempfile
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,7 +36,7 @@ from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._forward import nn_forward, tree_predict
-from timedexec.learning._gpcore import GPPredictor, predictor_from_arrays
+from timedexec.learning._gpcore import GPPairPredictor, GPPredictor, predictor_from_arrays
 from timedexec.learning._threads import BLAS_PIN
 
 __all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
@@ -52,9 +51,10 @@ _DELAYS = ("actuation_delay", "response_delay")
 _METHODS = ("median", "nn", "rt", "gpr")
 
 
-@dataclass(frozen=True)
-class DelayPrediction:
+class DelayPrediction(NamedTuple):
     """Predicted delays for one command (floats) or many (arrays of shape (n,)), s.
+
+    A named tuple: fields by name, or unpacked in this order.
 
     Attributes
     ----------
@@ -81,7 +81,7 @@ class DelayPrediction:
         """JSON-safe dict (arrays become lists)."""
         return {
             k: (v.tolist() if isinstance(v, np.ndarray) else float(v))
-            for k, v in self.__dict__.items()
+            for k, v in self._asdict().items()
         }
 
 
@@ -220,7 +220,9 @@ class DelayModel:
         self.time_default_s: float | None = None if default is None else float(default)
         self._gp: dict[tuple[str, str], GPPredictor] = {}
         self._other: dict[tuple[str, str, str], _MeanModel] = {}
-        self._fast: dict[tuple[int, bool], tuple[GPPredictor, GPPredictor, bool]] = {}
+        self._fast: dict[
+            tuple[int, bool], tuple[GPPredictor, GPPredictor, GPPairPredictor | None]
+        ] = {}
 
     # ---------------------------------------------------------- building
     @classmethod
@@ -509,18 +511,20 @@ class DelayModel:
             if fast is None:
                 self._check_method("gpr")
                 key = self._key(joint, combined)
-                fast = (
-                    self._gp_predictor("actuation_delay", key),
-                    self._gp_predictor("response_delay", key),
-                    combined,
-                )
+                act = self._gp_predictor("actuation_delay", key)
+                resp = self._gp_predictor("response_delay", key)
+                pair = GPPairPredictor.from_pair(act, resp)
+                fast = (act, resp, pair)
                 self._fast[(joint, combined)] = fast
             x = self._encode_one(joint, direction, q, combined, t_s)
-            act, resp = fast[0], fast[1]
+            act, resp, pair = fast
             BLAS_PIN.enter()
             try:
-                am, av = act.predict_one(x)
-                rm, rv = resp.predict_one(x)
+                if pair is not None:
+                    am, av, rm, rv = pair.predict_one(x)
+                else:
+                    am, av = act.predict_one(x)
+                    rm, rv = resp.predict_one(x)
             finally:
                 BLAS_PIN.exit()
             return DelayPrediction(
@@ -539,7 +543,7 @@ class DelayModel:
             method=method,
             combined=combined,
         )
-        return DelayPrediction(**{k: float(v[0]) for k, v in out.__dict__.items()})
+        return DelayPrediction(*(float(v[0]) for v in out))
 
     def _time_h(self, t_s: Any) -> Any:
         if not self.time_input:

@@ -110,7 +110,7 @@ class DelayGP(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         max_hyper_conditions: int = 400,
         max_exact_conditions: int = 4000,
         n_inducing: int = 1000,
-        max_variance_conditions: int | None = 300,
+        max_variance_conditions: int | None = 200,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
         self.optimize = optimize
