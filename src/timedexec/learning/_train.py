@@ -15,8 +15,8 @@ the error on start poses the model has never seen. Per-joint and combined models
 same folds, so their columns compare.
 
 Fits run as independent joblib tasks (per delay, model, method and fold, plus the final
-fits on all data), biggest first; ``joblib.parallel_config(backend="dask")`` runs them on a
-Dask cluster unchanged.
+fits on all data), biggest first; under ``joblib.parallel_config(backend="dask")`` the same
+tasks run on a Dask cluster (pass ``jobs=-1``; ``jobs=1`` runs in-process without joblib).
 """
 
 from __future__ import annotations
@@ -454,9 +454,11 @@ def _run(
     else:
         from joblib import Parallel, delayed
 
-        it = Parallel(n_jobs=jobs, return_as="generator_unordered")(
-            delayed(_run_task)(t, data, fold_idx, seeds[t]) for t in tasks
-        )
+        calls = [delayed(_run_task)(t, data, fold_idx, seeds[t]) for t in tasks]
+        try:
+            it = Parallel(n_jobs=jobs, return_as="generator_unordered")(calls)
+        except ValueError:  # a backend without result generators (e.g. multiprocessing)
+            it = Parallel(n_jobs=jobs)(calls)
     for task, out, dt in it:
         results[task] = out
         fit_s[task.method] += dt
