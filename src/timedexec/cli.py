@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import importlib
 import json
-import os
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -410,82 +409,96 @@ def _add_demo(sub: Any) -> None:
         description=(
             "The end-to-end job on the embedded simulated robot, no hardware needed: "
             "simulate a calibration sweep (state packages, commands and an 8 kHz gyro, "
-            "recorded to HDF5), extract the actuation and response delays, and write a report "
-            "with figures in the published layout. Prints the delays per joint, the "
-            "extraction error against the simulator's ground truth and the seam error of an "
-            "uncompensated conveyor at 0.5 m/s.\n\nexample:\n  timedexec demo --robot kr5 "
-            "--quick --out demo-out"
+            "recorded to HDF5), extract the actuation and response delays, train the delay "
+            "models with 10-fold cross-validation, evaluate delay compensation on held-out "
+            "trials, follow a conveyor seam at 0.5 m/s without and with compensation, and "
+            "write a report with tables and figures in the published layout.\n\n"
+            "Output folder: ROBOT-sweep.h5 (recording), ROBOT-delays.csv (delay table), model/ "
+            "(bundle, cv.json), evaluation.json, conveyor.json, report/report.md (+ PNG). "
+            "Prints the delays per joint, the models' errors against the median, the timing "
+            "and seam errors per strategy and the conveyor result; --json prints them as "
+            "JSON. Default: 8,000 trials (a few minutes); --quick: 800 (under a minute)."
+            "\n\nexample:\n  timedexec demo --robot kr5 --quick --out demo-out"
         ),
     )
     p.add_argument("--robot", default="ur10", choices=("ur10", "ur10e", "kr5"))
-    p.add_argument("--quick", action="store_true", help="a small sweep (about a minute)")
+    p.add_argument("--quick", action="store_true", help="800 trials instead of 8,000 (< 1 min)")
     p.add_argument("--out", default="timedexec-demo", help="output folder")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--trials", type=int, help=argparse.SUPPRESS)  # tests: a tiny sweep
+    p.add_argument("--trials", type=int, help="calibration trials (overrides --quick)")
+    p.add_argument("--eval-configs", type=int, help=argparse.SUPPRESS)  # tests: tiny evaluation
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=_cmd_demo)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from timedexec.report import run_demo
 
-    import numpy as np
-
-    from timedexec.extraction import extract_recording
-    from timedexec.report import build_report, delay_summary
+    quick = args.quick
+    trials = args.trials or (800 if quick else 8000)
+    info = run_demo(
+        args.robot,
+        args.out,
+        trials=trials,
+        seed=args.seed,
+        eval_configs=args.eval_configs or (60 if quick else 300),
+        eval_draws=10 if quick else 20,
+        progress=True,
+    )
     from timedexec.robots import get_robot
-    from timedexec.sim._sweep import simulate_sweep
 
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the output folder ({exc.strerror})") from exc
     spec = get_robot(args.robot)
-    trials = args.trials or (800 if args.quick else 8000)
-    jobs = min(2, os.cpu_count() or 1)
-    rec = out / f"{spec.name}-sweep.h5"
-    delays = out / f"{spec.name}-delays.csv"
-    for stale in out.glob(f"{spec.name}-sweep.h5*"):
-        stale.unlink()
-    steps = 3
-    print(f"[1/{steps}] simulating a {trials:,}-trial calibration sweep of the {spec.name} "
-          "(state packages, commands, 8 kHz gyro)", file=sys.stderr)  # fmt: skip
-    simulate_sweep(spec, trials, rec, seed=args.seed, jobs=jobs)
-    print(f"[2/{steps}] extracting actuation and response delays", file=sys.stderr)
-    extraction = extract_recording(rec, jobs=jobs)
-    table = extraction.table
-    table.to_csv(delays)
-    print(f"[3/{steps}] writing the report (figures in the published layout)", file=sys.stderr)
-    report = build_report([rec, delays], out / "report")
-    summary = delay_summary(table)
-    ok = np.array([not f for f in table["flag"]], dtype=bool)
-    errors = {
-        name: float(np.sqrt(np.mean((table[name] - table[f"true_{name}"])[ok] ** 2)) * 1e3)
-        for name in ("actuation_delay", "response_delay")
-    }
     lines = [
-        f"timedexec demo: {spec.description}, {trials:,} simulated trials",
-        "joint  actuation median (ms)  response median (ms)",
+        f"timedexec demo: {spec.description}, {trials:,} simulated calibration trials",
+        "",
+        "measured delays per joint, median (2.5-97.5 %), ms:",
+        "joint  actuation            response",
     ]
-    for j, row in summary["joints"].items():
+    for j, row in info["summary"]["joints"].items():
+        a, r = row["actuation_delay"], row["response_delay"]
         lines.append(
-            f"{j:>5}  {row['actuation_delay']['median_ms']:>22.1f}  "
-            f"{row['response_delay']['median_ms']:>20.1f}"
+            f"{j:>5}  {a['median_ms']:5.1f} ({a['p2_5_ms']:5.1f}-{a['p97_5_ms']:5.1f})  "
+            f"{r['median_ms']:5.1f} ({r['p2_5_ms']:5.1f}-{r['p97_5_ms']:5.1f})"
         )
+    err = info["extraction_rmse_ms"]
     lines.append(
-        f"extraction error against the simulator's ground truth: actuation "
-        f"{errors['actuation_delay']:.3f} ms RMS, response {errors['response_delay']:.3f} ms RMS; "
-        f"{summary['flagged']} trials flagged"
+        f"extraction error against the simulator's truth: actuation "
+        f"{err['actuation_delay']:.2f} ms RMS, response {err['response_delay']:.2f} ms RMS; "
+        f"{info['summary']['flagged']} trials flagged"
     )
-    lines.append(
-        f"without compensation a seam on a conveyor at 0.5 m/s is missed by "
-        f"{0.5 * 100 * np.nanmedian(table['actuation_delay']):.2f} cm (median actuation delay)"
-    )
-    lines.append(f"report: {report}   delay table: {delays}   recording: {rec}")
-    _emit({"robot": spec.name, "trials": trials, "summary": summary,
-           "extraction_rmse_ms": errors, "report": str(report), "delays": str(delays),
-           "recording": str(rec)}, args, "\n".join(lines))  # fmt: skip
+    lines += [
+        "",
+        f"model error, {info['folds']}-fold CV average (ms; noise floor = replicate scatter):",
+    ]
+    for delay, row in info["cv_ms"].items():
+        cells = "  ".join(f"{m} {v:.2f}" for m, v in row.items())
+        lines.append(
+            f"  {delay.split('_')[0]:<9} {cells}  floor {info['noise_floor_ms'][delay]:.2f}"
+        )
+    ev = info["evaluation"]["strategies"]
+    lines += [
+        "",
+        "held-out trials, motion-onset timing error and seam error at 0.5 m/s:",
+    ]
+    for name, row in ev.items():
+        lines.append(
+            f"  {name:<9} {row['timing_rms_ms']:6.2f} ms RMS  {row['seam_error_cm']:.3f} cm"
+        )
+    cov = info["evaluation"]["coverage_95"]
+    if cov is not None:
+        lines.append(f"  the model's 95 % timing bounds held on {100 * cov:.1f} % of trials")
+    conv = info["conveyor"]
+    lines += [
+        "",
+        "conveyor at 0.5 m/s, physical torch-to-seam lag in the simulator (+ late, - early):",
+        f"  uncompensated {conv['uncompensated']['mean_lag_cm']:+.2f} cm, compensated "
+        f"{conv['compensated']['mean_lag_cm']:+.2f} cm (commands sent "
+        f"{conv['compensated']['actuation_shift_ms']:.0f} ms early)",
+        "",
+        f"report: {info['report']}",
+        f"model bundle: {info['model']}   delay table: {info['delays']}",
+    ]
+    _emit(info, args, "\n".join(lines))
     return 0
 
 

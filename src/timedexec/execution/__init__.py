@@ -28,6 +28,15 @@ from timedexec.execution._model import (
     predict_delays,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
+from timedexec.execution._tasks import (
+    InterceptResult,
+    SeamResult,
+    compare_seam_tracking,
+    intercept,
+    solve_position_ik,
+    tool_radius_m,
+    track_seam,
+)
 
 __all__ = [
     "CycleLog",
@@ -36,8 +45,10 @@ __all__ = [
     "ExecutionLimits",
     "ExecutionResult",
     "FixedDelays",
+    "InterceptResult",
     "JointPlan",
     "MeetPlan",
+    "SeamResult",
     "StaleStateError",
     "StateEstimate",
     "TimedExecutor",
@@ -45,10 +56,15 @@ __all__ = [
     "UnreachableError",
     "check_model_robot",
     "check_target",
+    "compare_seam_tracking",
     "delay_cdf",
     "delay_quantile",
+    "intercept",
     "load_delay_model",
     "model_period_s",
     "plan_motion",
     "predict_delays",
+    "solve_position_ik",
+    "tool_radius_m",
+    "track_seam",
 ]

@@ -2,8 +2,10 @@
 
 * Fig. 3 — gyro PSD of the still recording before and after the low-pass filter;
 * Fig. 5 — one trial: commanded, measured (gyro) and reported speed, both delays marked;
+* Fig. 6 — a model's delay against the joint 2 and joint 3 angles with its ±2σ band;
 * Figs. 7 and 9 — actuation and response delay histograms;
-* Figs. 8 and 10 — per-joint boxplots of both delays.
+* Figs. 8 and 10 — per-joint boxplots of both delays;
+* the conveyor (seam-tracking) run with and without compensation.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
 from timedexec.sim import pulse_profile
 
-__all__ = ["fig_boxplots", "fig_histograms", "fig_psd", "fig_trial"]
+__all__ = ["fig_boxplots", "fig_histograms", "fig_model", "fig_psd", "fig_seam", "fig_trial"]
 
 _DELAY_LABEL = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
 
@@ -85,15 +87,23 @@ def fig_trial(traces: dict[str, Any], path: str | os.PathLike[str], i: int = 0) 
     y = 1.08 * speed
     ax.annotate("", (t_onset * ms, y), (t_cmd_level * ms, y),
                 arrowprops={"arrowstyle": "<->", "color": "C2"})  # fmt: skip
-    ax.text((t_cmd_level + t_onset) / 2 * ms, y * 1.02, f"actuation {act * ms:.1f} ms",
-            ha="center", color="C2")  # fmt: skip
-    ax.annotate("", ((t_onset + resp) * ms, 0.6 * speed), (t_onset * ms, 0.6 * speed),
-                arrowprops={"arrowstyle": "<->", "color": "C1"})  # fmt: skip
-    ax.text((t_onset + resp) * ms + 3, 0.6 * speed, f"response {resp * ms:.1f} ms", ha="left",
-            va="center", color="C1")  # fmt: skip
+    ax.text(t_cmd_level * ms, 1.16 * speed, f"actuation {act * ms:.1f} ms", ha="left",
+            va="center", color="C2")  # fmt: skip
+    # The response delay is the age of the reported state: the gap between the measured
+    # speed crossing half the commanded speed and the same instant in the reported stream.
+    half = 0.5 * speed
+    filt = np.asarray(traces["gyro_filtered_rad_s"][i])
+    rising = np.flatnonzero((filt >= half) & (t_g >= t_send))
+    if len(rising):
+        t_half = float(t_g[rising[0]])
+        ax.annotate("", ((t_half + resp) * ms, half), (t_half * ms, half),
+                    arrowprops={"arrowstyle": "<->", "color": "C1"})  # fmt: skip
+        ax.text((t_half + resp) * ms + 3, half, f"response {resp * ms:.1f} ms", ha="left",
+                va="center", color="C1")  # fmt: skip
     ax.axvline(t_send * ms, color="k", ls="--", lw=0.8, label="command sent")
     end = t_send + prof["speed_rad_s"] / prof["acceleration_rad_s2"] * 2 + prof["hold_s"] + 0.15
     ax.set_xlim(-10, end * ms)
+    ax.set_ylim(-0.15 * speed, 1.3 * speed)
     ax.set_xlabel("time since the trigger package arrived (ms)")
     ax.set_ylabel("joint speed along the command (rad/s)")
     ax.set_title(f"One trial of the {traces['robot']}: commanded, measured, reported (Fig. 5)")
@@ -137,4 +147,117 @@ def fig_boxplots(table: DelayTable, path: str | os.PathLike[str], column: str) -
     ax.set_title(
         f"{_DELAY_LABEL[column].capitalize()} per joint, {', '.join(table.robots)} (Fig. {fig_no})"
     )
+    return _save(fig, Path(path))
+
+
+def fig_model(
+    model: Any,
+    path: str | os.PathLike[str],
+    table: DelayTable | None = None,
+    *,
+    joint: int = 2,
+    method: str = "gpr",
+    points: int = 200,
+) -> Path:
+    """Fig. 6: the model's delays of ``joint`` against the joint 2 and joint 3 angles.
+
+    Each panel sweeps one angle through the range the table covers (or ±1 rad around the
+    home pose without a table) with the other joints at the table's median start pose,
+    for both directions: the mean with a band of ±2 single-trial standard deviations
+    (where about 95 % of trials should fall). The table's trials of ``joint`` are shown
+    as dots; they differ in the other joints too, so they scatter around the slice.
+
+    Parameters
+    ----------
+    model : timedexec.learning.DelayModel
+    table : DelayTable, optional
+        Measured trials of the same robot: the reference pose, the angle ranges, the dots.
+    joint : int
+        Actuated joint whose delays are shown (the paper's Fig. 6: joint 2).
+    """
+    from timedexec.robots import get_robot
+
+    spec = get_robot(model.robot, period_s=model.period_s)
+    qcols = [f"q{k}" for k in range(1, 7)]
+    sel = None
+    if table is not None:
+        sel = table["joint"] == joint
+        if not sel.any():
+            sel = None
+    if sel is not None and table is not None:
+        q_tab = np.column_stack([table[c][sel] for c in qcols])
+        q_ref = np.median(q_tab, axis=0)
+        lo, hi = q_tab.min(axis=0), q_tab.max(axis=0)
+    else:
+        q_ref = np.asarray(spec.home_q_rad, dtype=float)
+        lo = np.maximum(q_ref - 1.0, spec.q_min_rad)
+        hi = np.minimum(q_ref + 1.0, spec.q_max_rad)
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7), sharex="col", squeeze=False)
+    colors = {1: "tab:blue", -1: "tab:orange"}
+    for col, angle in enumerate((2, 3)):
+        k = angle - 1
+        grid = np.linspace(lo[k], hi[k], points)
+        q = np.tile(q_ref, (points, 1))
+        q[:, k] = grid
+        for direction in (1, -1):
+            pred = model.predict_many(joint, direction, q, method=method)
+            for row, name in enumerate(("actuation", "response")):
+                ax = axes[row, col]
+                mean = np.asarray(getattr(pred, f"{name}_mean")) * 1e3
+                std = np.asarray(getattr(pred, f"{name}_std")) * 1e3
+                label = f"direction {direction:+d}"
+                ax.plot(np.rad2deg(grid), mean, color=colors[direction], lw=1.5, label=label)
+                ax.fill_between(
+                    np.rad2deg(grid),
+                    mean - 2 * std,
+                    mean + 2 * std,
+                    color=colors[direction],
+                    alpha=0.15,
+                    label=f"±2σ, direction {direction:+d}",
+                )
+                if sel is not None and table is not None:
+                    m = sel & (table["direction"] == direction)
+                    ax.plot(
+                        np.rad2deg(table[f"q{angle}"][m]),
+                        table[f"{name}_delay"][m] * 1e3,
+                        ".",
+                        ms=2,
+                        color=colors[direction],
+                        alpha=0.35,
+                    )
+                ax.set_ylabel(f"joint {joint} {name} delay (ms)")
+        axes[1, col].set_xlabel(f"joint {angle} angle q{angle} (°)")
+    ref = ", ".join(f"{np.rad2deg(v):.0f}" for v in q_ref)
+    axes[0, 0].legend(fontsize=8, loc="best")
+    fig.suptitle(
+        f"{spec.name}: {method} model of joint {joint}, other joints at ({ref})° (Fig. 6); "
+        "dots: measured trials",
+        fontsize=10,
+    )
+    return _save(fig, Path(path))
+
+
+def fig_seam(result: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """The conveyor run: tool-to-seam distance over the cruise, without and with compensation.
+
+    ``result`` is :func:`timedexec.execution.compare_seam_tracking`'s output (or its JSON).
+    Solid: the physical distance (simulator truth); dashed: what the executor believes from
+    its back-dated state.
+    """
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colors = {"uncompensated": "tab:red", "compensated": "tab:green"}
+    for name, run in result["runs"].items():
+        t = np.asarray(run["times_s"]) * 1e3
+        c = colors.get(name)
+        ax.plot(t, run["lag_cm"], color=c, lw=1.5,
+                label=f"{name}: mean {run['mean_lag_cm']:+.2f} cm")  # fmt: skip
+        ax.plot(t, run["estimated_lag_cm"], color=c, lw=1, ls="--",
+                label=f"{name}, believed (back-dated state)")  # fmt: skip
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel("time after the planned meeting with the seam (ms)")
+    ax.set_ylabel("tool behind the seam along the belt (cm)")
+    ax.set_title(
+        f"{result['robot']}: following a seam at {result['speed_m_s']:g} m/s (positive: late)"
+    )
+    ax.legend(fontsize=8)
     return _save(fig, Path(path))

@@ -13,24 +13,16 @@ import numpy as np
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError
 
-__all__ = ["PUBLISHED_TABLES", "build_report", "delay_summary", "published_table_markdown"]
+__all__ = ["build_report", "delay_summary", "published_table_markdown"]
 
-#: The paper's Tables I (actuation) and II (response): mean error in ms; columns joint 1, 2,
-#: 3, 5 (UR response: 1, 2, 3, 4), combined, average (DESIGN.md §1).
-PUBLISHED_TABLES: dict[str, dict[str, dict[str, tuple[float, ...]]]] = {
-    "actuation_delay": {
-        "kr5": {"median": (2.27, 2.68, 4.61, 3.51, 3.67, 3.35), "nn": (1.79, 2.55, 4.74, 3.37, 3.21, 3.13),
-                "rt": (1.99, 2.48, 3.74, 3.76, 3.33, 3.06), "gpr": (1.85, 2.27, 4.30, 3.39, 3.48, 3.06)},
-        "ur10": {"median": (6.18, 4.64, 6.08, 2.59, 5.33, 4.96), "nn": (4.08, 5.32, 3.86, 2.49, 3.12, 3.77),
-                 "rt": (4.63, 5.41, 4.28, 2.72, 3.42, 4.09), "gpr": (5.01, 4.89, 3.68, 2.47, 3.36, 3.88)},
-    },
-    "response_delay": {
-        "kr5": {"median": (2.13, 2.37, 4.30, 3.09, 3.33, 3.05), "nn": (1.70, 2.32, 4.68, 2.22, 2.36, 2.65),
-                "rt": (1.86, 2.21, 3.62, 2.31, 2.37, 2.47), "gpr": (1.63, 2.17, 4.23, 3.11, 2.63, 2.75)},
-        "ur10": {"median": (4.82, 2.00, 4.08, 4.90, 5.09, 4.18), "nn": (4.11, 2.48, 4.24, 5.22, 4.84, 4.01),
-                 "rt": (4.66, 2.44, 4.47, 5.84, 5.33, 4.35), "gpr": (3.88, 2.44, 3.75, 5.20, 5.05, 3.82)},
-    },
-}  # fmt: skip
+
+
+def _paper_row(delay: str, robot: str, method: str) -> tuple[float, ...] | None:
+    """The paper's Table I/II row for this robot's family, or None."""
+    from timedexec.learning import PAPER_TABLES
+
+    family = "kuka" if robot.startswith("kr") else "ur"
+    return PAPER_TABLES.get(family, {}).get(delay, {}).get(method)
 
 
 def delay_summary(table: DelayTable) -> dict[str, Any]:
@@ -53,8 +45,14 @@ def delay_summary(table: DelayTable) -> dict[str, Any]:
     return out
 
 
-def published_table_markdown(cv: dict[str, Any], robot: str) -> str:
-    """Table I/II layout: our CV errors (ms) with the published value in parentheses."""
+def published_table_markdown(
+    cv: dict[str, Any], robot: str, floor: dict[str, Any] | None = None
+) -> str:
+    """Table I/II layout: our CV errors (ms) with the published value in parentheses.
+
+    ``floor`` (``{delay: {column: ms}}``, a bundle's ``noise_floor_ms``) adds the replicate
+    scatter as a last row: the error no model can beat.
+    """
     lines = []
     for delay, title in (
         ("actuation_delay", "Table I — actuation"),
@@ -70,9 +68,8 @@ def published_table_markdown(cv: dict[str, Any], robot: str) -> str:
             "| method | " + " | ".join(f"joint {c}" if c.isdigit() else c for c in cols) + " |"
         )
         lines.append("|---" * (len(cols) + 1) + "|")
-        published = PUBLISHED_TABLES.get(delay, {}).get(robot, {})
         for method, row in methods.items():
-            pub = published.get(method)
+            pub = _paper_row(delay, robot, method)
             cells = []
             for k, c in enumerate(cols):
                 value = row.get(c)
@@ -81,11 +78,20 @@ def published_table_markdown(cv: dict[str, Any], robot: str) -> str:
                     cell += f" ({pub[k]:.2f})"
                 cells.append(cell)
             lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        if floor and delay in floor:
+            cells = [f"{floor[delay][c]:.2f}" if c in floor[delay] else "-" for c in cols]
+            lines.append("| *noise floor* | " + " | ".join(cells) + " |")
+        if delay == "response_delay" and not robot.startswith("kr"):
+            lines += ["", "(the paper's UR response table has joint 4 in the joint 5 column)"]
         lines.append("")
     return "\n".join(lines)
 
 
 def _kind(path: Path) -> str:
+    if path.is_dir():
+        if (path / "manifest.json").exists():
+            return "model"
+        raise ConfigError(f"{path}: a folder without manifest.json is not a model bundle")
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
         return "recording"
@@ -93,6 +99,8 @@ def _kind(path: Path) -> str:
         return "table"
     if suffix == ".json":
         data = json.loads(path.read_text())
+        if data.get("kind") == "conveyor":
+            return "conveyor"
         if "strategies" in data:
             return "evaluation"
         if "actuation_delay" in data:
@@ -102,7 +110,7 @@ def _kind(path: Path) -> str:
         return "json"
     raise ConfigError(
         f"{path}: cannot tell what this result is (expected .h5 recording, .csv delay table or "
-        ".json from train/evaluate/discrepancy)"
+        ".json from train/evaluate/discrepancy/demo, or a model bundle folder)"
     )
 
 
@@ -116,13 +124,22 @@ def build_report(
     results : paths
         Any of: recordings (``.h5``: Figs. 3 and 5), delay tables (``.csv``: Figs. 7-10 and
         per-joint statistics), ``train --json`` output (Tables I-II beside the paper),
-        ``evaluate --json`` output (strategy table).
+        ``evaluate --json`` output (strategy table), model bundle folders (Fig. 6, with the
+        dots from the last delay table given before it), conveyor results
+        (:func:`timedexec.execution.compare_seam_tracking` as JSON).
     out_dir : path
         Created if missing.
     trial : int
         Which recorded trial Fig. 5 shows (row index).
     """
-    from timedexec.report._figures import fig_boxplots, fig_histograms, fig_psd, fig_trial
+    from timedexec.report._figures import (
+        fig_boxplots,
+        fig_histograms,
+        fig_model,
+        fig_psd,
+        fig_seam,
+        fig_trial,
+    )
 
     out = Path(out_dir)
     try:
@@ -131,6 +148,7 @@ def build_report(
         raise RecordingError(f"cannot create report folder {out}: {exc.strerror}") from exc
     md = ["# timedexec report", ""]
     robot = ""
+    table: DelayTable | None = None
     for raw in results:
         path = Path(raw)
         if not path.exists():
@@ -200,6 +218,33 @@ def build_report(
                     f"95 % bounds cover the true onset in {100 * data['coverage_95']:.1f} % of trials.",
                 ]
             md.append("")
+        elif kind == "model":
+            from timedexec.learning import DelayModel
+
+            model = DelayModel.load(path)
+            robot = robot or model.robot
+            same = table if table is not None and model.robot in table.robots else None
+            f6 = fig_model(model, out / f"{path.name}-fig6-model.png", same)
+            md += [f"## Model bundle `{path.name}` ({model.robot}, "
+                   f"{model.manifest['training_data']['trials']:,} training trials)", ""]  # fmt: skip
+            if model.cv_scores_ms:
+                md += [published_table_markdown(model.cv_scores_ms, model.robot,
+                                                model.noise_floor_ms), ""]  # fmt: skip
+            md += ["Joint 2's predicted delays against the joint 2 and joint 3 angles, "
+                   "Gaussian process mean with ±2σ band:", "", f"![Fig. 6]({f6.name})", ""]  # fmt: skip
+        elif kind == "conveyor":
+            data = json.loads(path.read_text())
+            fs = fig_seam(data, out / f"{stem}-seam.png")
+            md += [f"## Conveyor tracking `{path.name}` ({data['robot']}, seam at "
+                   f"{data['speed_m_s']:g} m/s)", "",
+                   "| run | mean lag (cm) | believed lag (cm) | start shift (ms) |",
+                   "|---|---|---|---|"]  # fmt: skip
+            for name, run in data["runs"].items():
+                md.append(
+                    f"| {name} | {run['mean_lag_cm']:+.2f} | {run['estimated_mean_lag_cm']:+.2f} "
+                    f"| {run['actuation_shift_ms']:.1f} |"
+                )
+            md += ["", f"![conveyor]({fs.name})", ""]
         else:
             md += [f"## `{path.name}`", "", "```json", path.read_text()[:4000], "```", ""]
     report = out / "report.md"
