@@ -13,13 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from timedexec.drivers import open_driver
 from timedexec.effects import EffectSet, default_effects
-from timedexec.execution import TimedExecutor, load_delay_model
+from timedexec.execution import compare_seam_tracking, load_delay_model
 from timedexec.execution._evaluate import SimulatedOracle
-from timedexec.execution._tasks import track_seam
 from timedexec.robots import get_robot
 
 
@@ -40,21 +36,12 @@ def main() -> None:
     args = p.parse_args()
     spec = get_robot(args.robot)
     # A warmed-up robot (the simulator's clock starts cold).
-    effects = EffectSet(
-        tuple(e for e in default_effects(spec.name).effects if e.name != "thermal_drift")
-    )
-    model = delay_model(spec.name, effects)
-    q0 = np.array(spec.home_q_rad)
-    q0[1] += 0.3
+    model = delay_model(spec.name, default_effects(spec.name).without("thermal_drift"))
     print(f"{spec.name}: seam at {args.speed} m/s on a round conveyor, cruise 0.4 s")
-    for compensate in (False, True):
-        driver = open_driver(f"sim://{spec.name}", q0_rad=q0, effects=effects, seed=1)
-        with TimedExecutor(driver, model, compensate=compensate) as ex:
-            seam = track_seam(ex, speed_m_s=args.speed, cruise_s=0.4)
-        s = seam.summary()
-        label = "compensated  " if compensate else "uncompensated"
+    result = compare_seam_tracking(spec.name, model, speed_m_s=args.speed, cruise_s=0.4)
+    for label, s in result["runs"].items():
         print(
-            f"  {label}: torch {s['mean_lag_cm']:+.2f} cm behind the seam (physical), "
+            f"  {label:>13}: torch {s['mean_lag_cm']:+.2f} cm behind the seam (physical), "
             f"believed {s['estimated_mean_lag_cm']:+.2f} cm; shift {s['actuation_shift_ms']:.1f} ms; "
             f"tool radius {s['radius_m']:.3f} m, joint 1 at {s['joint_speed_rad_s']:.3f} rad/s"
         )
