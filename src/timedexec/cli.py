@@ -33,7 +33,7 @@ def _build_parser() -> argparse.ArgumentParser:
             "  timedexec extract rec.h5 --out delays.csv\n"
             "  timedexec train delays.csv --out model/ --json cv.json\n"
             "  timedexec evaluate --robot ur10 --model model/\n"
-            "  timedexec report rec.h5 delays.csv cv.json --out report/\n\n"
+            "  timedexec report rec.h5 delays.csv model/ --out report/\n\n"
             "`timedexec COMMAND --help` describes each command. Exit codes: 0 success, "
             "2 bad input (the message says what and how to fix it), 1 other failures."
         ),
@@ -382,12 +382,18 @@ def _add_report(sub: Any) -> None:
             "Build a markdown report with figures in the published layout from any results: "
             "recordings (.h5: gyro PSD before/after filtering, one trial's commanded, measured "
             "and reported speed with both delays), delay tables (.csv: histograms and per-joint "
-            "boxplots), `train --json` output (Tables I-II beside the paper) and `evaluate "
-            "--json` output.\n\nexample:\n  timedexec report ur10.h5 ur10-delays.csv "
-            "cv.json --out report/"
+            "boxplots), model bundle folders (Tables I-II beside the paper with the noise "
+            "floor, and Fig. 6: the model's delays against the joint 2 and 3 angles with a "
+            "±2σ band, dotted with the trials of the last delay table given before it), "
+            "`train --json` output (Tables I-II), `evaluate --json` output (strategies, bound "
+            "coverage) and the demo's conveyor.json (the seam run, figure).\n\n"
+            "Output: DIR/report.md linking PNG figures in DIR.\n\nexample:\n  timedexec "
+            "report ur10.h5 ur10-delays.csv models/my-ur10 eval.json --out report/"
         ),
     )
-    p.add_argument("results", nargs="+", help="recordings, delay tables, JSON results")
+    p.add_argument(
+        "results", nargs="+", help="recordings, delay tables, model bundles, JSON results"
+    )
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--trial", type=int, default=0, help="recorded trial (row) for Fig. 5")
     p.set_defaults(func=_cmd_report)
