@@ -191,20 +191,14 @@ def read_twin_truth(path: str | os.PathLike[str]) -> dict[str, Any]:
         that timed out waiting for the physics, motion before the origin was published).
     """
     out: dict[str, Any] = {"meta": {}, "commands": {}, "gyro": {}, "rsi": {}, "rsi_gyro": {}}
-    with open(path, encoding="utf-8") as fh:
-        for line in fh:
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line being written right now
-            event = record.pop("event", "")
-            if event == "command":
-                out["commands"][int(record["id"])] = record
-            elif event in ("meta", "gyro", "rsi", "rsi_gyro"):
-                out[event] = record
+    from timedexec.sim._truthlog import iter_truth_records
+
+    for record in iter_truth_records(path):
+        event = record.pop("event", "")
+        if event == "command":
+            out["commands"][int(record["id"])] = record
+        elif event in ("meta", "gyro", "rsi", "rsi_gyro"):
+            out[event] = record
     return out
 
 

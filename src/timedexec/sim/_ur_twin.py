@@ -1788,19 +1788,13 @@ def read_truth(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[int, 
         arrival_s, intake_s, reference_start_s, onset_s per joint with None for "not yet";
         all in controller time, s).
     """
+    from timedexec.sim._truthlog import iter_truth_records
+
     meta: dict[str, Any] = {}
     commands: dict[int, dict[str, Any]] = {}
-    with open(path, encoding="utf-8") as fh:
-        for line in fh:
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line being written right now
-            if record.get("event") == "meta":
-                meta = record
-            elif record.get("event") == "command":
-                commands[int(record["id"])] = record
+    for record in iter_truth_records(path):
+        if record.get("event") == "meta":
+            meta = record
+        elif record.get("event") == "command":
+            commands[int(record["id"])] = record
     return meta, commands
