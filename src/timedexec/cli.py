@@ -496,10 +496,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     conv = info["conveyor"]
     lines += [
         "",
-        "conveyor at 0.5 m/s, physical torch-to-seam lag in the simulator (+ late, - early):",
-        f"  uncompensated {conv['uncompensated']['mean_lag_cm']:+.2f} cm, compensated "
-        f"{conv['compensated']['mean_lag_cm']:+.2f} cm (commands sent "
-        f"{conv['compensated']['actuation_shift_ms']:.0f} ms early)",
+        "conveyor at 0.5 m/s, physical torch-to-seam lag in the simulator (+ late, - early), "
+        "mean over the cruise / last 100 ms:",
+        *(
+            f"  {name:<22} {run['mean_lag_cm']:+.2f} / {run['final_lag_cm']:+.2f} cm"
+            for name, run in conv.items()
+        ),
+        f"  (compensated: commands sent {conv['compensated']['actuation_shift_ms']:.0f} ms early; "
+        "feedback: the executor's position correction on its back-dated state)",
         "",
         f"report: {info['report']}",
         f"model bundle: {info['model']}   delay table: {info['delays']}",

@@ -323,9 +323,15 @@ class TimedExecutor:
     limits : ExecutionLimits, optional
         Fractions of the spec's limits to plan and command with.
     position_gain_1_s : float
-        Gain of an optional position correction: the back-dated reported position is
-        compared with the plan at the instant it describes and ``gain · error`` is added to
-        the speed command (0: pure delay-compensated feed-forward, the default).
+        Gain of an optional position correction, 1/s (0: pure delay-compensated
+        feed-forward, the default). The back-dated reported position is compared with the
+        plan at the instant it describes; corrections already sent but not yet visible in
+        that package (sent less than the actuation delay before the instant it describes)
+        are subtracted — a Smith predictor, so the loop's ~100 ms delay does not make it
+        oscillate — and ``gain · error`` is added to the speed command. The error then
+        decays with time constant ``1/gain`` once seen. Useful for tracking (conveyors),
+        where the velocity loop's recovery of the motion lost to breakaway leaves an
+        onset-compensated joint slightly ahead.
     compensate : bool
         False streams the plan without any shift (the "none" strategy).
     stop_deceleration_rad_s2 : float, optional
@@ -388,6 +394,8 @@ class TimedExecutor:
         self._tau = np.zeros(6)
         self._tau_std = np.zeros(6)
         self._v_prev = np.zeros(6)
+        # Position corrections sent: (host send time, rad/s per joint), for the predictor.
+        self._corrections: deque[tuple[float, FloatArray]] = deque(maxlen=4096)
         self._fault: str | None = None
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
@@ -817,6 +825,8 @@ class TimedExecutor:
             )
         if self._plan is None and not np.any(self._v_prev != 0):
             self._streaming_since = self.now()
+        if p is not self._plan:
+            self._corrections.clear()
         self._plan = p
         self._last_plan = p
         self._tau = np.asarray(p.meta["actuation_s"], float)
@@ -873,9 +883,8 @@ class TimedExecutor:
             t_plan = now - plan.start_time_s + self._tau + period
             target = plan.velocity_per_joint(t_plan)
             if self.position_gain_1_s > 0 and self._samples:
-                t_phys, q, _ = self._samples[-1]
-                q_plan, _, _ = plan.sample(t_phys - plan.start_time_s)
-                target = target + self.position_gain_1_s * (q_plan - q)
+                feed_forward = target
+                target = target + self.position_gain_1_s * self._predicted_error(plan, now)
         vmax = self.limits.velocity(spec)
         amax = self.limits.acceleration(spec)
         v = np.clip(target, -vmax, vmax)
@@ -896,7 +905,27 @@ class TimedExecutor:
         clipped = bool(np.any(np.abs(v - target) > 1e-12))
         if clipped:
             self.clip_count += 1
+        if plan is not None and self.position_gain_1_s > 0 and self._samples:
+            self._corrections.append((now, v - feed_forward))
         return v, clipped
+
+    def _predicted_error(self, plan: JointPlan, now: float) -> FloatArray:
+        """Plan minus physical position where the next command acts, rad (Smith predictor).
+
+        The newest back-dated package shows the error at its physical instant ``t_phys``;
+        corrections sent at ``s`` act over ``[s + tau, s_next + tau]``, so the part of
+        them after ``t_phys`` is not in the package yet and is subtracted.
+        """
+        t_phys, q, _ = self._samples[-1]
+        q_plan, _, _ = plan.sample(t_phys - plan.start_time_s)
+        error = q_plan - q
+        sends = self._corrections
+        for k, (s_k, u_k) in enumerate(sends):
+            end = sends[k + 1][0] if k + 1 < len(sends) else now
+            # Duration of this command's action after t_phys, per joint (tau differs).
+            pending = np.clip(end + self._tau - np.maximum(s_k + self._tau, t_phys), 0.0, end - s_k)
+            error = error - u_k * pending
+        return np.asarray(error)
 
     def _ramp_acceleration(self, v: FloatArray) -> float:
         """speedj acceleration: the leading joint's change over one period (clamped)."""

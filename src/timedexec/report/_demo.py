@@ -169,7 +169,7 @@ def run_demo(
     eval_info = evaluation.to_dict()
     _write_json(eval_json, eval_info)
 
-    step(4, "joint 1 follows a seam at 0.5 m/s, without and with compensation")
+    step(4, "joint 1 follows a seam at 0.5 m/s: uncompensated, compensated, + feedback")
     conveyor = compare_seam_tracking(spec.name, trained.model, speed_m_s=0.5, seed=seed + 1)
     _write_json(conveyor_json, conveyor)
 
@@ -196,7 +196,13 @@ def run_demo(
         },
         "conveyor": {
             name: {
-                k: run[k] for k in ("mean_lag_cm", "estimated_mean_lag_cm", "actuation_shift_ms")
+                k: run[k]
+                for k in (
+                    "mean_lag_cm",
+                    "final_lag_cm",
+                    "estimated_mean_lag_cm",
+                    "actuation_shift_ms",
+                )
             }
             for name, run in conveyor["runs"].items()
         },

@@ -238,14 +238,19 @@ def fig_model(
 
 
 def fig_seam(result: dict[str, Any], path: str | os.PathLike[str]) -> Path:
-    """The conveyor run: tool-to-seam distance over the cruise, without and with compensation.
+    """The conveyor runs: tool-to-seam distance over the cruise, without compensation, with
+    it, and with it plus position feedback.
 
     ``result`` is :func:`timedexec.execution.compare_seam_tracking`'s output (or its JSON).
     Solid: the physical distance (simulator truth); dashed: what the executor believes from
     its back-dated state.
     """
     fig, ax = plt.subplots(figsize=(7, 4))
-    colors = {"uncompensated": "tab:red", "compensated": "tab:green"}
+    colors = {
+        "uncompensated": "tab:red",
+        "compensated": "tab:green",
+        "compensated + feedback": "tab:blue",
+    }
     for name, run in result["runs"].items():
         t = np.asarray(run["times_s"]) * 1e3
         c = colors.get(name)
