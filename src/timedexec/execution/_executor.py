@@ -920,12 +920,23 @@ class TimedExecutor:
         q_plan, _, _ = plan.sample(t_phys - plan.start_time_s)
         error = q_plan - q
         sends = self._corrections
-        for k, (s_k, u_k) in enumerate(sends):
-            end = sends[k + 1][0] if k + 1 < len(sends) else now
-            # Duration of this command's action after t_phys, per joint (tau differs).
-            pending = np.clip(end + self._tau - np.maximum(s_k + self._tau, t_phys), 0.0, end - s_k)
-            error = error - u_k * pending
-        return np.asarray(error)
+        tau_max = float(np.max(self._tau))
+        # A command acts until the next one is sent (plus tau): once that lies before the
+        # package's instant it is fully visible, and so for every later package.
+        while len(sends) > 1 and sends[1][0] + tau_max <= t_phys:
+            sends.popleft()
+        if not sends:
+            return np.asarray(error)
+        start = np.fromiter((c[0] for c in sends), float, len(sends))
+        end = np.append(start[1:], now)
+        u = np.stack([c[1] for c in sends])
+        # Duration of each command's action after t_phys, per joint (tau differs).
+        pending = np.clip(
+            end[:, None] + self._tau - np.maximum(start[:, None] + self._tau, t_phys),
+            0.0,
+            (end - start)[:, None],
+        )
+        return np.asarray(error - np.sum(u * pending, axis=0))
 
     def _ramp_acceleration(self, v: FloatArray) -> float:
         """speedj acceleration: the leading joint's change over one period (clamped)."""
