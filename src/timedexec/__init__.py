@@ -22,11 +22,13 @@ from timedexec.errors import (
 )
 
 if TYPE_CHECKING:
-    from timedexec.learning import DelayModel
+    from timedexec.execution import TimedExecutor
+    from timedexec.learning import DelayModel, DelayPrediction
 
 __all__ = [
     "ConfigError",
     "DelayModel",
+    "DelayPrediction",
     "DriverError",
     "DriverTimeout",
     "ModelError",
@@ -34,14 +36,19 @@ __all__ = [
     "RecordingError",
     "SensorError",
     "TimedExecError",
+    "TimedExecutor",
     "__version__",
 ]
 
 
 def __getattr__(name: str) -> Any:
-    # The fast predictor loads on first use: `import timedexec` stays light.
-    if name == "DelayModel":
-        from timedexec.learning import DelayModel
+    # The model and the executor load on first use: `import timedexec` stays light.
+    if name in ("DelayModel", "DelayPrediction"):
+        from timedexec import learning
 
-        return DelayModel
+        return getattr(learning, name)
+    if name == "TimedExecutor":
+        from timedexec.execution import TimedExecutor
+
+        return TimedExecutor
     raise AttributeError(f"module 'timedexec' has no attribute {name!r}")
