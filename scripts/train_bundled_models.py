@@ -14,6 +14,10 @@ tables are written:
   time as an input (``time_input``): the simulated robots warm up (``thermal_drift``), and
   the bundle predicts the warm robot (end of the sweep) unless given a time.
 
+The bundle carries the GP's standard-deviation calibration from that CV (``std_scale`` in
+the manifest, listed at the end of ``cv-table.txt``; docs/models.md, "Calibrated
+uncertainty").
+
 Trials: 8,000 for ur10 and kr5 (100 start configurations x 4 joints x 2 directions x 10
 repeats; ~2.5 min per robot on two cores); 33,500 (the published size) for ur10e, whose
 2 ms period leaves a noise floor of 0.59 ms that 8,000 trials do not resolve the pose

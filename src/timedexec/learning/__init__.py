@@ -20,6 +20,7 @@ from timedexec.learning._bundle import (
     DelayModel,
     DelayPrediction,
 )
+from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
 from timedexec.learning._features import (
     Collapsed,
     collapse_replicates,
@@ -84,7 +85,9 @@ __all__ = [
     "cross_validate",
     "encode_inputs",
     "feature_names",
+    "gaussian_coverage",
     "make_estimator",
     "noise_floor",
+    "std_scale_factor",
     "train_delay_models",
 ]

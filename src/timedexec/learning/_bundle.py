@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError
+from timedexec.learning._calibrate import STD_SCALE_RULE
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._forward import nn_forward, tree_predict
 from timedexec.learning._gpcore import GPPairPredictor, GPPredictor, predictor_from_arrays
@@ -62,12 +63,16 @@ class DelayPrediction(NamedTuple):
         Expected delay, s.
     actuation_std, response_std : float or ndarray
         Standard deviation of the delay of a single future trial, s: for the GP
-        ``sqrt(latent variance + trial noise variance)``; for the other methods their
-        cross-validated RMS error (their training RMS error without CV). This is what
-        timing bounds are built from.
+        ``c · sqrt(latent variance + trial noise variance)`` with the bundle's calibration
+        factor ``c >= 1`` (``std_scale`` in the manifest, from the cross-validation; 1 for
+        bundles without it); for the other methods their cross-validated RMS error (their
+        training RMS error without CV). This is what timing bounds are built from.
     actuation_latent_std, response_latent_std : float or ndarray
         GP only: standard deviation of the *mean* delay at this input (model uncertainty
-        without the trial-to-trial scatter), s; NaN for the other methods.
+        without the trial-to-trial scatter), s: ``sqrt(std² - σ_n²)``. The trial noise
+        ``σ_n`` is measured by the replicates, so the calibration's extra variance is
+        model error, i.e. uncertainty of the mean: ``std² = latent_std² + σ_n²`` holds
+        before and after calibration. NaN for the other methods.
     """
 
     actuation_mean: Any
@@ -183,6 +188,34 @@ def _robot_of(robot: Any) -> tuple[str | None, float | None]:
     return name, float(period) if period is not None else None
 
 
+def _read_std_scale(raw: Any, keys: Sequence[str]) -> dict[str, dict[str, float]]:
+    """The manifest's ``std_scale`` ``{delay: {key: factor}}``; missing entries mean 1.0."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ModelError(f"manifest std_scale must map delays to {{model: factor}}, got {raw!r}")
+    out: dict[str, dict[str, float]] = {}
+    for delay, by_key in raw.items():
+        if delay not in _DELAYS or not isinstance(by_key, dict):
+            raise ModelError(
+                f"manifest std_scale: entry {delay!r}: {by_key!r} must be one of "
+                f"{', '.join(_DELAYS)} mapping models ({', '.join(keys)}) to factors"
+            )
+        out[delay] = {}
+        for key, value in by_key.items():
+            try:
+                c = float(value)
+            except (TypeError, ValueError):
+                c = float("nan")
+            if not (math.isfinite(c) and c > 0):
+                raise ModelError(
+                    f"manifest std_scale[{delay!r}][{key!r}] = {value!r}: the factor must be a "
+                    "finite number > 0 (training writes factors >= 1); fix or delete the entry"
+                )
+            out[delay][str(key)] = c
+    return out
+
+
 # ------------------------------------------------------------------ model
 
 
@@ -221,8 +254,12 @@ class DelayModel:
         self._gp: dict[tuple[str, str], GPPredictor] = {}
         self._other: dict[tuple[str, str, str], _MeanModel] = {}
         self._fast: dict[
-            tuple[int, bool], tuple[GPPredictor, GPPredictor, GPPairPredictor | None]
+            tuple[int, bool],
+            tuple[GPPredictor, GPPredictor, GPPairPredictor | None, float, float],
         ] = {}
+        self.std_scale: dict[str, dict[str, float]] = _read_std_scale(
+            manifest.get("std_scale"), self.keys
+        )
 
     # ---------------------------------------------------------- building
     @classmethod
@@ -240,7 +277,12 @@ class DelayModel:
         time_input: bool = False,
         time_range_s: tuple[float, float] = (0.0, 0.0),
     ) -> DelayModel:
-        """Assemble a model from final fits ``{(method, delay, key): {"arrays", "train_rmse_s", "info"}}``."""
+        """Assemble a model from final fits ``{(method, delay, key): {"arrays", "train_rmse_s", "info"}}``.
+
+        The GP's std calibration (``cv.std_scale``, ``cv.std_held_out``) goes into the
+        manifest as ``std_scale`` and ``std_calibration``; without CV (or without "gpr")
+        neither is written and the GP's std is used as it is (factor 1).
+        """
         arrays: dict[str, NDArray[Any]] = {}
         models: dict[str, Any] = {}
         for (method, delay, key), out in sorted(finals.items()):
@@ -289,6 +331,18 @@ class DelayModel:
             "model_info": models,
             "package_version": __version__,
         }
+        scale = getattr(cv, "std_scale", None) if cv is not None else None
+        if scale and "gpr" in methods:
+            manifest["std_scale"] = {
+                d: {k: float(v) for k, v in by_key.items()} for d, by_key in scale.items()
+            }
+            manifest["std_calibration"] = {
+                "method": "gpr",
+                "applies_to": "actuation_std, response_std (latent std: sqrt(std^2 - noise^2))",
+                "rule": STD_SCALE_RULE,
+                "folds": cv.folds,
+                "held_out": getattr(cv, "std_held_out", {}),
+            }
         return cls(manifest, arrays)
 
     # -------------------------------------------------------------- files
@@ -514,10 +568,12 @@ class DelayModel:
                 act = self._gp_predictor("actuation_delay", key)
                 resp = self._gp_predictor("response_delay", key)
                 pair = GPPairPredictor.from_pair(act, resp)
-                fast = (act, resp, pair)
+                ca = self._scale("actuation_delay", key)
+                cr = self._scale("response_delay", key)
+                fast = (act, resp, pair, ca * ca, cr * cr)
                 self._fast[(joint, combined)] = fast
             x = self._encode_one(joint, direction, q, combined, t_s)
-            act, resp, pair = fast
+            act, resp, pair, ca2, cr2 = fast
             BLAS_PIN.enter()
             try:
                 if pair is not None:
@@ -527,13 +583,16 @@ class DelayModel:
                     rm, rv = resp.predict_one(x)
             finally:
                 BLAS_PIN.exit()
+            an, rn = act.noise_var_s2, resp.noise_var_s2
+            # calibrated: std² = c²(var + σ_n²), latent² = std² - σ_n² = c²var + (c²-1)σ_n²
+            # (with c = 1 exactly the uncalibrated numbers, bit for bit)
             return DelayPrediction(
                 actuation_mean=am,
-                actuation_std=math.sqrt(av + act.noise_var_s2),
+                actuation_std=math.sqrt(ca2 * (av + an)),
                 response_mean=rm,
-                response_std=math.sqrt(rv + resp.noise_var_s2),
-                actuation_latent_std=math.sqrt(av),
-                response_latent_std=math.sqrt(rv),
+                response_std=math.sqrt(cr2 * (rv + rn)),
+                actuation_latent_std=math.sqrt(ca2 * av + (ca2 - 1.0) * an),
+                response_latent_std=math.sqrt(cr2 * rv + (cr2 - 1.0) * rn),
             )
         out = self.predict_many(
             joint,
@@ -635,9 +694,11 @@ class DelayModel:
                 if method == "gpr":
                     pred = self._gp_predictor(delay, key)
                     mean, var = pred.predict(X)
+                    c2 = self._scale(delay, key) ** 2
+                    noise = pred.noise_var_s2
                     out[f"{short}_mean"][rows] = mean
-                    out[f"{short}_std"][rows] = np.sqrt(var + pred.noise_var_s2)
-                    out[f"{short}_latent_std"][rows] = np.sqrt(var)
+                    out[f"{short}_std"][rows] = np.sqrt(c2 * (var + noise))
+                    out[f"{short}_latent_std"][rows] = np.sqrt(c2 * var + (c2 - 1.0) * noise)
                 else:
                     mm = self._mean_model(method, delay, key)
                     out[f"{short}_mean"][rows] = mm.mean(X)
@@ -645,9 +706,28 @@ class DelayModel:
         return DelayPrediction(**out)
 
     def gp_predictor(self, delay: str, joint: int | None = None) -> GPPredictor:
-        """The GP predictor of ``delay`` for ``joint`` (None: the combined model)."""
+        """The GP predictor of ``delay`` for ``joint`` (None: the combined model).
+
+        The raw GP: its latent variance and ``noise_var_s2`` are uncalibrated. For the
+        trial std that :meth:`predict` reports, multiply ``sqrt(var + noise_var_s2)`` by
+        :meth:`gp_std_scale` of the same delay and model.
+        """
         key = "combined" if joint is None else self._key(joint, False)
         return self._gp_predictor(delay, key)
+
+    def gp_std_scale(self, delay: str, joint: int | None = None) -> float:
+        """Calibration factor (>= 1) of the GP's trial std for ``delay`` and ``joint``.
+
+        From the training's cross-validation (``std_scale`` in the manifest, see
+        docs/models.md); 1.0 for bundles without it. ``joint=None``: the combined model.
+        """
+        if delay not in _DELAYS:
+            raise ConfigError(f"delay {delay!r} must be one of {', '.join(_DELAYS)}")
+        key = "combined" if joint is None else self._key(joint, False)
+        return self._scale(delay, key)
+
+    def _scale(self, delay: str, key: str) -> float:
+        return self.std_scale.get(delay, {}).get(key, 1.0)
 
     def __repr__(self) -> str:
         return (

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
+from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
 from timedexec.learning._features import encode_inputs
 
 __all__ = [
@@ -293,7 +294,13 @@ def _run_task(
                 out = None
             else:
                 est.fit(X[~test], y[~test])
-                out = est.predict(X[test])
+                if task.method == "gpr":
+                    # the single-trial std (latent + noise), what DelayModel reports as
+                    # *_std before calibration: its held-out residuals calibrate it
+                    mean, std = est.predict(X[test], return_std=True)
+                    out = {"mean": mean, "std": std}
+                else:
+                    out = {"mean": est.predict(X[test]), "std": None}
     return task, out, time.perf_counter() - start
 
 
@@ -340,6 +347,17 @@ class CVResult:
         CPU-side seconds spent in fits, per method.
     time_input : bool
         Whether the sweep time was an input.
+    std_scale : dict
+        ``std_scale[delay][key]``: factor (>= 1) on the GP's single-trial std from its
+        held-out standardised residuals (:func:`~timedexec.learning.std_scale_factor`);
+        empty without "gpr".
+    std_held_out : dict
+        ``std_held_out[delay][key]``: the GP's held-out statistics behind the scale:
+        ``trials``, ``rms_z`` (RMS of ``(y - mean) / std``, before the floor at 1) and
+        ``coverage_95_gp`` / ``coverage_95_calibrated`` (share of held-out trials inside the
+        Gaussian interval ``mean ± 1.96 std`` before and after the scale; delays quantised by
+        the controller cycle have short tails, so a Gaussian interval covers more than 95 %
+        at the right std).
     """
 
     scores_ms: dict[str, dict[str, dict[str, float]]]
@@ -352,6 +370,8 @@ class CVResult:
     seconds: float = 0.0
     fit_seconds: dict[str, float] = field(default_factory=dict)
     time_input: bool = False
+    std_scale: dict[str, dict[str, float]] = field(default_factory=dict)
+    std_held_out: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, dict[str, dict[str, float]]]:
         """The CV.json content: ``{delay: {method: {column: ms}}}``."""
@@ -388,6 +408,16 @@ class CVResult:
             if family == "ur" and delay == "response_delay" and "5" in cols:
                 lines.append("(paper's UR response table has joint 4 in the J5 column)")
             lines.append("")
+        for delay, by_key in self.std_scale.items():
+            if not by_key:
+                continue
+            text = ", ".join(f"{'J' + k if k.isdigit() else k} x{c:.2f}" for k, c in by_key.items())
+            lines.append(f"GP std scale, {delay.replace('_', ' ')}: {text}")
+        if any(self.std_scale.values()):
+            lines.append(
+                "(GP std scale: max(1, RMS of the held-out (y - mean) / std); it multiplies "
+                "the bundle's GP standard deviations)"
+            )
         inputs = "configuration, joint, direction" + (" and sweep time" if self.time_input else "")
         lines.append(
             "floor: replicate scatter, sqrt of the pooled within-condition variance (no model "
@@ -491,7 +521,7 @@ def _scores(
                     pred = by_id.get((delay, key, method, k))
                     if pred is None:
                         continue
-                    mses.append(float(np.mean((pred - y[f == k]) ** 2)))
+                    mses.append(float(np.mean((pred["mean"] - y[f == k]) ** 2)))
                 row[key] = 1e3 * math.sqrt(float(np.mean(mses))) if mses else float("nan")
             row["average"] = float(np.mean([row[k] for k in keys]))
             scores[delay][method] = row
@@ -502,6 +532,48 @@ def _scores(
         fl["average"] = float(np.mean([fl[k] for k in keys]))
         floors[delay] = fl
     return scores, floors
+
+
+def _std_calibration(
+    data: _Data,
+    folds: int,
+    results: Mapping[_Task, Any],
+    fold_idx: NDArray[np.intp],
+) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, dict[str, float]]]]:
+    """The GP's std scale per delay and model, and the held-out statistics behind it.
+
+    Returns ``(scale, held_out)``: ``scale[delay][key]`` (:func:`std_scale_factor` of the
+    held-out residuals of every fold) and ``held_out[delay][key]`` (see
+    :attr:`CVResult.std_held_out`).
+    """
+    by_id = {(t.delay, t.key, t.fold): out for t, out in results.items() if t.method == "gpr"}
+    scale: dict[str, dict[str, float]] = {}
+    held_out: dict[str, dict[str, dict[str, float]]] = {}
+    for delay in DELAYS:
+        scale[delay], held_out[delay] = {}, {}
+        for key in _keys(data):
+            rows = data.rows(key)
+            y = data.y[delay][rows]
+            f = fold_idx[rows]
+            resid, std = [], []
+            for k in range(folds):
+                pred = by_id.get((delay, key, k))
+                if pred is None:
+                    continue
+                resid.append(y[f == k] - pred["mean"])
+                std.append(pred["std"])
+            if not resid:
+                continue
+            r, s = np.concatenate(resid), np.concatenate(std)
+            c = std_scale_factor(r, s)
+            scale[delay][key] = c
+            held_out[delay][key] = {
+                "trials": len(r),
+                "rms_z": float(np.sqrt(np.mean((r / s) ** 2))),
+                "coverage_95_gp": gaussian_coverage(r, s, 0.95),
+                "coverage_95_calibrated": gaussian_coverage(r, s, 0.95, scale=c),
+            }
+    return scale, held_out
 
 
 def cross_validate(
@@ -601,6 +673,10 @@ def train_delay_models(
     if folds:
         assert fold_idx is not None
         scores, floors = _scores(data, methods, folds, results, fold_idx)
+        std_scale: dict[str, dict[str, float]] = {}
+        std_held: dict[str, dict[str, dict[str, float]]] = {}
+        if "gpr" in methods:
+            std_scale, std_held = _std_calibration(data, folds, results, fold_idx)
         cv = CVResult(
             scores_ms=scores,
             noise_floor_ms=floors,
@@ -612,6 +688,8 @@ def train_delay_models(
             seconds=time.perf_counter() - start,
             fit_seconds=fit_s,
             time_input=data.time_input,
+            std_scale=std_scale,
+            std_held_out=std_held,
         )
     model = None
     if final:
