@@ -12,26 +12,14 @@ the meeting time with 95 % probability, and runs it on the embedded simulated ro
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
 from timedexec.drivers import open_driver
-from timedexec.effects import EffectSet, default_effects
+from timedexec.effects import default_effects
 from timedexec.execution import TimedExecutor, UnreachableError, load_delay_model
-from timedexec.execution._evaluate import SimulatedOracle
 from timedexec.execution._tasks import intercept
 from timedexec.robots import forward_kinematics, get_robot
-
-
-def delay_model(robot: str, effects: EffectSet):  # type: ignore[no-untyped-def]
-    """The bundled model, or (until it is trained) the simulator's oracle."""
-    bundle = Path(__file__).resolve().parents[1] / "models" / f"{robot}-sim"
-    if bundle.exists():
-        print(f"delay model: {bundle}")
-        return load_delay_model(bundle)
-    print(f"delay model: {bundle} not found; using the simulator's true mean delays")
-    return SimulatedOracle(robot, draws=10, effects=effects)
 
 
 def main() -> None:
@@ -39,10 +27,9 @@ def main() -> None:
     p.add_argument("--robot", default="kr5", choices=("kr5", "ur10", "ur10e"))
     args = p.parse_args()
     spec = get_robot(args.robot)
-    effects = EffectSet(
-        tuple(e for e in default_effects(spec.name).effects if e.name != "thermal_drift")
-    )
-    model = delay_model(spec.name, effects)
+    # A warmed-up robot (the simulator's clock starts cold) and its bundled model.
+    effects = default_effects(spec.name).without("thermal_drift")
+    model = load_delay_model(f"{spec.name}-sim")
     q0 = np.array(spec.home_q_rad)
     q0[1] += 0.3
     tool0 = forward_kinematics(spec, q0)[6, :3, 3]

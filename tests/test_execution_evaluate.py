@@ -66,8 +66,8 @@ def test_model_for_another_robot_is_refused() -> None:
 
 def test_evaluate_command_writes_the_json(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
     """`timedexec evaluate --robot ur10 --json OUT.json --model DIR` writes the documented
-    JSON and prints the table; the default model is models/<robot>-sim (loaded through
-    DelayModel.load, a stand-in here)."""
+    JSON and prints the table; the default model is the bundled <robot>-sim, found from
+    any working folder (loaded through DelayModel.load, a stand-in here)."""
     import timedexec.learning as learning
     from timedexec import _cli_evaluate, cli
 
@@ -90,9 +90,7 @@ def test_evaluate_command_writes_the_json(tmp_path, monkeypatch, capsys) -> None
     text = capsys.readouterr().out
     assert "oracle" in text
     assert "wrote" in text
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "models").mkdir()
-    bundle.rename(tmp_path / "models" / "ur10-sim")
+    monkeypatch.chdir(tmp_path / "..")
     args = parser.parse_args(["evaluate", "--robot", "ur10", "--configs", "5", "--draws", "3",
                               "--json", "-", "--quiet"])  # fmt: skip
     assert args.func(args) == 0

@@ -37,7 +37,10 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
         ),
     )
     p.add_argument("--robot", required=True, choices=ROBOT_NAMES, help="simulated robot")
-    p.add_argument("--model", help="model bundle directory (default: models/ROBOT-sim)")
+    p.add_argument(
+        "--model",
+        help="model bundle directory or bundled model name (default: the bundled ROBOT-sim)",
+    )
     p.add_argument(
         "--json",
         metavar="OUT.json",

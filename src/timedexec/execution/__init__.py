@@ -19,9 +19,11 @@ from timedexec.execution._executor import (
     UnreachableError,
 )
 from timedexec.execution._model import (
+    BUNDLED_MODELS,
     DelayPredictions,
     DelayPredictor,
     FixedDelays,
+    bundled_model_dir,
     check_model_robot,
     load_delay_model,
     model_period_s,
@@ -39,6 +41,7 @@ from timedexec.execution._tasks import (
 )
 
 __all__ = [
+    "BUNDLED_MODELS",
     "CycleLog",
     "DelayPredictions",
     "DelayPredictor",
@@ -54,6 +57,7 @@ __all__ = [
     "TimedExecutor",
     "TimingBounds",
     "UnreachableError",
+    "bundled_model_dir",
     "check_model_robot",
     "check_target",
     "compare_seam_tracking",

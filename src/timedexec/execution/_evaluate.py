@@ -296,7 +296,7 @@ def evaluate(
     ----------
     robot : {"ur10", "ur10e", "kr5"}
     model : delay model, bundle path or None
-        Default: the bundle ``models/<robot>-sim``.
+        Default: the bundled model ``<robot>-sim``.
     n_configs : int
         Held-out configurations (each with every joint and both directions).
     seed : int
@@ -317,7 +317,7 @@ def evaluate(
     """
     spec = get_robot(robot)
     if model is None:
-        model = os.path.join("models", f"{spec.name}-sim")
+        model = f"{spec.name}-sim"  # the bundled model
     predictor = load_delay_model(model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)
     if n_configs < 1 or draws < 2:

@@ -346,7 +346,7 @@ class TimedExecutor:
     Examples
     --------
     >>> from timedexec.drivers import open_driver                    # doctest: +SKIP
-    >>> with TimedExecutor(open_driver("sim://ur10"), "models/ur10-sim") as ex:
+    >>> with TimedExecutor(open_driver("sim://ur10"), "ur10-sim") as ex:
     ...     plan = ex.plan([0.3, -1.2, 1.4, -1.6, -1.6, 0.0])
     ...     ex.execute(plan, start_time_s=ex.now() + 0.1)
     """

@@ -22,9 +22,11 @@ from timedexec.errors import ConfigError, ModelError
 from timedexec.robots import get_robot
 
 __all__ = [
+    "BUNDLED_MODELS",
     "DelayPredictions",
     "DelayPredictor",
     "FixedDelays",
+    "bundled_model_dir",
     "check_model_robot",
     "load_delay_model",
     "model_period_s",
@@ -176,9 +178,30 @@ def model_period_s(model: Any) -> float:
     )
 
 
+#: Model bundles shipped inside the package (trained on the simulated robots by
+#: scripts/train_bundled_models.py); load them by name: ``load_delay_model("kr5-sim")``.
+BUNDLED_MODELS: tuple[str, ...] = ("ur10-sim", "ur10e-sim", "kr5-sim")
+
+
+def bundled_model_dir(name: str) -> Path:
+    """The folder of the bundled model ``name`` (one of :data:`BUNDLED_MODELS`).
+
+    Raises
+    ------
+    ModelError
+        If ``name`` is not a bundled model.
+    """
+    if name not in BUNDLED_MODELS:
+        raise ModelError(
+            f"{name!r} is not a bundled model; bundled: {', '.join(BUNDLED_MODELS)}"
+        )
+    return Path(__file__).resolve().parents[1] / "models" / name
+
+
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:
-    """A delay model object, loading a bundle directory with ``DelayModel.load`` if given a
-    path.
+    """A delay model object: a bundle folder is loaded with ``DelayModel.load``, a bundled
+    model's name (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``) from the package, and a
+    model object is checked for the delay-model interface.
 
     Raises
     ------
@@ -187,17 +210,15 @@ def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPre
     """
     if isinstance(model, str | os.PathLike):
         path = Path(model)
+        if not path.exists() and str(model) in BUNDLED_MODELS:
+            path = bundled_model_dir(str(model))
         if not path.exists():
             raise ModelError(
                 f"no delay-model bundle at {path}; train one (timedexec train) or use a bundled "
-                "model: models/ur10-sim, models/ur10e-sim, models/kr5-sim"
+                f"model by name: {', '.join(BUNDLED_MODELS)}"
             )
-        try:
-            from timedexec.learning import DelayModel  # type: ignore[attr-defined]
-        except ImportError as exc:  # pragma: no cover - until the learning layer lands
-            raise ModelError(
-                f"cannot load {path}: timedexec.learning.DelayModel is not available ({exc})"
-            ) from exc
+        from timedexec.learning import DelayModel
+
         loaded: Any = DelayModel.load(path)
         return loaded  # type: ignore[no-any-return]
     missing = [name for name in ("robot", "predict_many") if not hasattr(model, name)]
@@ -223,7 +244,7 @@ def check_model_robot(model: DelayPredictor, robot: str, period_s: float | None 
     if mine != robot.lower():
         raise ModelError(
             f"the delay model is for robot {model.robot!r} but the driver talks to {robot!r}; "
-            f"load the bundle for {robot} (e.g. models/{robot}-sim) or train one on {robot} data"
+            f"load a model for {robot} (e.g. the bundled '{robot}-sim') or train one on {robot} data"
         )
     trained = model_period_s(model)
     if period_s is not None and not np.isclose(trained, float(period_s), rtol=1e-6, atol=1e-9):

@@ -228,7 +228,7 @@ class DelayModel:
 
     Examples
     --------
-    >>> model = DelayModel.load("models/ur10-sim", robot="ur10")  # doctest: +SKIP
+    >>> model = DelayModel.load("my-ur10-model", robot="ur10")  # doctest: +SKIP
     >>> p = model.predict(joint=2, direction=1, q=[0, -1.57, 1.2, -1.2, -1.57, 0])  # doctest: +SKIP
     >>> p.actuation_mean, p.actuation_std  # s  # doctest: +SKIP
     """
