@@ -46,7 +46,7 @@ def oracle_ur10() -> SimulatedOracle:
 # ---------------------------------------------------------------------------- bounds
 def test_mixture_quantiles_match_monte_carlo() -> None:
     """For delays spread by a full cycle's uniform wait plus Gaussian noise holding at least
-    the 12.5 % of the variance the bounds reserve for it (model error), the mixture's
+    the 5 % of the variance the bounds reserve for it (model error), the mixture's
     quantiles match sampled ones and its central 95 % interval covers 95 % of samples; a
     pure uniform spread is over-covered (the documented price of that reserve), as a
     Gaussian interval would too."""
@@ -62,7 +62,9 @@ def test_mixture_quantiles_match_monte_carlo() -> None:
         q90 = delay_quantile(0.9, std, period)
         assert np.mean(x <= q90) == pytest.approx(0.9, abs=0.003)
     x = rng.uniform(-0.004, 0.004, 100_000)
-    assert np.mean(TimingBounds.around(0.0, x.std(), 0.95, period).contains(x)) > 0.99
+    # A pure uniform: the 5 % Gaussian reserve widens the interval to cover ~98 % (> 97.5 %
+    # is 7 binomial sigmas above 95 % with 100k samples).
+    assert np.mean(TimingBounds.around(0.0, x.std(), 0.95, period).contains(x)) > 0.975
     assert np.mean(TimingBounds.around(0.0, x.std(), 0.95, None).contains(x)) == 1.0
     assert float(delay_cdf(0.0, 0.002, period)) == pytest.approx(0.5)
 

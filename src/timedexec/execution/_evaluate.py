@@ -282,7 +282,7 @@ def evaluate(
     n_configs: int = 300,
     seed: int = 20_261,
     draws: int = 20,
-    sweep_trials: int = FULL_SWEEP_TRIALS,
+    sweep_trials: int | None = None,
     speed_m_s: float = 0.5,
     confidence: float = 0.95,
     physics_configs: int = 0,
@@ -304,9 +304,11 @@ def evaluate(
         sweep's) and the seed of the true trials.
     draws : int
         Simulated trials per condition behind the oracle's conditional mean.
-    sweep_trials : int
+    sweep_trials : int, optional
         Size of the sweep the held-out trials are laid out in (their sweep time, hence the
         warm-up of the joints, follows a sweep of this size, like the training data's).
+        Default: the model's training sweep (a bundle's ``training_data.trials``), else
+        the paper's 33,500.
     speed_m_s : float
         Seam speed, m/s.
     confidence : float
@@ -323,6 +325,9 @@ def evaluate(
     if n_configs < 1 or draws < 2:
         raise ConfigError(f"n_configs={n_configs} must be >= 1 and draws={draws} >= 2")
     t_begin = time.monotonic()
+    if sweep_trials is None:
+        trained_on = getattr(predictor, "manifest", {}).get("training_data", {}).get("trials")
+        sweep_trials = int(trained_on) if trained_on else FULL_SWEEP_TRIALS
     q, joint, direction, t0 = _held_out(spec.name, n_configs, seed, sweep_trials, joints)
     n = len(joint)
     bar = Progress(
@@ -354,7 +359,9 @@ def evaluate(
     for j in np.unique(cj):
         per_joint[j - 1] = float(np.median(cal_act[cj == j]))
     bar.update(1)
-    pred = predict_delays(predictor, joint, direction, q)
+    # A bundle with a time input predicts for each trial's own time in the sweep (warm-up).
+    timed = bool(getattr(predictor, "time_input", False))
+    pred = predict_delays(predictor, joint, direction, q, t_s=t0 if timed else None)
     bar.update(1)
     predictions = {
         "none": np.zeros(n),

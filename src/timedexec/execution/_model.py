@@ -59,9 +59,17 @@ class DelayPredictions:
 
 
 def predict_delays(
-    model: DelayPredictor, joint: ArrayLike, direction: ArrayLike, q: ArrayLike
+    model: DelayPredictor,
+    joint: ArrayLike,
+    direction: ArrayLike,
+    q: ArrayLike,
+    *,
+    t_s: ArrayLike | None = None,
 ) -> DelayPredictions:
     """Call ``model.predict_many`` and normalise its answer to float arrays of shape (n,).
+
+    ``t_s`` (the time since the robot started working, s) is passed on only when given,
+    for models with a time input.
 
     Raises
     ------
@@ -74,7 +82,7 @@ def predict_delays(
     n = max(len(j), len(d), len(qq))
     j, d = np.broadcast_to(j, (n,)).copy(), np.broadcast_to(d, (n,)).copy()
     qq = np.broadcast_to(qq, (n, 6)).copy()
-    raw = model.predict_many(j, d, qq)
+    raw = model.predict_many(j, d, qq) if t_s is None else model.predict_many(j, d, qq, t_s=t_s)  # type: ignore[call-arg]
     out = {}
     for name in ("actuation_mean", "actuation_std", "response_mean", "response_std"):
         value = getattr(raw, name, None)
