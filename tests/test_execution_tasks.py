@@ -112,7 +112,7 @@ def test_interception_arrives_before_the_object(kr5_oracle: SimulatedOracle) -> 
             results[compensate] = intercept(ex, obj, t_meet, arrival_tol_m=0.015)
     ok, late = results[True], results[False]
     assert ok.physical
-    assert ok.meet.probability >= 0.95
+    assert ok.meet.probability >= 0.95 - 1e-9  # the quantile is found by bisection (1e-15 s)
     # Open-loop speed streaming ends within about a centimetre on this 12 Hz velocity loop
     # (overshoot while braking, stiction at rest); docs/execution.md.
     assert ok.arrival_s <= ok.meet_time_s
