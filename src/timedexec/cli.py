@@ -423,12 +423,12 @@ def _add_demo(sub: Any) -> None:
             "(bundle, cv.json), evaluation.json, conveyor.json, report/report.md (+ PNG). "
             "Prints the delays per joint, the models' errors against the median, the timing "
             "and seam errors per strategy and the conveyor result; --json prints them as "
-            "JSON. Default: 8,000 trials (a few minutes); --quick: 800 (under a minute)."
+            "JSON. Default: 8,000 trials (about 2 minutes); --quick: 2,000 (about 30 s)."
             "\n\nexample:\n  timedexec demo --robot kr5 --quick --out demo-out"
         ),
     )
     p.add_argument("--robot", default="ur10", choices=("ur10", "ur10e", "kr5"))
-    p.add_argument("--quick", action="store_true", help="800 trials instead of 8,000 (< 1 min)")
+    p.add_argument("--quick", action="store_true", help="2,000 trials instead of 8,000 (about 30 s)")
     p.add_argument("--out", default="timedexec-demo", help="output folder")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--trials", type=int, help="calibration trials (overrides --quick)")
@@ -441,13 +441,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from timedexec.report import run_demo
 
     quick = args.quick
-    trials = args.trials or (800 if quick else 8000)
+    trials = args.trials or (2000 if quick else 8000)
     info = run_demo(
         args.robot,
         args.out,
         trials=trials,
         seed=args.seed,
-        eval_configs=args.eval_configs or (60 if quick else 300),
+        eval_configs=args.eval_configs or 300,
         eval_draws=10 if quick else 20,
         progress=True,
     )
