@@ -423,7 +423,7 @@ def _add_demo(sub: Any) -> None:
             "(bundle, cv.json), evaluation.json, conveyor.json, report/report.md (+ PNG). "
             "Prints the delays per joint, the models' errors against the median, the timing "
             "and seam errors per strategy and the conveyor result; --json prints them as "
-            "JSON. Default: 8,000 trials (about 2 minutes); --quick: 2,000 (about 30 s)."
+            "JSON. Default: 8,000 trials (1-2 minutes); --quick: 2,000 (about 30 s)."
             "\n\nexample:\n  timedexec demo --robot kr5 --quick --out demo-out"
         ),
     )
