@@ -24,10 +24,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec.drivers import RobotState
+from timedexec.drivers import RobotState, open_driver
+from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
 from timedexec.execution._executor import ExecutionResult, MeetPlan, TimedExecutor
-from timedexec.robots import RobotSpec, check_configuration, forward_kinematics
+from timedexec.execution._model import load_delay_model
+from timedexec.robots import RobotSpec, check_configuration, forward_kinematics, get_robot
 
 __all__ = [
     "SEAM_POSITION_GAIN_1_S",
@@ -258,14 +260,10 @@ def compare_seam_tracking(
         JSON-safe: ``{"kind": "conveyor", "robot", "speed_m_s", "runs": {"uncompensated":
         {...}, "compensated": {...}, "compensated + feedback": {...}}}``; each run holds
         :meth:`SeamResult.summary`, ``position_gain_1_s``, ``final_lag_cm`` (mean physical
-        lag over the last 100 ms of the cruise) and the time series ``times_s`` (from the planned meeting instant), ``lag_cm`` (physical)
-        and ``estimated_lag_cm`` (what the executor believes).
+        lag over the last 100 ms of the cruise) and the time series ``times_s`` (from the
+        planned meeting instant), ``lag_cm`` (physical) and ``estimated_lag_cm`` (what the
+        executor believes).
     """
-    from timedexec.drivers import open_driver
-    from timedexec.effects import default_effects
-    from timedexec.execution._model import load_delay_model
-    from timedexec.robots import get_robot
-
     spec = get_robot(robot)
     predictor = load_delay_model(model)
     effects = default_effects(spec.name).without("thermal_drift")
@@ -280,7 +278,8 @@ def compare_seam_tracking(
         driver = open_driver(f"sim://{spec.name}", q0_rad=q0, effects=effects, seed=seed)
         with TimedExecutor(driver, predictor, compensate=compensate, position_gain_1_s=gain) as ex:
             seam = track_seam(ex, speed_m_s=speed_m_s, cruise_s=cruise_s)
-        end = seam.times_s >= seam.times_s[-1] - 0.1
+        t = seam.times_s
+        end = t >= t[-1] - 0.1 if len(t) else np.zeros(0, dtype=bool)
         runs[name] = {
             "position_gain_1_s": gain,
             "final_lag_cm": float(np.mean(seam.lag_m[end])) * 100 if end.any() else math.nan,
