@@ -137,6 +137,13 @@ def main() -> None:
         args.repeat,
     )
     ours_p99 = np.percentile(wall, 99)
+    with model.pinned():  # how a control loop holds it (TimedExecutor does)
+        wall_held, cpu_held = time_calls(
+            lambda qd: model.predict(joint=args.joint, direction=int(qd[1]), q=qd[0]),
+            queries,
+            args.repeat,
+        )
+    held_p99 = np.percentile(wall_held, 99)
 
     def sk_call(qd: Any) -> None:
         x = encode_inputs(qd[0][None, :], [qd[1]])
@@ -145,9 +152,12 @@ def main() -> None:
 
     wall_sk, cpu_sk = time_calls(sk_call, queries, max(args.repeat // 20, 500))
     print(f"DelayModel.predict  wall {percentiles(wall)} | CPU {percentiles(cpu)}")
+    print(f"  inside pinned()   wall {percentiles(wall_held)} | CPU {percentiles(cpu_held)}")
     print(f"scikit-learn x2     wall {percentiles(wall_sk)} | CPU {percentiles(cpu_sk)}")
     speed = np.median(wall_sk) / np.median(wall)
-    print(f"p99 <= 100 µs: {'PASS' if ours_p99 <= 100e-6 else 'FAIL'} ({ours_p99 * 1e6:.1f} µs); "
+    print(f"p99 <= 100 µs: per call {'PASS' if ours_p99 <= 100e-6 else 'FAIL'} "
+          f"({ours_p99 * 1e6:.1f} µs), inside pinned() {'PASS' if held_p99 <= 100e-6 else 'FAIL'} "
+          f"({held_p99 * 1e6:.1f} µs); "
           f"speed-up over scikit-learn (median): x{speed:.0f} "
           f"({'PASS' if speed >= 10 else 'FAIL'} >= 10x)")  # fmt: skip
 

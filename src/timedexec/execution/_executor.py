@@ -384,6 +384,7 @@ class TimedExecutor:
         self._spec: RobotSpec | None = None
         self._period = math.nan
         self._connected_here = False
+        self._pin: Any = None  # the model's BLAS pin, held while connected
         self._last: RobotState | None = None
         self._last_arrival = math.nan
         self._offset_min = math.inf  # lower envelope of arrival - controller time, s
@@ -440,6 +441,12 @@ class TimedExecutor:
             self._spec = None
             self.driver.close()
             raise
+        # A model with a BLAS pin (DelayModel) keeps BLAS on one thread while connected:
+        # queries during the loop then skip the per-call pin and its thread wake-ups.
+        pinned = getattr(self.model, "pinned", None)
+        if callable(pinned) and self._pin is None:
+            self._pin = pinned()
+            self._pin.__enter__()
 
     def close(self) -> None:
         """Stop any motion and close the driver if the executor connected it."""
@@ -448,6 +455,9 @@ class TimedExecutor:
                 self.driver.stop(self._decel())
         finally:
             self._spec = None
+            if self._pin is not None:
+                pin, self._pin = self._pin, None
+                pin.__exit__(None, None, None)
             if self._connected_here:
                 self.driver.close()
 

@@ -38,7 +38,7 @@ from timedexec.learning._calibrate import STD_SCALE_RULE
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._forward import nn_forward, tree_predict
 from timedexec.learning._gpcore import GPPairPredictor, GPPredictor, predictor_from_arrays
-from timedexec.learning._threads import BLAS_PIN
+from timedexec.learning._threads import BLAS_PIN, BlasPin
 
 __all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
 
@@ -603,6 +603,25 @@ class DelayModel:
             combined=combined,
         )
         return DelayPrediction(*(float(v[0]) for v in out))
+
+    def pinned(self) -> BlasPin:
+        """Context manager holding BLAS at one thread while a control loop queries the model.
+
+        :meth:`predict` pins BLAS around each call and restores it afterwards (a few µs, and
+        OpenBLAS's threads wake to the restored count); holding the pin for the loop skips
+        both. On the shared two-vCPU VM (load 0.7-1.0, five paired runs of 20,000-30,000
+        queries) the p99 was 77-111 µs held against 90-162 µs per call: a modest gain,
+        inside this machine's run-to-run noise (``benchmarks/bench_learning_predict.py``
+        prints both).
+        :class:`~timedexec.execution.TimedExecutor` holds it while connected.
+
+        Examples
+        --------
+        >>> with model.pinned():                                   # doctest: +SKIP
+        ...     while running:
+        ...         p = model.predict(joint=2, direction=1, q=q)
+        """
+        return BLAS_PIN
 
     def _time_h(self, t_s: Any) -> Any:
         if not self.time_input:

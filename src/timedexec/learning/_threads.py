@@ -79,5 +79,14 @@ class BlasPin:
                         lib.set_num_threads(n)
 
 
+    def __enter__(self) -> BlasPin:
+        """Hold the pin for a block (a control loop): per-call pins inside then only count."""
+        self.enter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.exit()
+
+
 #: The process-wide pin used by :meth:`DelayModel.predict <timedexec.learning.DelayModel.predict>`.
 BLAS_PIN = BlasPin()
