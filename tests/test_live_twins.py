@@ -212,6 +212,11 @@ def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> Non
         truth_path=str(truth_path),
         wait_for_pc=True,  # the driver connects after the twin started
         controller_factory=rsi_gyro_factory(link),
+        # This test measures delays, not the late-answer stop (tests/test_rsi.py covers
+        # it). On the shared CI VM the cumulative late counter once reached KSS's default
+        # Timeout of 100 within the 20-trial run; the RSI object's Timeout is configurable
+        # on a real robot too, and late answers stay in the twin's ground truth.
+        timeout_packets=2000,
     )
     with twin:
         publish_controller_origin(link, twin.t0_host_s)
