@@ -26,7 +26,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._files import write_atomic
 from timedexec.errors import ConfigError, RecordingError
 
 __all__ = ["DELAY_COLUMNS", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "DelayTable"]
@@ -220,20 +220,7 @@ class DelayTable:
             else:
                 cols.append([repr(float(x)) if np.isfinite(x) else "nan" for x in col])
         writer.writerows(zip(*cols, strict=True))
-        directory = out.parent if str(out.parent) else Path(".")
-        if not directory.is_dir():
-            raise RecordingError(f"cannot write {out}: directory {directory} does not exist")
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=directory)
-            with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-                fh.write(buf.getvalue())
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual file mode
-            os.replace(tmp, out)
-        except OSError as exc:
-            raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from exc
-        return out
+        return write_atomic(out, buf.getvalue())
 
     @classmethod
     def read_csv(cls, path: str | os.PathLike[str], *, allow_nan: bool = True) -> DelayTable:

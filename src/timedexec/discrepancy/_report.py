@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._files import make_dir
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.effects import make_effect
 from timedexec.errors import RecordingError
@@ -402,13 +403,7 @@ def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -
 
     Returns the path of the markdown file.
     """
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise RecordingError(
-            f"cannot create the report folder {out}: {exc.strerror or exc}"
-        ) from exc
+    out = make_dir(directory, "report folder")
     _gap_figure(result, out / "gap_per_step.png")
     _where_figure(result, out / "where.png")
     step_figs = []

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._files import write_atomic
 from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.discrepancy._candidates import (
     CandidateScore,
@@ -214,17 +215,7 @@ class DiscrepancyResult:
 
     def write_json(self, path: str | os.PathLike[str]) -> Path:
         """Write :meth:`to_dict` as JSON (atomically)."""
-        out = Path(path)
-        directory = out.parent if str(out.parent) else Path(".")
-        if not directory.is_dir():
-            raise RecordingError(f"cannot write {out}: directory {directory} does not exist")
-        tmp = out.with_name(f".{out.name}.tmp")
-        try:
-            tmp.write_text(json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n", "utf-8")
-            os.replace(tmp, out)
-        except OSError as exc:
-            raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from exc
-        return out
+        return write_atomic(path, json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n")
 
     def write_report(self, directory: str | os.PathLike[str]) -> Path:
         """Write the engineer's report (markdown + PNG figures) into ``directory``;

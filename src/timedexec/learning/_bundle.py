@@ -23,7 +23,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -32,6 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._files import make_dir, write_atomic
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError
 from timedexec.learning._calibrate import STD_SCALE_RULE
@@ -159,21 +159,6 @@ def _npz_bytes(arrays: Mapping[str, NDArray[Any]]) -> bytes:
             info.external_attr = 0o644 << 16
             zf.writestr(info, member.getvalue())
     return buf.getvalue()
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _robot_of(robot: Any) -> tuple[str | None, float | None]:
@@ -348,13 +333,7 @@ class DelayModel:
     # -------------------------------------------------------------- files
     def save(self, directory: str | os.PathLike[str]) -> Path:
         """Write ``arrays.npz`` and ``manifest.json`` into ``directory`` (created); return it."""
-        out = Path(directory)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ConfigError(
-                f"cannot create the bundle directory {out}: {exc.strerror or exc}"
-            ) from exc
+        out = make_dir(directory, "bundle directory")
         data = _npz_bytes(self._arrays)
         manifest = dict(self.manifest)
         manifest["arrays"] = {
@@ -362,13 +341,8 @@ class DelayModel:
             "sha256": hashlib.sha256(data).hexdigest(),
             "bytes": len(data),
         }
-        try:
-            _write_atomic(out / ARRAYS_NAME, data)
-            _write_atomic(
-                out / MANIFEST_NAME, (json.dumps(manifest, indent=2) + "\n").encode("utf-8")
-            )
-        except OSError as exc:
-            raise ConfigError(f"cannot write the bundle to {out}: {exc.strerror or exc}") from exc
+        write_atomic(out / ARRAYS_NAME, data)
+        write_atomic(out / MANIFEST_NAME, json.dumps(manifest, indent=2) + "\n")
         self.manifest = manifest
         self.path = out
         return out

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from timedexec._files import make_dir, write_atomic
 from timedexec.errors import ConfigError
 from timedexec.robots import get_robot
 
@@ -36,10 +37,7 @@ _HELD_OUT_SEED = 20_261
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> Path:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def run_demo(
@@ -99,11 +97,7 @@ def run_demo(
         )
     if folds < 2:
         raise ConfigError(f"folds={folds}: cross-validation needs at least 2 folds")
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the output folder ({exc.strerror})") from exc
+    out = make_dir(out_dir, "output folder (--out)")
     n_jobs = jobs or min(2, os.cpu_count() or 1)
     rec = out / f"{spec.name}-sweep.h5"
     delays = out / f"{spec.name}-delays.csv"

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from timedexec._files import make_dir
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError
 
@@ -141,11 +142,7 @@ def build_report(
         fig_trial,
     )
 
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise RecordingError(f"cannot create report folder {out}: {exc.strerror}") from exc
+    out = make_dir(out_dir, "report folder")
     md = ["# timedexec report", ""]
     robot = ""
     table: DelayTable | None = None
