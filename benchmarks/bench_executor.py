@@ -19,7 +19,6 @@ the state). Prints, for both:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -28,6 +27,7 @@ import time
 
 import numpy as np
 
+from timedexec._realtime import try_realtime
 from timedexec.drivers._ur import URDriver
 from timedexec.execution import FixedDelays, TimedExecutor
 from timedexec.sim._ur_twin import URTwin
@@ -35,14 +35,6 @@ from timedexec.sim._ur_twin import URTwin
 PERIOD_S = 0.002
 #: Host-to-twin loopback latency used to map a send time to its register cycle, s.
 WIRE_S = 0.0003
-
-
-def realtime(priority: int) -> bool:
-    """Run this process at SCHED_FIFO ``priority`` if allowed (as the twin does)."""
-    with contextlib.suppress(AttributeError, PermissionError, OSError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return True
-    return False
 
 
 def register_view(send_s: np.ndarray, t0: float) -> dict[str, float]:
@@ -118,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", help="write the figures as JSON here")
     p.add_argument("--coast", action="store_true", help="executor with coast=True")
     args = p.parse_args(argv)
-    rt = False if args.no_rt else realtime(5)
+    rt = False if args.no_rt else try_realtime(5)
     load = os.getloadavg()[0]
     with URTwin("ur10e", args.host, seed=1) as twin:
         ex = run_executor(args.host, args.seconds, twin.t0_monotonic_s, args.coast)

@@ -20,21 +20,17 @@ and put into the settings.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import dataclasses
 import json
 import math
-import os
-import socket
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from timedexec._realtime import realtime
 from timedexec.calibration import run_calibration
 from timedexec.calibration._twin_truth import (
     GyroClockTruth,
@@ -47,43 +43,17 @@ from timedexec.calibration._twin_truth import (
     publish_controller_origin,
     rsi_gyro_factory,
     twin_truth_table,
+    with_gyro_latency,
 )
 from timedexec.drivers import open_driver
 from timedexec.extraction import extract_recording
 from timedexec.sensors import open_gyro
-from timedexec.sim import SimSettings, SweepPlan, default_settings
+from timedexec.sim import SweepPlan, default_settings
+from timedexec.sim._rsi_twin import free_udp_port
 
 UR_HOST = "127.0.0.62"  # tests use .61; a loopback address of its own (fixed ports)
 CLIENT_RT_PRIORITY = 5
 GYRO_READ_PERIOD_S = 0.002
-
-
-@contextlib.contextmanager
-def realtime(priority: int | None) -> Iterator[bool]:
-    """SCHED_FIFO for this thread and the threads it starts meanwhile (if allowed)."""
-    if priority is None:
-        yield False
-        return
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError):
-        yield False
-        return
-    try:
-        yield True
-    finally:
-        os.sched_setscheduler(0, policy, param)
-
-
-def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
-    return settings.replace(gyro=dataclasses.replace(settings.gyro, usb_latency_s=latency_s))
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def evaluate(

@@ -27,20 +27,16 @@ How these runs are set up, and why (a real calibration host needs the same):
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import json
-import os
-import socket
 import subprocess
 import sys
 import textwrap
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from timedexec._realtime import realtime
 from timedexec.calibration import run_calibration
 from timedexec.calibration._twin_truth import (
     GyroClockTruth,
@@ -53,12 +49,14 @@ from timedexec.calibration._twin_truth import (
     read_twin_truth,
     rsi_gyro_factory,
     twin_truth_table,
+    with_gyro_latency,
 )
 from timedexec.drivers import open_driver
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.extraction import extract_recording
 from timedexec.sensors import open_gyro
-from timedexec.sim import SimSettings, SweepPlan, default_settings
+from timedexec.sim import SweepPlan, default_settings
+from timedexec.sim._rsi_twin import free_udp_port
 
 UR_HOST = "127.0.0.61"  # a loopback address no other test uses (the ports are fixed)
 TRIALS = 20
@@ -67,33 +65,6 @@ REPEATS = 3
 CLIENT_RT_PRIORITY = 5  # below the twins' 10: the controller preempts the client
 GYRO_READ_PERIOD_S = 0.002
 PRE_S = default_settings("ur10").profile.pre_s  # the runner records from -pre_s (both robots)
-
-
-@contextlib.contextmanager
-def realtime(priority: int) -> Iterator[bool]:
-    """SCHED_FIFO ``priority`` for this thread, and for the threads it starts meanwhile;
-    yields whether the OS allowed it (Linux as root or with CAP_SYS_NICE)."""
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError):
-        yield False
-        return
-    try:
-        yield True
-    finally:
-        os.sched_setscheduler(0, policy, param)
-
-
-def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
-    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least)."""
-    return settings.replace(gyro=dataclasses.replace(settings.gyro, usb_latency_s=latency_s))
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def check_against_truth(

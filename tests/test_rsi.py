@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from timedexec.drivers._rsi import KukaRSIDriver, RSIState
 from timedexec._rsi_xml import SenFrame, build_rob, parse_sen
+from timedexec.drivers._rsi import KukaRSIDriver, RSIState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.robots import forward_kinematics, get_robot
-from timedexec.sim._rsi_twin import RSITwin, RSITwinConfig, read_rsi_truth
+from timedexec.sim._rsi_twin import RSITwin, RSITwinConfig, free_udp_port, read_rsi_truth
 from timedexec.sim._settings import default_settings
 
 KR5 = get_robot("kr5")
@@ -625,17 +625,11 @@ def test_correction_beyond_the_rsi_limit_stops_rsi() -> None:
     assert "2.0000 deg" in final.detail
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def test_no_pc_means_rsitimeout_unless_waiting_for_it() -> None:
     """With nobody answering, RSI stops with RSITimeout after Timeout cycles (here 20), as
     on KSS; with wait_for_pc the late counter starts only with the first answer, so a
     driver started later finds RSI running."""
-    lonely_port, later_port = _free_udp_port(), _free_udp_port()
+    lonely_port, later_port = free_udp_port(), free_udp_port()
     with (
         RSITwin(lonely_port, timeout_packets=20) as lonely,
         RSITwin(later_port, timeout_packets=20, wait_for_pc=True) as patient,

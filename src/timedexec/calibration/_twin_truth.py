@@ -56,17 +56,18 @@ import os
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._realtime import try_realtime
 from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, ProtocolError, RecordingError
-from timedexec.sim import default_settings
+from timedexec.sim import SimSettings, default_settings
 from timedexec.sim._recording import RecordingReader
 
 __all__ = [
@@ -82,6 +83,7 @@ __all__ = [
     "read_twin_truth",
     "rsi_gyro_factory",
     "twin_truth_table",
+    "with_gyro_latency",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -693,22 +695,11 @@ def __getattr__(name: str) -> Any:
         options = json.loads(bytes.fromhex(name[len(_FACTORY_PREFIX) :]))
 
         def factory(robot: str, **kwargs: Any) -> _GyroControllerSim:
-            _try_realtime(options.get("rt_priority"))
+            try_realtime(options.get("rt_priority"))
             return _GyroControllerSim(robot, link_path=str(options["link"]), **kwargs)
 
         return factory
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _try_realtime(priority: int | None) -> bool:
-    """SCHED_FIFO ``priority`` for the calling thread if the OS allows it."""
-    if priority is None or not hasattr(os, "sched_setscheduler"):
-        return False
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
-    except (OSError, ValueError):
-        return False
-    return True
 
 
 class _GyroControllerSim:
@@ -817,3 +808,9 @@ class _GyroControllerSim:
         }
         with open(self._link + ".truth.jsonl", "w", encoding="utf-8") as fh:
             fh.write(json.dumps(line, sort_keys=True) + "\n")
+
+
+def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
+    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least): the
+    transport latency measured by :func:`measure_gyro_transport_latency`."""
+    return settings.replace(gyro=replace(settings.gyro, usb_latency_s=latency_s))

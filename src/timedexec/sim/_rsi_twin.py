@@ -94,6 +94,7 @@ __all__ = [
     "RSITwin",
     "RSITwinConfig",
     "RSITwinStatus",
+    "free_udp_port",
     "read_rsi_truth",
 ]
 
@@ -1238,3 +1239,10 @@ class RSITwin:
     def answers(self) -> list[dict[str, Any]]:
         """Every valid answer received: ipoc, arrival_s, in_time, correction_rad."""
         return list(self._finished_results().get("answers", []))
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port on ``host`` that is free right now (for a twin or a driver to bind)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind((host, 0))
+        return int(probe.getsockname()[1])

@@ -56,6 +56,7 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
+from timedexec._realtime import try_realtime
 from timedexec.errors import ConfigError, DriverError, ProtocolError
 
 __all__ = [
@@ -577,19 +578,6 @@ def _check_robot(robot: str) -> None:
         raise ConfigError(
             f"robot={robot!r} is not a simulated UR; use one of {sorted(UR_CONTROLLER_VERSIONS)}"
         )
-
-
-def _try_realtime(priority: int | None) -> bool:
-    """Give the calling thread SCHED_FIFO ``priority`` if the OS allows it (Linux, root or
-    CAP_SYS_NICE); return whether it worked. A real controller runs its cycle at
-    real-time priority; on a loaded machine this keeps the twin's clock on time."""
-    if priority is None or not hasattr(os, "sched_setscheduler"):
-        return False
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, ValueError):
-        return False
-    return True
 
 
 def _sleep_until(deadline: float) -> None:
@@ -1262,7 +1250,7 @@ class _TwinServer:
             self.bind()
         # Real-time priority for this thread before any other starts: threads inherit it,
         # so no normal-priority thread can hold the GIL while preempted (priority inversion).
-        self.stats["realtime"] = _try_realtime(self.rt_priority)
+        self.stats["realtime"] = try_realtime(self.rt_priority)
         self.t0 = time.monotonic() + 0.005
         self._write_meta()
         self._start_gyro()
