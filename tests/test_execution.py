@@ -330,7 +330,7 @@ def test_stalled_state_stream_stops_the_robot_within_two_periods(
 def test_executor_holds_the_models_blas_pin_while_connected() -> None:
     """With a DelayModel the executor keeps BLAS on one thread while connected (so each
     prediction skips its own pin) and restores the previous thread count on close."""
-    from threadpoolctl import threadpool_info
+    from threadpoolctl import threadpool_info, threadpool_limits
 
     from timedexec.drivers._sim import SimDriver
     from timedexec.execution import load_delay_model
@@ -338,8 +338,11 @@ def test_executor_holds_the_models_blas_pin_while_connected() -> None:
     def blas_threads() -> list[int]:
         return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
 
-    before = blas_threads()
     model = load_delay_model("ur10-sim")
-    with TimedExecutor(SimDriver("ur10", seed=0), model):
-        assert all(n == 1 for n in blas_threads())
-    assert blas_threads() == before
+    # Two BLAS threads before, so that "one while connected" is a change the test sees.
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        assert before, "numpy's BLAS is not visible to threadpoolctl"
+        with TimedExecutor(SimDriver("ur10", seed=0), model):
+            assert all(n == 1 for n in blas_threads())
+        assert blas_threads() == before

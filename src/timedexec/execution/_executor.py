@@ -887,13 +887,14 @@ class TimedExecutor:
     def _command(self, plan: JointPlan | None, now: float) -> tuple[FloatArray, bool]:
         spec = self.spec
         period = self._period
+        correcting = plan is not None and self.position_gain_1_s > 0 and bool(self._samples)
         if plan is None:
             target = np.zeros(6)
         else:
             t_plan = now - plan.start_time_s + self._tau + period
             target = plan.velocity_per_joint(t_plan)
-            if self.position_gain_1_s > 0 and self._samples:
-                feed_forward = target
+            feed_forward = target
+            if correcting:
                 target = target + self.position_gain_1_s * self._predicted_error(plan, now)
         vmax = self.limits.velocity(spec)
         amax = self.limits.acceleration(spec)
@@ -915,7 +916,7 @@ class TimedExecutor:
         clipped = bool(np.any(np.abs(v - target) > 1e-12))
         if clipped:
             self.clip_count += 1
-        if plan is not None and self.position_gain_1_s > 0 and self._samples:
+        if correcting:
             self._corrections.append((now, v - feed_forward))
         return v, clipped
 
