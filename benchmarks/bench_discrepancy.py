@@ -29,6 +29,7 @@ import numpy as np
 
 from timedexec.delays import DelayTable
 from timedexec.discrepancy import (
+    SIMULATED_EFFECTS,
     SimModel,
     analyse_discrepancy,
     calibrate,
@@ -36,10 +37,10 @@ from timedexec.discrepancy import (
     replicate_noise,
     score_candidates,
 )
-from timedexec.discrepancy._model import SIMULATED_EFFECTS
 from timedexec.effects import default_effects, make_effect
+from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import SweepPlan, simulate_delays
+from timedexec.sim import simulate_delays
 
 
 def make_table(robot: str, n: int, seed: int) -> DelayTable:

@@ -28,9 +28,9 @@ import time
 import numpy as np
 
 from timedexec._realtime import try_realtime
-from timedexec.drivers._ur import URDriver
+from timedexec.drivers import URDriver
 from timedexec.execution import FixedDelays, TimedExecutor
-from timedexec.sim._ur_twin import URTwin
+from timedexec.twins import URTwin
 
 PERIOD_S = 0.002
 #: Host-to-twin loopback latency used to map a send time to its register cycle, s.

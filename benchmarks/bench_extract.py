@@ -24,8 +24,8 @@ import numpy as np
 from scipy import signal
 
 from timedexec.extraction import extract_recording
-from timedexec.sim._recording import RecordingReader
-from timedexec.sim._sweep import simulate_sweep
+from timedexec.recording import RecordingReader
+from timedexec.sim import simulate_sweep
 
 
 def naive_loop(path: Path, n: int) -> float:

@@ -25,7 +25,6 @@ import time
 from collections.abc import Sequence
 
 from timedexec.sensors import FrameParser, crc8, open_gyro
-from timedexec.sensors._frames import _TABLE
 
 FRAME = 11
 
@@ -38,7 +37,7 @@ class NaiveParser:
         self.buf = bytearray()
         self.frames: list[tuple[int, int, int, int]] = []
         self.checksum_errors = 0
-        self.table = [int(v) for v in _TABLE]
+        self.table = [crc8(bytes([i])) for i in range(256)]  # init 0: the byte table
 
     def feed(self, data: bytes) -> None:
         buf = self.buf
@@ -74,7 +73,7 @@ def _start_twin(duration_s: float) -> tuple[subprocess.Popen[str], dict[str, flo
         [
             sys.executable,
             "-m",
-            "timedexec.sim._gyro_twin",
+            "timedexec.twins._gyro",
             "--duration-s",
             str(duration_s),
             "--profile",

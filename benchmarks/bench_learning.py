@@ -32,8 +32,8 @@ import numpy as np
 
 from timedexec.delays import DelayTable
 from timedexec.learning import DelayGP, LMNeuralNet, encode_inputs, train_delay_models
-from timedexec.sim import SweepPlan
-from timedexec.sim._sweep import simulate_delays
+from timedexec.recording import SweepPlan
+from timedexec.sim import simulate_delays
 
 
 def simulated_table(robot: str, trials: int, seed: int, jobs: int) -> DelayTable:

@@ -30,9 +30,9 @@ import numpy as np
 
 import timedexec.learning._train as train_module
 from timedexec.execution import TimingBounds
+from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import SweepPlan
-from timedexec.sim._sweep import simulate_delays
+from timedexec.sim import simulate_delays
 
 KEYS = ("1", "2", "3", "5", "combined")
 

@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 
 from timedexec.learning import DelayModel, encode_inputs, train_delay_models
+from timedexec.recording import SweepPlan, calibration_ranges
 from timedexec.robots import get_robot
-from timedexec.sim import SweepPlan, calibration_ranges
-from timedexec.sim._sweep import simulate_delays
+from timedexec.sim import simulate_delays
 
 
 def percentiles(samples_s: np.ndarray) -> str:

@@ -3,7 +3,7 @@
 Runs ``run_calibration`` through the real clients — ``ur_rtde`` (``ur://``) against the UR10
 twin with its gyro twin on a pty, and the RSI driver (``rsi://PORT``) against the KR 5 RSI
 twin with a gyro twin fed by its physics (``rsi_gyro_factory``) — extracts the delays and
-compares them with the twins' truth (``timedexec.calibration._twin_truth``). Prints per
+compares them with the twins' truth (``timedexec.twins._truth``). Prints per
 robot: trials, flagged trials, trials whose gyro window the runner lost the start of,
 actuation and response error (RMS / max, ms) of the ``fit`` extraction and, as the obvious
 alternative on the same recording, of the published ``extrema`` method (and the RMS
@@ -32,24 +32,23 @@ import numpy as np
 
 from timedexec._realtime import realtime
 from timedexec.calibration import run_calibration
-from timedexec.calibration._twin_truth import (
+from timedexec.drivers import HostTimeTap, open_driver
+from timedexec.extraction import extract_recording
+from timedexec.recording import SweepPlan
+from timedexec.sensors import open_gyro
+from timedexec.sim import default_settings, with_gyro_latency
+from timedexec.twins import (
     GyroClockTruth,
-    HostTimeTap,
     TwinTruth,
     compare_with_truth,
     envelope_transport_latency,
+    free_udp_port,
     gyro_window_start_s,
     measure_gyro_transport_latency,
     publish_controller_origin,
     rsi_gyro_factory,
     twin_truth_table,
-    with_gyro_latency,
 )
-from timedexec.drivers import open_driver
-from timedexec.extraction import extract_recording
-from timedexec.sensors import open_gyro
-from timedexec.sim import SweepPlan, default_settings
-from timedexec.sim._rsi_twin import free_udp_port
 
 UR_HOST = "127.0.0.62"  # tests use .61; a loopback address of its own (fixed ports)
 CLIENT_RT_PRIORITY = 5
@@ -72,7 +71,7 @@ def evaluate(
 
 
 def run_ur(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any]:
-    from timedexec.sim._ur_twin import URTwin
+    from timedexec.twins import URTwin
 
     plan = SweepPlan.generate("ur10", trials, seed=seed, repeats=3)
     link, truth_path, out = str(work / "ur_gyro"), work / "ur_truth.jsonl", work / "ur.h5"
@@ -90,7 +89,7 @@ def run_ur(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any]
             latency = measure_gyro_transport_latency(gyro, clock)
             settings = with_gyro_latency(default_settings("ur10"), latency)
             t_run = time.monotonic()
-            run_calibration(robot, gyro, plan, out, settings=settings, progress=False)
+            run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
             run_s = time.monotonic() - t_run
         stats = twin.stats()
     truth = twin_truth_table(out, truth_path, twin.t0_monotonic_s, host_times=robot)
@@ -107,7 +106,7 @@ def run_ur(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any]
 
 
 def run_rsi(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any]:
-    from timedexec.sim._rsi_twin import RSITwin
+    from timedexec.twins import RSITwin
 
     plan = SweepPlan.generate("kr5", trials, seed=seed, repeats=3)
     link, truth_path, out = str(work / "rsi_gyro"), work / "rsi_truth.jsonl", work / "rsi.h5"
@@ -128,7 +127,7 @@ def run_rsi(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any
             latency = measure_gyro_transport_latency(gyro, clock)
             settings = with_gyro_latency(default_settings("kr5"), latency)
             t_run = time.monotonic()
-            run_calibration(robot, gyro, plan, out, settings=settings, progress=False)
+            run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
             run_s = time.monotonic() - t_run
         status = twin.stop()
     truth = twin_truth_table(out, truth_path, host_times=robot)

@@ -1,4 +1,4 @@
-"""Benchmark of the HDF5 recording store (timedexec.sim._recording).
+"""Benchmark of the HDF5 recording store (timedexec.recording._store).
 
 Writes a synthetic calibration sweep -- per trial a gyro recording (4800, 3) int16 (0.6 s at
 8 kHz: smooth joint motion + sensor noise + bias) and eleven small fields (start pose,
@@ -38,7 +38,7 @@ from collections.abc import Iterator
 import h5py
 import numpy as np
 
-from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
+from timedexec.recording import Field, RecordingReader, RecordingWriter
 
 N_GYRO = 4800  # 0.6 s at 8 kHz
 N_STATE = 160  # state packets per trial (about 1.3 s at 8 ms)

@@ -25,8 +25,8 @@ import defusedxml.ElementTree as DET
 import numpy as np
 
 from timedexec import _rsi_xml
-from timedexec.drivers._rsi import KukaRSIDriver
 from timedexec._rsi_xml import AXIS_NAMES, build_rob, build_sen, parse_rob
+from timedexec.drivers import KukaRSIDriver
 
 FRAME = build_rob(
     123645634563,

@@ -18,9 +18,9 @@ import time
 import numpy as np
 
 from timedexec.effects import default_effects
+from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import SweepPlan, default_settings
-from timedexec.sim._batch import BLOCK_TRIALS, simulate_block, sweep_clock
+from timedexec.sim import BLOCK_TRIALS, default_settings, simulate_block, sweep_clock
 
 PUBLISHED = {
     # actuation median row of Table I and response median row of Table II, ms

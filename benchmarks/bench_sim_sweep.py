@@ -77,9 +77,9 @@ def run_cli(robot: str, trials: int, jobs: int, out: Path) -> tuple[float, int]:
 def per_trial_loop(robot: str, n: int) -> float:
     """Seconds per trial when trials are simulated one at a time (same code, n = 1)."""
     from timedexec.effects import default_effects
+    from timedexec.recording import SweepPlan
     from timedexec.robots import get_robot
-    from timedexec.sim import SweepPlan, default_settings
-    from timedexec.sim._batch import simulate_block, sweep_clock
+    from timedexec.sim import default_settings, simulate_block, sweep_clock
 
     spec = get_robot(robot)
     settings = default_settings(spec)

@@ -21,7 +21,7 @@ import numpy as np
 import rtde_receive
 
 from timedexec.sim import ControllerSim
-from timedexec.sim._ur_twin import URTwin
+from timedexec.twins import URTwin
 
 
 def measure_twin(robot: str, host: str, duration_s: float) -> dict[str, float]:

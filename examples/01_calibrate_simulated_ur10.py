@@ -19,7 +19,8 @@ import numpy as np
 from timedexec.calibration import run_calibration
 from timedexec.drivers import open_driver
 from timedexec.extraction import extract_recording
-from timedexec.sim import SweepPlan, default_settings
+from timedexec.recording import SweepPlan
+from timedexec.sim import default_settings
 
 
 def main() -> None:
@@ -35,7 +36,7 @@ def main() -> None:
     settings = default_settings("ur10")
     plan = SweepPlan.generate("ur10", args.trials, seed=1)
     with open_driver("sim://ur10", seed=1) as driver:
-        run_calibration(driver, driver.gyro(seed=1), plan, rec, settings=settings, progress=False)
+        run_calibration(driver, driver.gyro(seed=1), plan, rec, protocol=settings.protocol, progress=False)
     table = extract_recording(rec, progress=False).table
     print("trial joint dir   actuation (ms)  truth (ms)   response (ms)  truth (ms)")
     for i in range(len(table)):

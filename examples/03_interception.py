@@ -17,8 +17,7 @@ import numpy as np
 
 from timedexec.drivers import open_driver
 from timedexec.effects import default_effects
-from timedexec.execution import TimedExecutor, UnreachableError, load_delay_model
-from timedexec.execution._tasks import intercept
+from timedexec.execution import TimedExecutor, UnreachableError, intercept, load_delay_model
 from timedexec.robots import forward_kinematics, get_robot
 
 

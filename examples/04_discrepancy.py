@@ -22,7 +22,8 @@ import numpy as np
 from timedexec.delays import DelayTable
 from timedexec.discrepancy import analyse_discrepancy
 from timedexec.effects import default_effects
-from timedexec.sim import SweepPlan, simulate_delays
+from timedexec.recording import SweepPlan
+from timedexec.sim import simulate_delays
 
 
 def measured_table() -> DelayTable:

@@ -23,8 +23,10 @@ import numpy as np
 from timedexec.calibration import run_calibration
 from timedexec.drivers import open_driver
 from timedexec.extraction import extract_recording
+from timedexec.recording import SweepPlan
 from timedexec.sensors import open_gyro
-from timedexec.sim import SweepPlan, URTwin, default_settings
+from timedexec.sim import default_settings
+from timedexec.twins import URTwin
 
 
 def main() -> None:
@@ -46,7 +48,7 @@ def main() -> None:
         rec = tmp / "ur10.h5"
         driver = stack.enter_context(open_driver(f"ur://{host}"))
         gyro = stack.enter_context(open_gyro(imu))
-        run_calibration(driver, gyro, plan, rec, settings=settings, progress=False,
+        run_calibration(driver, gyro, plan, rec, protocol=settings.protocol, progress=False,
                         source=f"ur://{host}")  # fmt: skip
     table = extract_recording(rec, progress=False).table
     act = table["actuation_delay"] * 1e3

@@ -40,7 +40,7 @@ from pathlib import Path
 from timedexec.extraction import extract_recording
 from timedexec.learning import train_delay_models
 from timedexec.robots import ROBOT_NAMES, get_robot
-from timedexec.sim._sweep import simulate_sweep
+from timedexec.sim import simulate_sweep
 
 #: Trials per robot: 8,000 where that resolves the pose dependence against the noise floor.
 DEFAULT_TRIALS = {"ur10": 8000, "kr5": 8000, "ur10e": 33_500}

@@ -14,7 +14,7 @@ import pytest
 
 from timedexec.cli import main
 from timedexec.extraction import extract_recording
-from timedexec.sim._recording import RecordingReader
+from timedexec.recording import RecordingReader
 
 
 def calibrate_cmd(out, trials=16, seed=3, resume=False):

@@ -10,8 +10,8 @@ import pytest
 from timedexec.cli import main
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
+from timedexec.recording import RecordingReader, SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import RecordingReader, SweepPlan
 
 
 def simulate(tmp_path, name, *extra):

@@ -20,14 +20,15 @@ from timedexec.discrepancy import (
     SimModel,
     analyse_discrepancy,
     calibrate,
+    deterministic_settings,
     group_conditions,
     replicate_noise,
 )
-from timedexec.discrepancy._model import deterministic_settings
 from timedexec.effects import EFFECT_NAMES, EffectSet, GravityLoad, default_effects, make_effect
 from timedexec.errors import ConfigError
+from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import SweepPlan, default_settings, simulate_delays
+from timedexec.sim import default_settings, simulate_delays
 
 
 def make_table(

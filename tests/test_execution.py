@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from timedexec.drivers import RobotState
-from timedexec.drivers._sim import SimDriver
+from timedexec.drivers import RobotState, SimDriver
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError, DriverTimeout, ModelError
+from timedexec.evaluation import SimulatedOracle
 from timedexec.execution import (
     ExecutionLimits,
     FixedDelays,
@@ -23,7 +23,6 @@ from timedexec.execution import (
     load_delay_model,
     plan_motion,
 )
-from timedexec.execution._evaluate import SimulatedOracle
 from timedexec.robots import get_robot
 
 
@@ -332,7 +331,7 @@ def test_executor_holds_the_models_blas_pin_while_connected() -> None:
     prediction skips its own pin) and restores the previous thread count on close."""
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from timedexec.drivers._sim import SimDriver
+    from timedexec.drivers import SimDriver
     from timedexec.execution import load_delay_model
 
     def blas_threads() -> list[int]:

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 import pytest
 
 from timedexec.errors import ModelError
+from timedexec.evaluation import STRATEGIES, SimulatedOracle, evaluate
 from timedexec.execution import DelayPredictions
-from timedexec.execution._evaluate import STRATEGIES, SimulatedOracle, evaluate
 
 
 class StandInModel(SimulatedOracle):
@@ -69,20 +68,15 @@ def test_evaluate_command_writes_the_json(tmp_path, monkeypatch, capsys) -> None
     JSON and prints the table; the default model is the bundled <robot>-sim, found from
     any working folder (loaded through DelayModel.load, a stand-in here)."""
     import timedexec.learning as learning
-    from timedexec import _cli_evaluate, cli
+    from timedexec.cli import main
 
     monkeypatch.setattr(learning, "DelayModel", StandInModel, raising=False)
     bundle = tmp_path / "ur10-sim"
     bundle.mkdir()
-    parser = argparse.ArgumentParser(prog="timedexec")
-    sub = parser.add_subparsers(dest="command")
-    _cli_evaluate.add_parser(sub, cli._Formatter, cli._emit)
     out = tmp_path / "eval.json"
-    args = parser.parse_args(
-        ["evaluate", "--robot", "ur10", "--model", str(bundle), "--json", str(out),
-         "--configs", "10", "--draws", "4", "--quiet"]
-    )  # fmt: skip
-    assert args.func(args) == 0
+    argv = ["evaluate", "--robot", "ur10", "--model", str(bundle), "--json", str(out),
+            "--configs", "10", "--draws", "4", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
     data = json.loads(out.read_text())
     assert data["robot"] == "ur10"
     assert set(data["strategies"]) == {"none", "constant", "median", "model", "oracle"}
@@ -91,7 +85,6 @@ def test_evaluate_command_writes_the_json(tmp_path, monkeypatch, capsys) -> None
     assert "oracle" in text
     assert "wrote" in text
     monkeypatch.chdir(tmp_path / "..")
-    args = parser.parse_args(["evaluate", "--robot", "ur10", "--configs", "5", "--draws", "3",
-                              "--json", "-", "--quiet"])  # fmt: skip
-    assert args.func(args) == 0
+    assert main(["evaluate", "--robot", "ur10", "--configs", "5", "--draws", "3",
+                 "--json", "-", "--quiet"]) == 0  # fmt: skip
     assert json.loads(capsys.readouterr().out)["robot"] == "ur10"

@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from timedexec.drivers._sim import SimDriver
+from timedexec.drivers import SimDriver
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
-from timedexec.execution import TimedExecutor
-from timedexec.execution._evaluate import SimulatedOracle
-from timedexec.execution._tasks import intercept, solve_position_ik, track_seam
+from timedexec.evaluation import SimulatedOracle
+from timedexec.execution import TimedExecutor, intercept, solve_position_ik, track_seam
 from timedexec.robots import forward_kinematics, get_robot
 
 

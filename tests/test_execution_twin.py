@@ -14,15 +14,15 @@ import pytest
 
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ModelError
+from timedexec.evaluation import SimulatedOracle
 from timedexec.execution import DelayPredictions, FixedDelays, StaleStateError, TimedExecutor
-from timedexec.execution._evaluate import SimulatedOracle
 from timedexec.robots import get_robot
 
 pytest.importorskip("rtde_receive")
 pytest.importorskip("rtde_control")
 
-from timedexec.drivers._ur import URDriver
-from timedexec.sim._ur_twin import URTwin, read_truth
+from timedexec.drivers import URDriver
+from timedexec.twins import URTwin, read_truth
 
 pytestmark = pytest.mark.slow
 

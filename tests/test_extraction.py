@@ -10,10 +10,10 @@ import pytest
 
 from timedexec.cli import main
 from timedexec.errors import ConfigError, RecordingError
-from timedexec.extraction import extract_recording
-from timedexec.extraction._extract import REQUIRED_FIELDS, _context, _extract_chunk
-from timedexec.sim._recording import RecordingReader
-from timedexec.sim._sweep import simulate_sweep
+from timedexec.extraction import REQUIRED_FIELDS, extract_recording
+from timedexec.extraction._extract import _context, _extract_chunk
+from timedexec.recording import RecordingReader
+from timedexec.sim import simulate_sweep
 
 
 @pytest.fixture(scope="module")
@@ -140,19 +140,18 @@ def test_newer_format_and_empty_sweep_are_refused(recordings, tmp_path):
 
 def test_empty_sweep_is_refused(tmp_path):
     """A recording whose sweep holds no trial yet cannot be extracted: ConfigError."""
-    from timedexec.sim._recording import RecordingWriter
-    from timedexec.sim._settings import default_settings
-    from timedexec.sim._sweep import gyro_header, trial_fields
+    from timedexec.recording import RecordingWriter, trial_fields
+    from timedexec.sim import default_settings
 
     settings = default_settings("ur10")
     path = tmp_path / "empty.h5"
     header = {
         "robot": settings.spec.to_dict(),
         "profile": settings.profile.to_dict(),
-        "gyro": gyro_header(settings.gyro),
+        "gyro": settings.gyro.header().to_dict(),
         "controller_period_s": settings.controller_period_s,
     }
-    with RecordingWriter(path, header=header, fields=trial_fields(settings, truth=False)) as w:
+    with RecordingWriter(path, header=header, fields=trial_fields(settings.protocol, truth=False)) as w:
         w.write_static("still_gyro_raw", np.zeros((800, 3), np.int16))
     with pytest.raises(ConfigError, match="no trials"):
         extract_recording(path, progress=False)

@@ -17,16 +17,16 @@ from hypothesis import strategies as st
 
 from timedexec.errors import ConfigError, SensorError
 from timedexec.sensors import FRAME_SIZE, FrameParser, encode_frames
-from timedexec.sim._gyro_twin import (
+from timedexec.sim import (
     DEFAULT_BIAS_DPS,
     FULL_SCALE_SENSITIVITY,
     GyroFrameSource,
-    GyroTwin,
-    _device_encode,
     constant_rate_source,
+    device_frames,
     sine_rate_source,
     step_rate_source,
 )
+from timedexec.twins import GyroTwin
 
 
 def _decode(data: bytes) -> tuple[np.ndarray, np.ndarray, FrameParser]:
@@ -44,7 +44,7 @@ def test_device_encoder_matches_host_encoder(seed: int, n: int) -> None:
     rng = np.random.default_rng(seed)
     counter = rng.integers(0, 65536, n).astype(np.uint16)
     raw = rng.integers(-32768, 32768, (n, 3)).astype(np.int16)
-    assert _device_encode(counter, raw) == encode_frames(counter, raw)
+    assert device_frames(counter, raw) == encode_frames(counter, raw)
 
 
 def test_sensitivities_agree_with_the_sensor_layer() -> None:
@@ -220,10 +220,10 @@ def test_unread_backlog_is_dropped_like_a_usb_device() -> None:
 
 
 def test_twin_cli_runs_in_its_own_process() -> None:
-    """`python -m timedexec.sim._gyro_twin` prints a ready line with the port and the
+    """`python -m timedexec.twins._gyro` prints a ready line with the port and the
     ground truth, streams, and prints a summary when its duration is over."""
     proc = subprocess.run(
-        [sys.executable, "-m", "timedexec.sim._gyro_twin", "--duration-s", "0.3"],
+        [sys.executable, "-m", "timedexec.twins._gyro", "--duration-s", "0.3"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -235,7 +235,7 @@ def test_twin_cli_runs_in_its_own_process() -> None:
     assert summary["samples_sent"] > 1000
     assert summary["error"] is None
     bad = subprocess.run(
-        [sys.executable, "-m", "timedexec.sim._gyro_twin", "--full-scale-dps", "3"],
+        [sys.executable, "-m", "timedexec.twins._gyro", "--full-scale-dps", "3"],
         capture_output=True,
         text=True,
         timeout=30,

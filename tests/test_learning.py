@@ -22,20 +22,18 @@ from timedexec.learning import (
     LinearLeafTree,
     LMNeuralNet,
     MedianDelay,
+    build_predictor,
     collapse_replicates,
+    condition_exact,
+    condition_fitc,
     cross_validate,
     encode_inputs,
     feature_names,
+    fold_of_configuration,
+    neg_log_likelihood,
     noise_floor,
     train_delay_models,
 )
-from timedexec.learning._gpcore import (
-    build_predictor,
-    condition_exact,
-    condition_fitc,
-    neg_log_likelihood,
-)
-from timedexec.learning._train import fold_of_configuration
 
 NOISE_S = 0.002  # trial noise of the synthetic tables, s
 
@@ -218,7 +216,7 @@ def test_gp_sparse_path_is_close_to_exact() -> None:
 
 def test_build_predictor_round_trip_through_arrays() -> None:
     """to_arrays + build_predictor (what a bundle does) reproduce the fitted predictor."""
-    from timedexec.learning._gpcore import predictor_from_arrays
+    from timedexec.learning import predictor_from_arrays
 
     X, y = _gp_data()
     gp = DelayGP(random_state=0).fit(X, y)
@@ -609,8 +607,8 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
     """A fresh simulated UR10 sweep (8,000 trials, ground-truth delays; about a minute on
     two cores): on every joint and combined, every learned model beats the median on the
     actuation delay, and the GP is within 10 % of the noise floor."""
-    from timedexec.sim import SweepPlan
-    from timedexec.sim._sweep import simulate_delays
+    from timedexec.recording import SweepPlan
+    from timedexec.sim import simulate_delays
 
     plan = SweepPlan.generate("ur10", 8000, seed=11)
     table = simulate_delays(
@@ -634,7 +632,7 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
 def test_fused_pair_predictor_matches_separate_predictors() -> None:
     """A joint's actuation and response GPs evaluated together (one kernel product) give the
     numbers of the separate predictors, exact or with a variance subset."""
-    from timedexec.learning._gpcore import GPPairPredictor
+    from timedexec.learning import GPPairPredictor
 
     table = synthetic_table(n_cfg=60, repeats=3)
     for mvc in (None, 40):

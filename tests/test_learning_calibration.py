@@ -224,8 +224,8 @@ def test_calibrated_bounds_cover_95_percent_on_simulated_ur10() -> None:
     the right std covers more than 95 %.
     """
     from timedexec.execution import TimingBounds
-    from timedexec.sim import SweepPlan
-    from timedexec.sim._sweep import simulate_delays
+    from timedexec.recording import SweepPlan
+    from timedexec.sim import simulate_delays
 
     n = 800
     t = np.arange(n) * 1.05  # the sweep clock's trial spacing: a 14-minute sweep

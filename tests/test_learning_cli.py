@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections.abc import Sequence
@@ -12,34 +11,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from timedexec._cli_train import add_parser
-from timedexec.errors import TimedExecError
+from timedexec.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_learning import synthetic_table
 
 
-def _emit(result: dict[str, Any], args: argparse.Namespace, text: str) -> None:
-    print(json.dumps(result) if getattr(args, "json", False) else text)
-
-
 def run(argv: Sequence[str]) -> int:
-    """The `train` subcommand as timedexec.cli.main runs it (same error-to-exit-code map)."""
-    from timedexec import cli
-
-    probe = cli._build_parser()  # the owner wires `train` into cli.py; prefer the real thing
-    sub_actions = [a for a in probe._actions if isinstance(a, argparse._SubParsersAction)]
-    if sub_actions and "train" in sub_actions[0].choices:
-        return cli.main(list(argv))
-    parser = argparse.ArgumentParser(prog="timedexec")
-    sub = parser.add_subparsers(dest="command")
-    add_parser(sub, argparse.HelpFormatter, _emit)
-    args = parser.parse_args(list(argv))
-    try:
-        return int(args.func(args))
-    except TimedExecError as exc:
-        print(f"timedexec {args.command}: error: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, ValueError | OSError) else 1
+    """The `train` subcommand through the real command line."""
+    return main(list(argv))
 
 
 @pytest.fixture(scope="module")

@@ -38,25 +38,24 @@ import pytest
 
 from timedexec._realtime import realtime
 from timedexec.calibration import run_calibration
-from timedexec.calibration._twin_truth import (
+from timedexec.drivers import HostTimeTap, open_driver
+from timedexec.errors import ConfigError, RecordingError
+from timedexec.extraction import extract_recording
+from timedexec.recording import SweepPlan
+from timedexec.sensors import open_gyro
+from timedexec.sim import default_settings, with_gyro_latency
+from timedexec.twins import (
     GyroClockTruth,
-    HostTimeTap,
     TwinTruth,
     compare_with_truth,
+    free_udp_port,
     gyro_window_start_s,
     measure_gyro_transport_latency,
     publish_controller_origin,
     read_twin_truth,
     rsi_gyro_factory,
     twin_truth_table,
-    with_gyro_latency,
 )
-from timedexec.drivers import open_driver
-from timedexec.errors import ConfigError, RecordingError
-from timedexec.extraction import extract_recording
-from timedexec.sensors import open_gyro
-from timedexec.sim import SweepPlan, default_settings
-from timedexec.sim._rsi_twin import free_udp_port
 
 UR_HOST = "127.0.0.61"  # a loopback address no other test uses (the ports are fixed)
 TRIALS = 20
@@ -134,7 +133,7 @@ def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
     """20 trials through the real ``ur_rtde`` client (``ur://``) against the UR10 twin,
     gyro twin on a pty read by ``open_gyro``: every extracted actuation and response delay
     is within 1 ms of the twin's ground truth, and at most one trial is flagged."""
-    from timedexec.sim._ur_twin import URTwin
+    from timedexec.twins import URTwin
 
     plan = SweepPlan.generate("ur10", TRIALS, seed=3, repeats=REPEATS)
     link, truth_path, out = str(tmp_path / "gyro"), tmp_path / "truth.jsonl", tmp_path / "cal.h5"
@@ -149,7 +148,7 @@ def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
             latency = measure_gyro_transport_latency(gyro, GyroClockTruth.from_truth(truth_path))
             settings = with_gyro_latency(default_settings("ur10"), latency)
             run_calibration(
-                robot, gyro, plan, out, settings=settings, progress=False, source="ur://"
+                robot, gyro, plan, out, protocol=settings.protocol, progress=False, source="ur://"
             )
         stats = twin.stats()
     # A pty delivers a burst within a fraction of a millisecond (USB full speed: ~1 ms).
@@ -171,7 +170,7 @@ def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> Non
     """20 trials through the RSI driver (``rsi://PORT``) against the KR 5 RSI twin, with a
     gyro twin in the RSI twin's process fed by its physics (``rsi_gyro_factory``): every
     extracted delay is within 1 ms of the twin's ground truth, at most one trial flagged."""
-    from timedexec.sim._rsi_twin import RSITwin
+    from timedexec.twins import RSITwin
 
     plan = SweepPlan.generate("kr5", TRIALS, seed=3, repeats=REPEATS)
     link, truth_path, out = str(tmp_path / "gyro"), tmp_path / "truth.jsonl", tmp_path / "cal.h5"
@@ -200,7 +199,7 @@ def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> Non
             latency = measure_gyro_transport_latency(gyro, clock)
             settings = with_gyro_latency(default_settings("kr5"), latency)
             run_calibration(
-                robot, gyro, plan, out, settings=settings, progress=False, source="rsi://"
+                robot, gyro, plan, out, protocol=settings.protocol, progress=False, source="rsi://"
             )
         status = twin.stop()
     assert status.reason == "stopped", status  # RSI ran to the end (no RSITimeout)
@@ -259,7 +258,7 @@ _LAGGING_GYRO_RUN = textwrap.dedent(
         settings = robot.settings.replace(
             still_s=2.0, gyro=dataclasses.replace(g, usb_latency_s=g.usb_latency_s + DELAY_S)
         )
-        run_calibration(robot, gyro, plan, sys.argv[1], settings=settings, progress=False)
+        run_calibration(robot, gyro, plan, sys.argv[1], protocol=settings.protocol, progress=False)
     table = extract_recording(sys.argv[1], progress=False).table
     err = np.abs(table["actuation_delay"] - table["true_actuation_delay"])
     print(list(table["flag"]), err.tolist())
@@ -303,7 +302,7 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> SimRun:
     with HostTimeTap(open_driver("sim://ur10?seed=4", q0_rad=plan.q_start_rad[0])) as robot:
         gyro = robot.gyro(seed=4)
         settings = robot.settings.replace(still_s=2.0)  # enough for the zero-rate and PSD
-        run_calibration(robot, gyro, plan, out, settings=settings, progress=False)
+        run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
         records = robot.controller.truth_records()
     with open(truth_path, "w", encoding="utf-8") as fh:
         fh.write(json.dumps({"event": "meta", "t0_monotonic_s": 0.0}) + "\n")
@@ -316,7 +315,7 @@ def test_twin_truth_table_reproduces_the_simulator_truth(sim_run: SimRun) -> Non
     """On the in-process simulator the runner records the simulator's own truth; the twin
     truth table, built only from the recording, the controller's truth records and the
     host-time log, gives the same delays: the definitions agree."""
-    from timedexec.sim._recording import RecordingReader
+    from timedexec.recording import RecordingReader
 
     out, truth_path, robot = sim_run
     truth = twin_truth_table(out, truth_path, host_times=robot)

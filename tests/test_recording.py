@@ -1,4 +1,4 @@
-"""Tests of the HDF5 recording store (timedexec.sim._recording).
+"""Tests of the HDF5 recording store (timedexec.recording._store).
 
 The crash tests run a writer in a subprocess and SIGKILL it, either after seeded random
 delays or at named points of the commit protocol (``TIMEDEXEC_RECORDING_FAULT``), then
@@ -24,13 +24,7 @@ import pytest
 
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, RecordingError
-from timedexec.sim._recording import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    Field,
-    RecordingReader,
-    RecordingWriter,
-)
+from timedexec.recording import FORMAT_NAME, FORMAT_VERSION, Field, RecordingReader, RecordingWriter
 
 HEADER = {
     "robot": {"name": "ur10", "period_s": 0.008},
@@ -82,7 +76,7 @@ import sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 import test_recording as T
-from timedexec.sim._recording import RecordingWriter
+from timedexec.recording._store import RecordingWriter
 
 path, seed, n = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 rng = np.random.default_rng(seed)
@@ -410,7 +404,7 @@ def test_failed_append_leaves_no_trace(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, error: BaseException
 ) -> None:
     """A journal write failing halfway (disk full, Ctrl-C) records nothing and breaks nothing."""
-    import timedexec.sim._recording as rec
+    import timedexec.recording._store as rec
 
     path = tmp_path / "r.h5"
     real_write_all = rec._write_all

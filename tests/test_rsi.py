@@ -1,4 +1,4 @@
-"""KUKA RSI driver and simulated KUKA controller (timedexec.drivers._rsi, timedexec.sim._rsi_twin).
+"""KUKA RSI driver and simulated KUKA controller (timedexec.drivers._rsi, timedexec.twins._rsi).
 
 Two kinds of tests:
 
@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 
 from timedexec._rsi_xml import SenFrame, build_rob, parse_sen
-from timedexec.drivers._rsi import KukaRSIDriver, RSIState
+from timedexec.drivers import KukaRSIDriver, RSIState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.robots import forward_kinematics, get_robot
-from timedexec.sim._rsi_twin import RSITwin, RSITwinConfig, free_udp_port, read_rsi_truth
-from timedexec.sim._settings import default_settings
+from timedexec.sim import default_settings
+from timedexec.twins import RSITwin, RSITwinConfig, free_udp_port, read_rsi_truth
 
 KR5 = get_robot("kr5")
 T12 = 0.012

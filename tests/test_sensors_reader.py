@@ -19,7 +19,8 @@ from timedexec.sensors import (
     open_gyro,
     raw_to_rad_s,
 )
-from timedexec.sim._gyro_twin import DEFAULT_BIAS_DPS, GyroTwin
+from timedexec.sim import DEFAULT_BIAS_DPS
+from timedexec.twins import GyroTwin
 
 NOISE_STD_RAD_S = math.radians(0.005 * math.sqrt(4000))  # MPU-6000 white noise at 8 kHz
 STILL_S = 1.0  # the test profile is still for its first second (zero-rate calibration)

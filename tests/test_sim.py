@@ -13,17 +13,18 @@ from timedexec.effects import (
     parse_effects,
 )
 from timedexec.errors import ConfigError
+from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
 from timedexec.sim import (
     ControllerSim,
     MoveJ,
     SpeedJ,
     SpeedStop,
-    SweepPlan,
     default_settings,
     pulse_profile,
+    simulate_block,
+    sweep_clock,
 )
-from timedexec.sim._batch import simulate_block, sweep_clock
 
 N = 192  # trials per effect comparison: 24 configurations x 4 joints x 2 directions
 

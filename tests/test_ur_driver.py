@@ -14,12 +14,10 @@ import time
 import numpy as np
 import pytest
 
-from timedexec.drivers._base import RobotDriver, RobotState
-from timedexec.drivers._ur import URDriver
+from timedexec.drivers import RobotDriver, RobotState, URDriver
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
-from timedexec.sim._controller import ControllerSim
-from timedexec.sim._settings import default_settings
-from timedexec.sim._ur_twin import URTwin, read_truth
+from timedexec.sim import ControllerSim, default_settings
+from timedexec.twins import URTwin, read_truth
 
 pytest.importorskip("rtde_receive")
 pytest.importorskip("rtde_control")

@@ -17,17 +17,9 @@ import pytest
 
 from timedexec.effects import EffectSet, default_effects, make_effect
 from timedexec.errors import ConfigError
-from timedexec.sim._controller import ControllerSim, SpeedJ
-from timedexec.sim._settings import default_settings
-from timedexec.sim._ur_twin import (
-    _OUTPUT_TYPES,
-    UR_CONTROLLER_VERSIONS,
-    URTwin,
-    _Recipe,
-    _split_program,
-    _TwinServer,
-    read_truth,
-)
+from timedexec.sim import ControllerSim, SpeedJ, default_settings
+from timedexec.twins import UR_CONTROLLER_VERSIONS, URTwin, read_truth
+from timedexec.twins._ur import _OUTPUT_TYPES, _Recipe, _split_program, _TwinServer
 
 rtde_receive = pytest.importorskip("rtde_receive")
 rtde_control = pytest.importorskip("rtde_control")
@@ -132,7 +124,7 @@ def test_type_table_covers_the_receive_defaults_with_the_client_sizes() -> None:
 def test_recipe_round_trip_and_short_input_packages() -> None:
     """Input packages decode by the negotiated types; a package shorter than its recipe
     (the client packs only the values a command uses) decodes the fields that fit."""
-    from timedexec.sim._ur_twin import _INPUT_TYPES
+    from timedexec.twins._ur import _INPUT_TYPES
 
     names = ["input_int_register_0", *[f"input_double_register_{i}" for i in range(8)],
              "input_int_register_1"]  # fmt: skip
@@ -451,7 +443,7 @@ def test_gyro_twin_measures_the_simulated_flange_rate(tmp_path: Path) -> None:
     """With ``imu_link`` the twin streams the physics' flange rate through the gyro twin:
     a joint 6 speedJ shows on the gyro's z axis at the commanded speed, starting at the
     ground-truth onset (mapped through the gyro's clock and its 0.98 ms filter delay)."""
-    pytest.importorskip("timedexec.sim._gyro_twin")
+    pytest.importorskip("timedexec.twins._gyro")
     host = "127.0.0.27"
     link = str(tmp_path / "gyro")
     truth = tmp_path / "truth.jsonl"
@@ -501,7 +493,7 @@ def test_run_ur_twin_serves_until_sigterm() -> None:
     import sys
 
     host = "127.0.0.28"
-    code = f"from timedexec.sim._ur_twin import run_ur_twin; run_ur_twin('ur10', {host!r})"
+    code = f"from timedexec.twins._ur import run_ur_twin; run_ur_twin('ur10', {host!r})"
     proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
     try:
         recv = None

@@ -16,7 +16,9 @@ __all__ = [
     "ProtocolError",
     "RecordingError",
     "SensorError",
+    "StaleStateError",
     "TimedExecError",
+    "UnreachableError",
 ]
 
 
@@ -50,3 +52,21 @@ class SensorError(TimedExecError, OSError):
 
 class ModelError(TimedExecError, ValueError):
     """A delay model or model bundle is invalid, corrupt or for another robot."""
+
+
+class StaleStateError(DriverTimeout):
+    """The state stream is older than the executor allows; the robot was stopped."""
+
+
+class UnreachableError(ConfigError):
+    """The target cannot be reached by the deadline at the requested confidence.
+
+    Attributes
+    ----------
+    miss_s : float
+        How late the robot would arrive (at the requested confidence), s.
+    """
+
+    def __init__(self, message: str, *, miss_s: float) -> None:
+        super().__init__(message)
+        self.miss_s = float(miss_s)

@@ -30,11 +30,16 @@ from timedexec._progress import Progress
 from timedexec._signal import ONSET_FRACTION
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverTimeout, RecordingError
+from timedexec.recording import (
+    Field,
+    RecordingReader,
+    RecordingWriter,
+    SweepPlan,
+    SweepProtocol,
+    trial_fields,
+    trial_layout,
+)
 from timedexec.sensors import GyroSamples
-from timedexec.sim import SimSettings, SweepPlan
-from timedexec.sim._batch import trial_layout
-from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
-from timedexec.sim._sweep import gyro_header, trial_fields
 
 __all__ = ["CalibrationResult", "GyroSource", "run_calibration"]
 
@@ -68,7 +73,7 @@ class CalibrationResult:
         }
 
 
-def _live_fields(settings: SimSettings, truth: bool) -> list[Field]:
+def _live_fields(settings: SweepProtocol, truth: bool) -> list[Field]:
     lay = trial_layout(settings)
     return [
         *trial_fields(settings, truth=False),
@@ -111,7 +116,7 @@ class _Session:
     """One run: the driver, the gyro buffer and the host clock origin."""
 
     def __init__(
-        self, driver: RobotDriver, gyro: GyroSource, settings: SimSettings, origin_s: float
+        self, driver: RobotDriver, gyro: GyroSource, settings: SweepProtocol, origin_s: float
     ) -> None:
         self.driver = driver
         self.gyro = gyro
@@ -295,7 +300,7 @@ def run_calibration(
     plan: SweepPlan,
     out: str | os.PathLike[str],
     *,
-    settings: SimSettings,
+    protocol: SweepProtocol,
     resume: bool = False,
     progress: bool = True,
     source: str = "",
@@ -312,8 +317,9 @@ def run_calibration(
         The trials.
     out : path
         Recording to write; refused if it exists unless ``resume``.
-    settings : SimSettings
-        Profile (the calibration motion), controller period and gyro description.
+    protocol : SweepProtocol
+        The calibration motion, controller period and the gyro's constants (a simulated
+        robot's: ``default_settings(robot).protocol``).
     resume : bool
         Continue a run of the same plan.
     progress : bool
@@ -321,6 +327,7 @@ def run_calibration(
     source : str
         Where the data came from (the robot URL), for the header.
     """
+    settings = protocol
     if plan.robot != settings.robot:
         raise ConfigError(f"plan is for {plan.robot}, the settings for {settings.robot}")
     truth = hasattr(driver, "true_onset_s")
@@ -329,7 +336,7 @@ def run_calibration(
         "robot": settings.spec.to_dict(),
         "profile": settings.profile.to_dict(),
         "controller_period_s": settings.controller_period_s,
-        "gyro": gyro_header(settings.gyro),
+        "gyro": settings.gyro.to_dict(),
         "plan": plan.meta(),
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }

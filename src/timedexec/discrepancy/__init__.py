@@ -17,7 +17,13 @@ from timedexec.discrepancy._conditions import (
     group_conditions,
     replicate_noise,
 )
-from timedexec.discrepancy._model import FittedModel, SimModel, calibrate
+from timedexec.discrepancy._model import (
+    SIMULATED_EFFECTS,
+    FittedModel,
+    SimModel,
+    calibrate,
+    deterministic_settings,
+)
 from timedexec.discrepancy._report import write_report
 from timedexec.discrepancy._workflow import (
     DiscrepancyResult,
@@ -27,6 +33,8 @@ from timedexec.discrepancy._workflow import (
 )
 
 __all__ = [
+    "SIMULATED_EFFECTS",
+    "deterministic_settings",
     "CandidateScore",
     "Conditions",
     "DiscrepancyResult",

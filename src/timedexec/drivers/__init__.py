@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from timedexec.drivers._base import RobotDriver, RobotState
+from timedexec.drivers._tap import HostTimeTap
 from timedexec.drivers._url import SCHEMES, open_driver
 
 if TYPE_CHECKING:
@@ -17,7 +18,9 @@ if TYPE_CHECKING:
     from timedexec.drivers._ur import URDriver
 
 __all__ = [
+    "RSIState",
     "SCHEMES",
+    "HostTimeTap",
     "KukaRSIDriver",
     "RobotDriver",
     "RobotState",
@@ -28,6 +31,7 @@ __all__ = [
 ]
 
 _LAZY = {
+    "RSIState": "timedexec.drivers._rsi",
     "SimDriver": "timedexec.drivers._sim",
     "VirtualGyro": "timedexec.drivers._sim",
     "URDriver": "timedexec.drivers._ur",

@@ -287,7 +287,7 @@ class KukaRSIDriver(RobotDriver):
         configurations). 0 binds an ephemeral port (see :attr:`port`), handy for tests.
     host : str, optional
         Address to bind. The default, loopback, serves the simulated controller
-        (:class:`timedexec.sim._rsi_twin.RSITwin`); for a real robot bind the PC's address
+        (:class:`timedexec.twins._rsi.RSITwin`); for a real robot bind the PC's address
         on the RSI network (or ``"0.0.0.0"``).
     robot : str or RobotSpec, optional
         Robot spec (limits, default period); ``"kr5"`` by default.

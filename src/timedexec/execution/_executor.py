@@ -31,7 +31,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
-from timedexec.errors import ConfigError, DriverError, DriverTimeout, ModelError
+from timedexec.errors import (
+    ConfigError,
+    DriverError,
+    DriverTimeout,
+    ModelError,
+    StaleStateError,
+    UnreachableError,
+)
 from timedexec.execution._bounds import TimingBounds, check_confidence, delay_cdf, delay_quantile
 from timedexec.execution._model import (
     DelayPredictions,
@@ -58,24 +65,6 @@ FloatArray = NDArray[np.float64]
 
 #: Window of the lower-envelope clock model (arrival minus controller time), s.
 ENVELOPE_S = 0.5
-
-
-class StaleStateError(DriverTimeout):
-    """The state stream is older than the executor allows; the robot was stopped."""
-
-
-class UnreachableError(ConfigError):
-    """The target cannot be reached by the deadline at the requested confidence.
-
-    Attributes
-    ----------
-    miss_s : float
-        How late the robot would arrive (at the requested confidence), s.
-    """
-
-    def __init__(self, message: str, *, miss_s: float) -> None:
-        super().__init__(message)
-        self.miss_s = float(miss_s)
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._validation import check_joint_array
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec
 
@@ -98,15 +99,6 @@ class ExecutionLimits:
         return cls(**d)
 
 
-def _vec6(name: str, value: ArrayLike) -> FloatArray:
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (6,):
-        raise ConfigError(f"{name}: incorrect vector length: expected 6, got {arr.size}")
-    if not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{name}: values must be finite, got {arr.tolist()}")
-    return arr
-
-
 def check_target(
     spec: RobotSpec, q_rad: ArrayLike, qd_rad_s: ArrayLike | None = None, *, what: str = "target"
 ) -> tuple[FloatArray, FloatArray]:
@@ -117,8 +109,8 @@ def check_target(
     ConfigError
         Naming the joint, the value and the allowed range.
     """
-    q = _vec6(f"{what} position", q_rad)
-    qd = np.zeros(6) if qd_rad_s is None else _vec6(f"{what} velocity", qd_rad_s)
+    q = check_joint_array(f"{what} position", q_rad)
+    qd = np.zeros(6) if qd_rad_s is None else check_joint_array(f"{what} velocity", qd_rad_s)
     lo, hi = np.asarray(spec.q_min_rad), np.asarray(spec.q_max_rad)
     for j in range(6):
         if not lo[j] <= q[j] <= hi[j]:
@@ -305,8 +297,8 @@ def plan_motion(
     """
     from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
 
-    q0 = _vec6("start position", q_start_rad)
-    qd0 = np.zeros(6) if qd_start_rad_s is None else _vec6("start velocity", qd_start_rad_s)
+    q0 = check_joint_array("start position", q_start_rad)
+    qd0 = np.zeros(6) if qd_start_rad_s is None else check_joint_array("start velocity", qd_start_rad_s)
     q1, qd1 = check_target(spec, target_q_rad, target_qd_rad_s)
     vmax, amax, jmax = limits.velocity(spec), limits.acceleration(spec), limits.jerk(spec)
     over = np.abs(qd1) > vmax * (1 + 1e-12)

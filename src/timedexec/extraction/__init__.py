@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from timedexec.extraction._extract import (
     METHODS,
+    REQUIRED_FIELDS,
     ExtractionResult,
     extract_recording,
     trial_traces,
@@ -11,6 +12,7 @@ from timedexec.extraction._extract import (
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
+    "REQUIRED_FIELDS",
     "METHODS",
     "ExtractionResult",
     "StillAnalysis",

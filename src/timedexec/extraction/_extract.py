@@ -47,8 +47,8 @@ from timedexec._signal import ONSET_FRACTION, fit_shift, interp_rows
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
+from timedexec.recording import RecordingReader
 from timedexec.sensors import fit_clock_lower_envelope, unwrap_counter
-from timedexec.sim._recording import RecordingReader
 
 __all__ = ["METHODS", "ExtractionResult", "extract_recording"]
 

@@ -27,14 +27,24 @@ from timedexec.learning._features import (
     encode_inputs,
     feature_names,
 )
-from timedexec.learning._gpcore import GPPredictor
+from timedexec.learning._gpcore import (
+    GPPairPredictor,
+    GPPredictor,
+    build_predictor,
+    condition_exact,
+    condition_fitc,
+    neg_log_likelihood,
+    predictor_from_arrays,
+)
 from timedexec.learning._train import (
     DELAYS,
     METHODS,
     PAPER_TABLES,
     CVResult,
     TrainResult,
+    check_methods,
     cross_validate,
+    fold_of_configuration,
     make_estimator,
     noise_floor,
     train_delay_models,
@@ -65,6 +75,14 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "GPPairPredictor",
+    "predictor_from_arrays",
+    "fold_of_configuration",
+    "neg_log_likelihood",
+    "condition_fitc",
+    "condition_exact",
+    "build_predictor",
+    "check_methods",
     "ARRAYS_NAME",
     "BUNDLE_FORMAT",
     "DELAYS",

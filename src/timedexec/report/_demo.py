@@ -81,12 +81,12 @@ def run_demo(
         ``conveyor`` (physical seam lag without and with compensation), ``seconds`` per
         step, and the paths written.
     """
+    from timedexec.evaluation import evaluate
     from timedexec.execution import compare_seam_tracking
-    from timedexec.execution._evaluate import evaluate
     from timedexec.extraction import extract_recording
     from timedexec.learning import train_delay_models
     from timedexec.report._report import build_report, delay_summary
-    from timedexec.sim._sweep import simulate_sweep
+    from timedexec.sim import simulate_sweep
 
     spec = get_robot(robot)
     if trials < 160:

@@ -102,7 +102,7 @@ class SimGyroPort:
         # package only when a sim:// port is opened keeps plain serial use free of it.
         import numpy as np
 
-        from timedexec.sim._gyro_twin import GyroFrameSource, constant_rate_source
+        from timedexec.sim import GyroFrameSource, constant_rate_source
 
         params = parse_sim_url(url)
         rate_dps = params.pop("rate_dps", None)

@@ -1,14 +1,16 @@
-"""timedexec.sim: the simulated robots.
+"""timedexec.sim: the simulated robots (simulation only: no sockets, no pseudo-terminals).
 
-Joint physics, control-box timing and the gyro; the batch sweep simulator (virtual time,
-vectorised across trials); the stepped controller behind the protocol twins; the sweep plan;
-the recording format.
+Joint physics (:class:`JointBank`), the control box's timing (:class:`ControllerSim`, stepped
+cycle by cycle, behind the protocol twins of :mod:`timedexec.twins`), the simulated gyro
+(:class:`GyroFrameSource` and its rate sources), the settings calibrated to the published
+statistics (:func:`default_settings`) and the vectorised batch sweep
+(:func:`simulate_sweep`, :func:`simulate_delays`), which writes through
+:mod:`timedexec.recording`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
-
+from timedexec.sim._batch import BLOCK_TRIALS, SweepClock, simulate_block, sweep_clock
 from timedexec.sim._controller import (
     ControllerSim,
     CycleResult,
@@ -20,65 +22,40 @@ from timedexec.sim._controller import (
     StopJ,
     TruthEvent,
 )
-from timedexec.sim._physics import JointBank, JointParams, pulse_profile
-from timedexec.sim._plan import SweepPlan, calibration_ranges
-from timedexec.sim._recording import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    Field,
-    RecordingReader,
-    RecordingWriter,
+from timedexec.sim._gyro import (
+    DEFAULT_BIAS_DPS,
+    FULL_SCALE_SENSITIVITY,
+    GyroFrameSource,
+    RateSource,
+    constant_rate_source,
+    device_frames,
+    sine_rate_source,
+    step_rate_source,
 )
+from timedexec.sim._physics import JointBank, JointParams, pulse_profile
 from timedexec.sim._settings import (
-    GyroSettings,
+    GyroModel,
     ServoSettings,
     SimSettings,
     TimingSettings,
-    TrialProfile,
     default_settings,
+    with_gyro_latency,
 )
-from timedexec.sim._sweep import simulate_delays, simulate_sweep, truth_table
-
-if TYPE_CHECKING:
-    from timedexec.sim._gyro_twin import GyroFrameSource, GyroTwin
-    from timedexec.sim._rsi_twin import RSITwin, read_rsi_truth
-    from timedexec.sim._ur_twin import URTwin, read_truth, run_ur_twin
-
-# Protocol twins load on first use: they pull in sockets, multiprocessing and pty code.
-_LAZY = {
-    "URTwin": "timedexec.sim._ur_twin",
-    "run_ur_twin": "timedexec.sim._ur_twin",
-    "read_truth": "timedexec.sim._ur_twin",
-    "RSITwin": "timedexec.sim._rsi_twin",
-    "read_rsi_truth": "timedexec.sim._rsi_twin",
-    "GyroTwin": "timedexec.sim._gyro_twin",
-    "GyroFrameSource": "timedexec.sim._gyro_twin",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'timedexec.sim' has no attribute {name!r}")
-
+from timedexec.sim._sweep import SweepResult, simulate_delays, simulate_sweep, truth_table
 
 __all__ = [
-    "FORMAT_NAME",
-    "FORMAT_VERSION",
+    "BLOCK_TRIALS",
+    "simulate_block",
+    "DEFAULT_BIAS_DPS",
+    "FULL_SCALE_SENSITIVITY",
     "ControllerSim",
     "CycleResult",
-    "Field",
     "GyroFrameSource",
-    "GyroSettings",
-    "GyroTwin",
+    "GyroModel",
     "JointBank",
     "JointParams",
     "MoveJ",
-    "RSITwin",
-    "RecordingReader",
-    "RecordingWriter",
+    "RateSource",
     "ServoJ",
     "ServoSettings",
     "SimSettings",
@@ -86,18 +63,19 @@ __all__ = [
     "SpeedStop",
     "StatePacket",
     "StopJ",
-    "SweepPlan",
+    "SweepClock",
+    "SweepResult",
     "TimingSettings",
-    "TrialProfile",
     "TruthEvent",
-    "URTwin",
-    "calibration_ranges",
+    "constant_rate_source",
     "default_settings",
+    "device_frames",
     "pulse_profile",
-    "read_rsi_truth",
-    "read_truth",
-    "run_ur_twin",
     "simulate_delays",
     "simulate_sweep",
+    "sine_rate_source",
+    "step_rate_source",
+    "sweep_clock",
     "truth_table",
+    "with_gyro_latency",
 ]

@@ -32,9 +32,9 @@ from numpy.typing import NDArray
 
 from timedexec._signal import ONSET_FRACTION, interp_rows
 from timedexec.effects import EffectSet
+from timedexec.recording import SweepPlan, trial_layout
 from timedexec.robots import RobotSpec, joint_axis_in_tool
 from timedexec.sim._physics import JointBank, joint_params, pulse_profile
-from timedexec.sim._plan import SweepPlan
 from timedexec.sim._settings import SimSettings
 
 __all__ = [
@@ -43,31 +43,12 @@ __all__ = [
     "iter_blocks",
     "simulate_block",
     "sweep_clock",
-    "trial_layout",
 ]
 
 #: Trials per random-number block (fixed: changing it changes the output for a seed).
 BLOCK_TRIALS = 512
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class TrialLayout:
-    """Fixed per-trial array sizes of a sweep."""
-
-    n_packages: int
-    n_gyro: int
-    n_blocks: int
-
-
-def trial_layout(settings: SimSettings) -> TrialLayout:
-    """Package and gyro-sample counts per trial for these settings."""
-    prof, gyro = settings.profile, settings.gyro
-    n_packages = math.floor(prof.record_s / settings.controller_period_s)
-    n_gyro = round((prof.pre_s + prof.record_s) * gyro.nominal_rate_hz)
-    n_gyro -= n_gyro % gyro.block_samples
-    return TrialLayout(n_packages, n_gyro, n_gyro // gyro.block_samples)
 
 
 @dataclass(frozen=True)
@@ -141,7 +122,7 @@ def simulate_block(
     """
     rng = np.random.default_rng([seed, 1, int(rows[0])])
     n = len(rows)
-    lay = trial_layout(settings)
+    lay = trial_layout(settings.protocol)
     timing, gyro, prof = settings.timing, settings.gyro, settings.profile
     period = settings.controller_period_s
     joint = plan.joint[rows]

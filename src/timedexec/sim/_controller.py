@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._validation import check_joint_array
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, check_configuration, get_robot, joint_axis_in_tool
@@ -41,15 +42,6 @@ _JOINTS = np.arange(1, 7)
 #: Period of the slow drift of the state publisher's phase against the control cycle, s.
 #: A triangle wave: within one trial (< 1 s) the phase moves by < 0.3 ms, never jumps.
 PHASE_DRIFT_PERIOD_S = 47.0
-
-
-def _vec6(name: str, value: ArrayLike) -> FloatArray:
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (6,):
-        raise ConfigError(f"{name}: incorrect vector length: expected 6, got {arr.size}")
-    if not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{name}: values must be finite, got {arr.tolist()}")
-    return arr
 
 
 @dataclass(frozen=True)
@@ -286,7 +278,7 @@ class ControllerSim:
     def _validate(self, command: Command) -> Command:
         spec = self.spec
         if isinstance(command, SpeedJ):
-            qd = _vec6("speedj qd_rad_s", command.qd_rad_s)
+            qd = check_joint_array("speedj qd_rad_s", command.qd_rad_s)
             over = np.abs(qd) > np.asarray(spec.qd_max_rad_s) * (1 + 1e-9)
             if over.any():
                 j = int(np.flatnonzero(over)[0])
@@ -303,7 +295,7 @@ class ControllerSim:
             return command
         if isinstance(command, ServoJ | MoveJ):
             q = check_configuration(
-                spec, _vec6(f"{type(command).__name__.lower()} q_rad", command.q_rad)
+                spec, check_joint_array(f"{type(command).__name__.lower()} q_rad", command.q_rad)
             )
             if isinstance(command, MoveJ):
                 self._check_accel("movej", command.acceleration_rad_s2)

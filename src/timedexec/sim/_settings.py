@@ -16,55 +16,23 @@ from typing import Any
 
 import numpy as np
 
+from timedexec._validation import DictMixin, check_joint_tuple, check_non_negative, check_positive
 from timedexec.errors import ConfigError
+from timedexec.recording import GyroHeader, SweepProtocol, TrialProfile
 from timedexec.robots import RobotSpec, get_robot, joint_inertia
 
 __all__ = [
-    "GyroSettings",
+    "GyroModel",
     "ServoSettings",
     "SimSettings",
     "TimingSettings",
-    "TrialProfile",
     "default_settings",
+    "with_gyro_latency",
 ]
 
 
-def _positive(owner: str, **values: float) -> None:
-    for name, value in values.items():
-        if not value > 0:
-            raise ConfigError(f"{owner}: {name}={value!r} must be > 0")
-
-
-def _non_negative(owner: str, **values: float) -> None:
-    for name, value in values.items():
-        if not value >= 0:
-            raise ConfigError(f"{owner}: {name}={value!r} must be >= 0")
-
-
-def _six(owner: str, name: str, value: Any) -> tuple[float, ...]:
-    out = tuple(float(v) for v in value)
-    if len(out) != 6:
-        raise ConfigError(f"{owner}: {name} needs 6 values (one per joint), got {len(out)}")
-    return out
-
-
-class _DictMixin:
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dict (tuples become lists)."""
-        out: dict[str, Any] = {}
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
-            v = getattr(self, f.name)
-            if dataclasses.is_dataclass(v) and not isinstance(v, type):
-                out[f.name] = v.to_dict()  # type: ignore[attr-defined]
-            elif isinstance(v, tuple):
-                out[f.name] = list(v)
-            else:
-                out[f.name] = v
-        return out
-
-
 @dataclass(frozen=True, kw_only=True)
-class TimingSettings(_DictMixin):
+class TimingSettings(DictMixin):
     """Control-box and network timing.
 
     Parameters
@@ -104,7 +72,7 @@ class TimingSettings(_DictMixin):
         if not 0 <= lo <= hi:
             raise ConfigError(f"timing: packing_phase_s=({lo}, {hi}) needs 0 <= low <= high")
         object.__setattr__(self, "packing_phase_s", (lo, hi))
-        _non_negative(
+        check_non_negative(
             "timing",
             cycle_jitter_s=self.cycle_jitter_s,
             to_host_latency_s=self.to_host_latency_s,
@@ -116,7 +84,7 @@ class TimingSettings(_DictMixin):
 
 
 @dataclass(frozen=True, kw_only=True)
-class ServoSettings(_DictMixin):
+class ServoSettings(DictMixin):
     """Per-joint drive physics: velocity loop, current loop, friction, torque limit.
 
     The velocity loop is a PI controller with gravity feed-forward, tuned for the joint's
@@ -165,10 +133,10 @@ class ServoSettings(_DictMixin):
 
     def __post_init__(self) -> None:
         for name in ("bandwidth_hz", "breakaway_nm", "viscous_nms"):
-            object.__setattr__(self, name, _six("servo", name, getattr(self, name)))
+            object.__setattr__(self, name, check_joint_tuple("servo", name, getattr(self, name)))
         if min(self.bandwidth_hz) <= 0 or min(self.breakaway_nm) < 0 or min(self.viscous_nms) < 0:
             raise ConfigError("servo: bandwidth_hz must be > 0, breakaway_nm and viscous_nms >= 0")
-        _positive(
+        check_positive(
             "servo",
             integral_ratio=self.integral_ratio,
             current_time_constant_s=self.current_time_constant_s,
@@ -184,7 +152,7 @@ class ServoSettings(_DictMixin):
 
 
 @dataclass(frozen=True, kw_only=True)
-class GyroSettings(_DictMixin):
+class GyroModel(DictMixin):
     """The MPU-6000 on the flange, as the simulator models it.
 
     Parameters
@@ -234,8 +202,8 @@ class GyroSettings(_DictMixin):
             )
         if not isinstance(self.block_samples, int) or self.block_samples < 1:
             raise ConfigError(f"gyro: block_samples={self.block_samples!r} must be an int >= 1")
-        _positive("gyro", nominal_rate_hz=self.nominal_rate_hz)
-        _non_negative(
+        check_positive("gyro", nominal_rate_hz=self.nominal_rate_hz)
+        check_non_negative(
             "gyro",
             noise_density_dps_rthz=self.noise_density_dps_rthz,
             bias_dps=self.bias_dps,
@@ -244,6 +212,16 @@ class GyroSettings(_DictMixin):
             group_delay_s=self.group_delay_s,
             usb_latency_s=self.usb_latency_s,
             usb_jitter_s=self.usb_jitter_s,
+        )
+
+    def header(self) -> GyroHeader:
+        """What a recording states about this sensor (the ``gyro`` header entry)."""
+        return GyroHeader(
+            full_scale_dps=self.full_scale_dps,
+            nominal_rate_hz=self.nominal_rate_hz,
+            block_samples=self.block_samples,
+            group_delay_s=self.group_delay_s,
+            transport_latency_s=self.usb_latency_s,
         )
 
     @property
@@ -258,79 +236,22 @@ class GyroSettings(_DictMixin):
 
 
 @dataclass(frozen=True, kw_only=True)
-class TrialProfile(_DictMixin):
-    """The calibration motion of one trial and the recording window.
-
-    One joint moves out and back: accelerate at ``acceleration_rad_s2`` to ``speed_rad_s``,
-    hold for ``hold_s``, decelerate to rest, pause ``pause_s``, then the mirror image back to
-    the start pose. Trial time 0 is the arrival of the state package that triggers the
-    command; the recording covers ``[-pre_s, record_s)``.
-    """
-
-    speed_rad_s: float = 0.4
-    acceleration_rad_s2: float = 8.0
-    hold_s: float = 0.05
-    pause_s: float = 0.15
-    pre_s: float = 0.05
-    record_s: float = 0.65
-
-    def __post_init__(self) -> None:
-        _positive(
-            "profile",
-            speed_rad_s=self.speed_rad_s,
-            acceleration_rad_s2=self.acceleration_rad_s2,
-            record_s=self.record_s,
-        )
-        _non_negative("profile", hold_s=self.hold_s, pause_s=self.pause_s, pre_s=self.pre_s)
-        if self.pause_s + self.pulse_s < self.pulse_s + 0.14:
-            raise ConfigError(
-                f"profile: pause_s={self.pause_s} s must be >= 0.14 s so the out pulse can be "
-                "aligned without the return pulse (delays up to 0.12 s)"
-            )
-
-    @property
-    def pulse_s(self) -> float:
-        """Duration of one pulse (out or back), s."""
-        return 2.0 * self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s
-
-    @property
-    def duration_s(self) -> float:
-        """Commanded motion duration, out and back, s."""
-        return 2.0 * self.pulse_s + self.pause_s
-
-    @property
-    def template(self) -> dict[str, Any]:
-        """Keyword arguments of :func:`~timedexec.sim.pulse_profile` for this motion."""
-        return {
-            "speed_rad_s": self.speed_rad_s,
-            "acceleration_rad_s2": self.acceleration_rad_s2,
-            "hold_s": self.hold_s,
-            "pause_s": self.pause_s,
-        }
-
-    @property
-    def displacement_rad(self) -> float:
-        """Joint travel of the out pulse, rad."""
-        return self.speed_rad_s * (self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s)
-
-
-@dataclass(frozen=True, kw_only=True)
-class SimSettings(_DictMixin):
+class SimSettings(DictMixin):
     """Everything the simulator needs beyond the robot spec and the effect set."""
 
     robot: str
     controller_period_s: float
     timing: TimingSettings
     servo: ServoSettings
-    gyro: GyroSettings = dataclasses.field(default_factory=GyroSettings)
+    gyro: GyroModel = dataclasses.field(default_factory=GyroModel)
     profile: TrialProfile = dataclasses.field(default_factory=TrialProfile)
     still_s: float = 10.0
     config_move_s: float = 3.0
     trial_gap_s: float = 0.3
 
     def __post_init__(self) -> None:
-        _positive("settings", controller_period_s=self.controller_period_s)
-        _non_negative(
+        check_positive("settings", controller_period_s=self.controller_period_s)
+        check_non_negative(
             "settings",
             still_s=self.still_s,
             config_move_s=self.config_move_s,
@@ -342,6 +263,19 @@ class SimSettings(_DictMixin):
                 f"timing: packing_phase_s upper bound {hi} s must be below the controller period "
                 f"{self.controller_period_s} s (use response_extra_cycle for whole periods)"
             )
+
+    @property
+    def protocol(self) -> SweepProtocol:
+        """The sweep protocol these settings run (what a live run needs of them)."""
+        return SweepProtocol(
+            robot=self.robot,
+            controller_period_s=self.controller_period_s,
+            profile=self.profile,
+            gyro=self.gyro.header(),
+            still_s=self.still_s,
+            config_move_s=self.config_move_s,
+            trial_gap_s=self.trial_gap_s,
+        )
 
     @property
     def spec(self) -> RobotSpec:
@@ -357,7 +291,7 @@ class SimSettings(_DictMixin):
         return cls(
             timing=TimingSettings(**timing),
             servo=ServoSettings(**d.pop("servo")),
-            gyro=GyroSettings(**d.pop("gyro")),
+            gyro=GyroModel(**d.pop("gyro")),
             profile=TrialProfile(**d.pop("profile")),
             **d,
         )
@@ -415,3 +349,9 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
     return SimSettings(
         robot=spec.name, controller_period_s=period, timing=timing, servo=servo, profile=profile
     )
+
+
+def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
+    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least): the
+    transport latency measured by :func:`timedexec.twins.measure_gyro_transport_latency`."""
+    return settings.replace(gyro=dataclasses.replace(settings.gyro, usb_latency_s=latency_s))

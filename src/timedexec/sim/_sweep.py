@@ -16,136 +16,22 @@ from timedexec._progress import Progress
 from timedexec.delays import DelayTable
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError, RecordingError
+from timedexec.recording import RecordingReader, RecordingWriter, SweepPlan, trial_fields
 from timedexec.robots import RobotSpec, get_robot
 from timedexec.sim._batch import (
     SweepClock,
     iter_blocks,
     simulate_block,
     sweep_clock,
-    trial_layout,
 )
-from timedexec.sim._plan import SweepPlan
-from timedexec.sim._recording import Field, RecordingReader, RecordingWriter
-from timedexec.sim._settings import GyroSettings, SimSettings, default_settings
+from timedexec.sim._settings import SimSettings, default_settings
 
 __all__ = [
     "SweepResult",
-    "gyro_header",
     "simulate_delays",
     "simulate_sweep",
-    "trial_fields",
     "truth_table",
 ]
-
-
-def trial_fields(settings: SimSettings, *, truth: bool = True) -> list[Field]:
-    """The per-trial fields of a recording made with ``settings``.
-
-    The live runner records the same fields except the ``true_*`` ground truth.
-    """
-    lay = trial_layout(settings)
-    p, g, b = lay.n_packages, lay.n_gyro, lay.n_blocks
-    fields = [
-        Field("trial", (), "int64", "", "plan index of the trial"),
-        Field(
-            "t0_s",
-            (),
-            "float64",
-            "s",
-            "host sweep time of the trigger package's arrival (trial time 0)",
-        ),
-        Field("cmd_send_time_s", (), "float64", "s", "host send time of the command, trial time"),
-        Field("cmd_qd_rad_s", (6,), "float64", "rad/s", "commanded joint speeds of the out pulse"),
-        Field(
-            "state_host_time_s",
-            (p,),
-            "float64",
-            "s",
-            "host arrival time of each state package, trial time (NaN: none)",
-        ),
-        Field(
-            "state_controller_time_s", (p,), "float64", "s", "controller time stamp of each package"
-        ),
-        Field("state_q_rad", (p, 6), "float32", "rad", "reported joint positions"),
-        Field(
-            "state_qd_rad_s",
-            (p, 6),
-            "float32",
-            "rad/s",
-            "reported joint speeds (RSI: host backward difference)",
-        ),
-        Field("gyro_raw", (g, 3), "int16", "LSB", "gyro rate counts, sensor axes"),
-        Field("gyro_counter", (g,), "uint16", "", "sensor sample counter (wraps at 65536)"),
-        Field(
-            "gyro_block_host_time_s",
-            (b,),
-            "float32",
-            "s",
-            "host arrival time of each block of gyro samples, trial time",
-        ),
-    ]
-    if truth:
-        fields += [
-            Field(
-                "true_onset_s",
-                (),
-                "float64",
-                "s",
-                "physical speed reaches the onset threshold, trial time",
-            ),
-            Field(
-                "true_actuation_delay_s",
-                (),
-                "float64",
-                "s",
-                "true onset - (send time + commanded ramp time to the threshold)",
-            ),
-            Field(
-                "true_response_delay_s",
-                (),
-                "float64",
-                "s",
-                "mean (package arrival - its sampling instant)",
-            ),
-            Field(
-                "true_reference_start_s",
-                (),
-                "float64",
-                "s",
-                "reference reaches the drive, trial time",
-            ),
-            Field("true_intake_s", (), "float64", "s", "controller takes the command, trial time"),
-            Field(
-                "true_gravity_torque_nm",
-                (),
-                "float64",
-                "N·m",
-                "holding torque of the actuated joint",
-            ),
-            Field(
-                "true_inertia_kgm2",
-                (),
-                "float64",
-                "kg·m²",
-                "reflected inertia of the actuated joint",
-            ),
-        ]
-    return fields
-
-
-def gyro_header(gyro: GyroSettings) -> dict[str, Any]:
-    """What extraction needs to know of the gyro (the header's ``gyro`` entry): the
-    sensitivity, the nominal rate, the samples per host block, and the two known constant
-    latencies to compensate — the sensor's filter group delay and the minimum transport
-    latency from sampling to host arrival (not observable from arrival times)."""
-    return {
-        "lsb_per_dps": gyro.lsb_per_dps,
-        "nominal_rate_hz": gyro.nominal_rate_hz,
-        "block_samples": gyro.block_samples,
-        "group_delay_s": gyro.group_delay_s,
-        "transport_latency_s": gyro.usb_latency_s,
-        "full_scale_dps": gyro.full_scale_dps,
-    }
 
 
 def _still_recording(
@@ -257,11 +143,11 @@ def simulate_sweep(
         "seed": seed,
         "profile": settings.profile.to_dict(),
         "controller_period_s": settings.controller_period_s,
-        "gyro": gyro_header(settings.gyro),
+        "gyro": settings.gyro.header().to_dict(),
         "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }
-    fields = trial_fields(settings)
+    fields = trial_fields(settings.protocol)
     with RecordingWriter(out, header=header, fields=fields, resume=resume) as writer:
         if resume:
             old = writer.header

@@ -89,8 +89,7 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
 def _cmd_train(args: argparse.Namespace, emit: Emit) -> int:
     from timedexec.delays import DelayTable
     from timedexec.errors import ConfigError
-    from timedexec.learning import train_delay_models
-    from timedexec.learning._train import check_methods
+    from timedexec.learning import check_methods, train_delay_models
 
     methods = check_methods(args.methods)
     if args.folds < 0 or args.folds == 1:

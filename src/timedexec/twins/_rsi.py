@@ -412,7 +412,7 @@ def _flange_pose(spec: Any, q: FloatArray) -> FloatArray:
 def _default_factory(
     robot: str, *, effects: EffectSet | None, q0_rad: Any, seed: int, period_s: float
 ) -> Any:
-    from timedexec.sim._controller import ControllerSim
+    from timedexec.sim import ControllerSim
 
     # 4 kHz physics: a real-time twin must finish each cycle well inside it (8 kHz cost
     # 4-8 ms of a 12 ms cycle on this class of machine); the truth is unchanged in kind.
@@ -580,7 +580,7 @@ class _Engine:
             self._wake()
 
     def _physics(self) -> None:
-        from timedexec.sim._controller import ServoJ, StopJ
+        from timedexec.sim import ServoJ, StopJ
 
         sim = self.sim
         period = self.period_s

@@ -313,9 +313,9 @@ def _default_sim_factory(
     seed: int,
     physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
 ) -> _SimLike:
-    from timedexec.sim import _controller
+    from timedexec.sim import ControllerSim
 
-    sim: _SimLike = _controller.ControllerSim(
+    sim: _SimLike = ControllerSim(
         robot, effects=effects, q0_rad=q0_rad, seed=seed, physics_rate_hz=physics_rate_hz
     )
     return sim
@@ -330,7 +330,7 @@ def _resolve_factory(factory: str | Callable[..., _SimLike] | None) -> Callable[
     if not attr:
         raise ConfigError(
             f"sim_factory={factory!r}: expected 'module:callable', e.g. "
-            "'timedexec.sim._controller:ControllerSim'"
+            "'timedexec.sim:ControllerSim'"
         )
     result: Callable[..., _SimLike] = getattr(importlib.import_module(module_name), attr)
     return result
@@ -1207,16 +1207,11 @@ class _TwinServer:
         self._truth_file.flush()
 
     def _start_gyro(self) -> None:
-        """Start the gyro twin (``timedexec.sim._gyro_twin``) fed by the flange rate."""
+        """Start the gyro twin (``timedexec.twins._gyro``) fed by the flange rate."""
         if self._imu_link is None:
             return
-        try:
-            gyro_mod = importlib.import_module("timedexec.sim._gyro_twin")
-        except ImportError as exc:
-            raise ConfigError(
-                f"imu_link={self._imu_link!r} needs the gyro twin (timedexec.sim._gyro_twin), "
-                f"which is not available: {exc}"
-            ) from exc
+        from timedexec.twins import _gyro as gyro_mod
+
         server = self
 
         def rate_source(t0_s: float, t1_s: float) -> np.ndarray:
@@ -1469,7 +1464,7 @@ def run_ur_twin(
     truth_path : path, optional
         JSON-lines file the ground truth is appended to (see :func:`read_truth`).
     imu_link : str, optional
-        Path of a pseudo-terminal link for the simulated gyro (``timedexec.sim._gyro_twin``).
+        Path of a pseudo-terminal link for the simulated gyro (``timedexec.twins._gyro``).
     stop_event : threading.Event or multiprocessing.Event, optional
         Stops the server when set. SIGTERM and SIGINT also stop it when this runs in the
         main thread.
@@ -1776,7 +1771,7 @@ def read_truth(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[int, 
         arrival_s, intake_s, reference_start_s, onset_s per joint with None for "not yet";
         all in controller time, s).
     """
-    from timedexec.sim._truthlog import iter_truth_records
+    from timedexec.twins._truth import iter_truth_records
 
     meta: dict[str, Any] = {}
     commands: dict[int, dict[str, Any]] = {}

@@ -36,21 +36,19 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec._progress import Progress
 from timedexec.effects import EffectSet, ThermalDrift, default_effects
 from timedexec.errors import ConfigError
-from timedexec.execution._bounds import TimingBounds
-from timedexec.execution._model import (
+from timedexec.execution import (
     DelayPredictions,
     DelayPredictor,
     FixedDelays,
+    TimingBounds,
     check_model_robot,
     load_delay_model,
     model_period_s,
     predict_delays,
 )
+from timedexec.recording import FULL_SWEEP_TRIALS, SweepPlan
 from timedexec.robots import get_robot
-from timedexec.sim import default_settings
-from timedexec.sim._batch import sweep_clock
-from timedexec.sim._plan import FULL_SWEEP_TRIALS, SweepPlan
-from timedexec.sim._sweep import simulate_delays
+from timedexec.sim import default_settings, simulate_delays, sweep_clock
 
 __all__ = [
     "STRATEGIES",
@@ -227,9 +225,8 @@ def _seam_physics(
     bar: Progress,
 ) -> dict[str, FloatArray]:
     """Mean physical seam distance (m) per strategy and configuration (stepped simulator)."""
-    from timedexec.drivers._sim import SimDriver
-    from timedexec.execution._executor import TimedExecutor
-    from timedexec.execution._tasks import track_seam
+    from timedexec.drivers import SimDriver
+    from timedexec.execution import TimedExecutor, track_seam
 
     out: dict[str, list[float]] = {name: [] for name in predictors}
     for i, (qi, ti) in enumerate(zip(q, t_start, strict=True)):
@@ -251,7 +248,7 @@ def _physics_configs(
     robot: str, q: FloatArray, joint: NDArray[np.int64], t0: FloatArray, n: int, speed_m_s: float
 ) -> tuple[FloatArray, FloatArray]:
     """Up to ``n`` held-out configurations where the tool can follow the seam."""
-    from timedexec.execution._tasks import tool_radius_m
+    from timedexec.execution import tool_radius_m
 
     spec = get_robot(robot)
     picked_q: list[FloatArray] = []

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import json
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 from timedexec._version import __version__
+from timedexec.cli import _discrepancy, _evaluate, _train
 from timedexec.errors import ConfigError, TimedExecError
 from timedexec.robots import ROBOT_NAMES
 
@@ -50,24 +50,10 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_calibrate(sub)
     _add_extract(sub)
     _add_report(sub)
-    for module in _SUBCOMMAND_MODULES:
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as exc:  # only the module itself may be absent
-            if exc.name != module:
-                raise
-            continue
+    for mod in (_train, _evaluate, _discrepancy):
         mod.add_parser(sub, _Formatter, _emit)
     _add_demo(sub)
     return parser
-
-
-#: Subcommands that live beside the layer they drive (each has add_parser(sub, fmt, emit)).
-_SUBCOMMAND_MODULES = (
-    "timedexec._cli_train",
-    "timedexec._cli_evaluate",
-    "timedexec._cli_discrepancy",
-)
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -123,8 +109,7 @@ def _add_simulate(sub: Any) -> None:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from timedexec.effects import parse_effects
     from timedexec.robots import get_robot
-    from timedexec.sim import default_settings
-    from timedexec.sim._sweep import simulate_sweep
+    from timedexec.sim import default_settings, simulate_sweep
 
     spec = get_robot(args.robot, period_s=args.period)
     if args.trials < 1:
@@ -187,7 +172,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     if args.robot.startswith("ur"):
-        from timedexec.sim import run_ur_twin
+        from timedexec.twins import run_ur_twin
 
         print(f"serving a simulated {args.robot} on {args.host} (Ctrl-C stops)", file=sys.stderr)
         with contextlib.suppress(KeyboardInterrupt):
@@ -200,7 +185,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 stop_event=stop,
             )
         return 0
-    from timedexec.sim import RSITwin
+    from timedexec.twins import RSITwin
 
     # Wait for the PC's first answer before counting late answers (else RSI stops with
     # RSITimeout 1.2 s after start when no PC listens yet, as a real KSS would).
@@ -261,7 +246,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     from timedexec.calibration import run_calibration
     from timedexec.drivers import open_driver
-    from timedexec.sim import SweepPlan, default_settings
+    from timedexec.recording import SweepPlan
+    from timedexec.sim import default_settings
 
     scheme = urlsplit(args.robot_url).scheme
     robot = args.robot
@@ -292,7 +278,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
                 gyro,
                 plan,
                 args.out,
-                settings=settings,
+                protocol=settings.protocol,
                 resume=args.resume,
                 progress=not args.quiet,
                 source=args.robot_url,
@@ -308,7 +294,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
                     gyro,
                     plan,
                     args.out,
-                    settings=settings,
+                    protocol=settings.protocol,
                     resume=args.resume,
                     progress=not args.quiet,
                     source=args.robot_url,

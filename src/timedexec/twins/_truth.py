@@ -1,11 +1,12 @@
-"""Ground truth of a live calibration run against a protocol twin.
+"""The protocol twins' ground truth: one reader of their JSON-lines files, and the truth
+of a live calibration run against a twin.
 
 A live run (:func:`~timedexec.calibration.run_calibration` through ``ur://`` or ``rsi://``)
-against the UR twin (:class:`~timedexec.sim._ur_twin.URTwin`) or the RSI twin
-(:class:`~timedexec.sim._rsi_twin.RSITwin`) records what a real robot would give; the twin
+against the UR twin (:class:`~timedexec.twins.URTwin`) or the RSI twin
+(:class:`~timedexec.twins.RSITwin`) records what a real robot would give; the twin
 keeps the truth on its side, in controller time. :func:`twin_truth_table` joins the two with
 the definitions the simulator uses (``timedexec._signal.ONSET_FRACTION``,
-``timedexec.sim._batch``):
+``timedexec.sim``):
 
 * **true actuation delay** = the instant the actuated joint's physical speed reaches
   ``ONSET_FRACTION`` x the commanded speed (the twin's ground-truth onset, controller time
@@ -23,7 +24,7 @@ Controller time ``t`` happens at host time ``t0_monotonic_s + t`` (both twins pu
 What the recording lacks
 ------------------------
 Recordings keep host times relative to each trial's trigger package; the absolute host time
-of that package (the session's clock origin) is not stored. :class:`HostTimeTap` wraps the
+of that package (the session's clock origin) is not stored. :class:`~timedexec.drivers.HostTimeTap` wraps the
 driver given to the runner and logs the absolute host time of every package by controller
 time, which anchors each trial (``host_times=`` of :func:`twin_truth_table`).
 
@@ -35,16 +36,6 @@ different minimum latency, so it must be measured and put into the settings give
 runner, as a user must do for a real sensor (:func:`measure_gyro_transport_latency`
 measures it against the twin's sample clock; for a real sensor the same number comes from
 an external reference such as a sync pulse the sensor time-stamps, or a USB analyser).
-
-A gyro on the RSI twin
-----------------------
-:class:`~timedexec.sim._rsi_twin.RSITwin` has no ``imu_link`` option (the UR twin has).
-Its ``controller_factory`` hook gives access to the physics' flange rate:
-``controller_factory=rsi_gyro_factory(link)`` builds the simulated controller inside the
-twin's process with a gyro twin (:class:`~timedexec.sim._gyro_twin.GyroTwin`) on a pty at
-``link``, fed by ``CycleResult.flange_rate_rad_s``. The factory does not learn the twin's
-clock origin, so the caller hands it over with :func:`publish_controller_origin` right after
-the twin started (before any motion; until then the robot is still and the rate is zero).
 """
 
 from __future__ import annotations
@@ -53,106 +44,54 @@ import bisect
 import json
 import math
 import os
-import threading
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec._realtime import try_realtime
 from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
-from timedexec.drivers import RobotDriver, RobotState
+from timedexec.drivers import HostTimeTap
 from timedexec.errors import ConfigError, ProtocolError, RecordingError
-from timedexec.sim import SimSettings, default_settings
-from timedexec.sim._recording import RecordingReader
+from timedexec.recording import RecordingReader
+from timedexec.sim import default_settings
 
 __all__ = [
     "GyroClockTruth",
-    "HostTimeTap",
     "TruthComparison",
     "TwinTruth",
     "compare_with_truth",
     "envelope_transport_latency",
     "gyro_window_start_s",
+    "iter_truth_records",
     "measure_gyro_transport_latency",
-    "publish_controller_origin",
     "read_twin_truth",
-    "rsi_gyro_factory",
     "twin_truth_table",
-    "with_gyro_latency",
 ]
 
 FloatArray = NDArray[np.float64]
 
 
-# --------------------------------------------------------------------------- host-time tap
+def iter_truth_records(path: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:
+    """The records of a twin's truth file in order, skipping a line still being written.
 
-
-class HostTimeTap(RobotDriver):
-    """A driver that forwards everything to ``driver`` and logs each package's host time.
-
-    The log maps the package's ``controller_time_s`` to its ``host_time_s``
-    (:func:`time.monotonic` on arrival), which anchors the recording's trial-relative host
-    times to the twin's clock. Attributes the wrapped driver has beyond the interface
-    (``last_send_s``, ``clock``, ``port`` ...) are forwarded, so the runner sees the same
-    driver.
-
-    Parameters
-    ----------
-    driver : RobotDriver
-        The driver to wrap (connected or not).
+    A twin appends one JSON object per line while it runs; the last line may be partial
+    when the file is read during the run, and is skipped (it is complete on the next read).
     """
-
-    def __init__(self, driver: RobotDriver) -> None:
-        self.driver = driver
-        self._times: dict[float, float] = {}
-        self._lock = threading.Lock()
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "driver":  # not set yet (during unpickling or __init__)
-            raise AttributeError(name)
-        return getattr(self.driver, name)
-
-    @property
-    def robot(self) -> str:
-        """The wrapped driver's robot name."""
-        return str(self.driver.robot)
-
-    @robot.setter
-    def robot(self, value: str) -> None:
-        self.driver.robot = value
-
-    @property
-    def controller_period_s(self) -> float:
-        return self.driver.controller_period_s
-
-    def connect(self) -> None:
-        self.driver.connect()
-
-    def close(self) -> None:
-        self.driver.close()
-
-    def read_state(self, timeout_s: float = 0.1) -> RobotState:
-        state = self.driver.read_state(timeout_s=timeout_s)
-        with self._lock:
-            self._times[float(state.controller_time_s)] = float(state.host_time_s)
-        return state
-
-    def speedj(self, qd_rad_s: FloatArray, acceleration_rad_s2: float, duration_s: float) -> None:
-        self.driver.speedj(qd_rad_s, acceleration_rad_s2, duration_s)
-
-    def stop(self, deceleration_rad_s2: float = 10.0) -> None:
-        self.driver.stop(deceleration_rad_s2)
-
-    @property
-    def host_times(self) -> dict[float, float]:
-        """Copy of the log: controller time (s) -> host arrival time (s)."""
-        with self._lock:
-            return dict(self._times)
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line being written right now
+            if isinstance(record, dict):
+                yield record
 
 
 def _lookup(times: Mapping[float, float], keys: FloatArray, what: str) -> FloatArray:
@@ -193,8 +132,6 @@ def read_twin_truth(path: str | os.PathLike[str]) -> dict[str, Any]:
         that timed out waiting for the physics, motion before the origin was published).
     """
     out: dict[str, Any] = {"meta": {}, "commands": {}, "gyro": {}, "rsi": {}, "rsi_gyro": {}}
-    from timedexec.sim._truthlog import iter_truth_records
-
     for record in iter_truth_records(path):
         event = record.pop("event", "")
         if event == "command":
@@ -635,182 +572,3 @@ def gyro_window_start_s(
     k = _true_index(clock, first_counter[order], arrival)
     start: FloatArray = clock.start_time_s + k / clock.true_rate_hz - truth.t0_host_s
     return start
-
-
-# --------------------------------------------------------------------------- RSI twin gyro
-
-_FACTORY_PREFIX = "rsi_gyro_"
-_RSI_PHYSICS_RATE_HZ = 4000.0  # as the UR twin: a cycle's physics well inside real time
-_RATE_WAIT_S = 0.25  # longest wait of the gyro for the physics (a late physics thread)
-_DEFAULT_RT_PRIORITY = 10  # as the UR twin's threads
-
-
-def rsi_gyro_factory(
-    link_path: str | os.PathLike[str], *, rt_priority: int | None = _DEFAULT_RT_PRIORITY
-) -> str:
-    """``controller_factory`` for :class:`~timedexec.sim._rsi_twin.RSITwin` that adds a gyro.
-
-    The returned ``"module:name"`` builds the default simulated controller (physics at
-    4 kHz, as the UR twin) inside the twin's process and starts a gyro twin whose pty is
-    linked at ``link_path``, fed by the physics' flange rate; its clock (``gyro`` line:
-    ``start_time_s``, ``true_rate_hz``, ``dlpf_group_delay_s``) goes to
-    ``link_path + ".truth.jsonl"``. After the twin started, call
-    :func:`publish_controller_origin` with its ``t0_host_s``.
-
-    Parameters
-    ----------
-    link_path : path
-        Where the gyro's pty is linked (open it with :func:`~timedexec.sensors.open_gyro`).
-    rt_priority : int or None
-        SCHED_FIFO priority for the twin's threads (set where the factory runs, before the
-        twin starts its threads, which inherit it), as the UR twin does: a real controller
-        runs its cycle at real-time priority, and on a loaded machine a normal-priority twin
-        falls behind by tens of ms. Needs root or CAP_SYS_NICE, silently skipped without.
-        None leaves the scheduling alone.
-    """
-    options = {"link": os.fspath(link_path), "rt_priority": rt_priority}
-    encoded = json.dumps(options, sort_keys=True).encode().hex()
-    return f"{__name__}:{_FACTORY_PREFIX}{encoded}"
-
-
-def _origin_path(link_path: str) -> str:
-    return link_path + ".origin.json"
-
-
-def publish_controller_origin(link_path: str | os.PathLike[str], t0_host_s: float) -> None:
-    """Hand the RSI twin's clock origin (``RSITwin.t0_host_s``) to its gyro (see
-    :func:`rsi_gyro_factory`); call it right after the twin started."""
-    if not math.isfinite(t0_host_s):
-        raise ConfigError(f"t0_host_s={t0_host_s!r} is not a host time; start the twin first")
-    target = _origin_path(os.fspath(link_path))
-    tmp = target + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump({"t0_monotonic_s": float(t0_host_s)}, fh)
-    os.replace(tmp, target)
-
-
-def __getattr__(name: str) -> Any:
-    """``rsi_gyro_<hex JSON options>``: the factory :func:`rsi_gyro_factory` names."""
-    if name.startswith(_FACTORY_PREFIX):
-        options = json.loads(bytes.fromhex(name[len(_FACTORY_PREFIX) :]))
-
-        def factory(robot: str, **kwargs: Any) -> _GyroControllerSim:
-            try_realtime(options.get("rt_priority"))
-            return _GyroControllerSim(robot, link_path=str(options["link"]), **kwargs)
-
-        return factory
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-class _GyroControllerSim:
-    """ControllerSim plus a gyro twin fed by its flange rate (runs inside the RSI twin)."""
-
-    def __init__(self, robot: str, *, link_path: str, seed: int = 0, **kwargs: Any) -> None:
-        from timedexec.sim._controller import ControllerSim
-
-        self._sim = ControllerSim(robot, seed=seed, physics_rate_hz=_RSI_PHYSICS_RATE_HZ, **kwargs)
-        self._link = link_path
-        self._seed = seed
-        self._cond = threading.Condition()
-        self._t: list[FloatArray] = []
-        self._w: list[FloatArray] = []
-        self._upto_s = -math.inf
-        self._origin: float | None = None
-        self._gyro: Any = None
-        self.rate_timeouts = 0
-        self.moved_before_origin = False
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "_sim":
-            raise AttributeError(name)
-        return getattr(self._sim, name)
-
-    def cycle(self) -> Any:
-        result = self._sim.cycle()
-        sim = self._sim
-        times = np.asarray(result.substep_time_s, dtype=np.float64)
-        # The rates are the speeds at the end of each substep (JointBank.step); a CycleResult
-        # that stamps them with the substep's start is shifted to the end (the onset truth's
-        # convention), one that already stamps the end is left alone.
-        if times.size and abs(times[0] - float(result.packet.sample_time_s)) < 1e-12:
-            times = times + sim.dt_s
-        with self._cond:
-            self._t.append(times)
-            self._w.append(np.asarray(result.flange_rate_rad_s, dtype=np.float64))
-            keep = max(4, int(2.0 / sim.period_s))
-            if len(self._t) > keep:
-                del self._t[:-keep]
-                del self._w[:-keep]
-            self._upto_s = float(sim.time_s)
-            self._cond.notify_all()
-        if self._gyro is None:
-            self._start_gyro()
-        return result
-
-    def _controller_origin(self) -> float | None:
-        if self._origin is None:
-            try:
-                with open(_origin_path(self._link), encoding="utf-8") as fh:
-                    self._origin = float(json.load(fh)["t0_monotonic_s"])
-            except (OSError, ValueError, KeyError):
-                return None
-        return self._origin
-
-    def _flange_rate(self, times_s: FloatArray) -> FloatArray:
-        latest = float(times_s.max()) if times_s.size else -math.inf
-        with self._cond:
-            timed_out = not self._cond.wait_for(
-                lambda: self._upto_s >= latest, timeout=_RATE_WAIT_S
-            )
-            t = np.concatenate(self._t)
-            w = np.concatenate(self._w)
-        if timed_out:
-            self.rate_timeouts += 1
-            self._report()
-        return np.stack([np.interp(times_s, t, w[:, i]) for i in range(3)], axis=1)
-
-    def _report(self) -> None:
-        """Append the factory's problem counters to the sidecar (rare events only)."""
-        line = {
-            "event": "rsi_gyro",
-            "rate_timeouts": self.rate_timeouts,
-            "moved_before_origin": self.moved_before_origin,
-        }
-        with open(self._link + ".truth.jsonl", "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(line, sort_keys=True) + "\n")
-
-    def _rate_source(self, t0_s: float, t1_s: float) -> FloatArray:
-        k = max(1, math.ceil((t1_s - t0_s) * 8000.0 - 1e-9))
-        origin = self._controller_origin()
-        if origin is None:  # before the origin is published the robot has not moved
-            if self._sim.truth and not self.moved_before_origin:
-                self.moved_before_origin = True
-                self._report()
-            return np.zeros((k, 3))
-        grid = self._gyro.start_time_s - origin + t0_s + np.arange(k) * ((t1_s - t0_s) / k)
-        return self._flange_rate(grid)
-
-    def _start_gyro(self) -> None:
-        from timedexec.sim._gyro_twin import GyroTwin
-
-        gyro = GyroTwin(self._rate_source, link_path=self._link, seed=self._seed)
-        self._gyro = gyro
-        gyro.start()
-        line = {
-            "event": "gyro",
-            "link_path": self._link,
-            "slave_path": gyro.slave_path,
-            "start_time_s": gyro.start_time_s,
-            "true_rate_hz": gyro.true_rate_hz,
-            "clock_error_ppm": gyro.clock_error_ppm,
-            "dlpf_group_delay_s": gyro.source.dlpf_group_delay_s,
-            "physics_rate_hz": _RSI_PHYSICS_RATE_HZ,
-        }
-        with open(self._link + ".truth.jsonl", "w", encoding="utf-8") as fh:
-            fh.write(json.dumps(line, sort_keys=True) + "\n")
-
-
-def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
-    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least): the
-    transport latency measured by :func:`measure_gyro_transport_latency`."""
-    return settings.replace(gyro=replace(settings.gyro, usb_latency_s=latency_s))

@@ -64,7 +64,7 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
 def _run(emit: Emit) -> Callable[[argparse.Namespace], int]:
     def run(args: argparse.Namespace) -> int:
         from timedexec.errors import ConfigError
-        from timedexec.execution._evaluate import evaluate
+        from timedexec.evaluation import evaluate
 
         if args.speed <= 0:
             raise ConfigError(f"--speed {args.speed}: the seam speed must be > 0 m/s")

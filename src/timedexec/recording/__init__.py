@@ -1,0 +1,45 @@
+"""timedexec.recording: the calibration-sweep contract, shared by live runs and the simulator.
+
+* :class:`RecordingWriter` / :class:`RecordingReader`: the crash-safe HDF5 store (journal,
+  resume after any interruption, atomic finish);
+* the schema: :class:`GyroHeader`, :func:`trial_fields`, :func:`trial_layout`;
+* the plan and protocol: :class:`SweepPlan` (which trial runs where), :class:`TrialProfile`
+  (the motion of one trial), :class:`SweepProtocol` (how a sweep runs on any robot).
+
+See ``docs/recording-format.md``.
+"""
+
+from __future__ import annotations
+
+from timedexec.recording._plan import (
+    FULL_SWEEP_TRIALS,
+    SweepPlan,
+    SweepProtocol,
+    TrialProfile,
+    calibration_ranges,
+)
+from timedexec.recording._schema import GyroHeader, TrialLayout, trial_fields, trial_layout
+from timedexec.recording._store import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Field,
+    RecordingReader,
+    RecordingWriter,
+)
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "FULL_SWEEP_TRIALS",
+    "Field",
+    "GyroHeader",
+    "RecordingReader",
+    "RecordingWriter",
+    "SweepPlan",
+    "SweepProtocol",
+    "TrialLayout",
+    "TrialProfile",
+    "calibration_ranges",
+    "trial_fields",
+    "trial_layout",
+]

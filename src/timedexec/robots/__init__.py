@@ -1,0 +1,43 @@
+"""timedexec.robots: the single source of truth for every number about a robot.
+
+A :class:`RobotSpec` (``_spec``) holds a robot's standard Denavit-Hartenberg kinematics, its
+inertial data, its joint limits and its controller period; the built-in robots (UR10,
+UR10e, KR 5 sixx) are data in ``_catalog`` (:func:`get_robot`); the kinematics and
+rigid-body quantities are plain vectorised functions in ``_dynamics``.
+
+Conventions
+-----------
+* Joint angles ``q`` are the **vendor's** angles, the numbers a user types on the teach
+  pendant (UR: rad as shown by PolyScope; KUKA: A1..A6). The DH joint angle is
+  ``theta = joint_sign * q + dh_offset_rad``.
+* The base frame (frame 0) has z up, against gravity; frame 6 is the flange (tool) frame.
+  Joint ``j`` (1-based) turns about the z axis of frame ``j - 1``.
+* Batches: every function accepts one configuration, shape (6,), or ``N`` of them, shape
+  (N, 6), and answers with the matching leading shape.
+* SI units: m, kg, kg·m², rad, rad/s, rad/s², N·m, s.
+"""
+
+from __future__ import annotations
+
+from timedexec.robots._catalog import get_robot
+from timedexec.robots._dynamics import (
+    forward_kinematics,
+    gravity_torque,
+    gravity_torque_coefficients,
+    joint_axis_in_tool,
+    joint_inertia,
+)
+from timedexec.robots._spec import N_JOINTS, ROBOT_NAMES, RobotSpec, check_configuration
+
+__all__ = [
+    "N_JOINTS",
+    "ROBOT_NAMES",
+    "RobotSpec",
+    "check_configuration",
+    "forward_kinematics",
+    "get_robot",
+    "gravity_torque",
+    "gravity_torque_coefficients",
+    "joint_axis_in_tool",
+    "joint_inertia",
+]
