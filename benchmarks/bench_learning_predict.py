@@ -17,7 +17,7 @@ WhiteKernel(σ_n²)``, ``normalize_y=True``, no optimiser), fitted on the same t
   and thread CPU time (CPU time excludes the time the scheduler gives other processes on a
   shared machine; the load average is printed).
 
-``--bundle DIR`` times an existing bundle too (e.g. src/timedexec/models/ur10-sim, or a full-size one).
+``--bundle DIR`` times an existing bundle too (e.g. models/ur10-sim, or a full-size one).
 
 Usage: python benchmarks/bench_learning_predict.py [--trials 8000] [--bundle DIR]
 """

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Rebuild the bundled delay models in src/timedexec/models/ (ur10-sim, ur10e-sim, kr5-sim).
+"""Rebuild the shipped delay models in models/ (ur10-sim, ur10e-sim, kr5-sim).
 
 For each simulated robot, as a user would with a real one: simulate a calibration sweep
 (state packages, commands and an 8 kHz gyro, recorded to HDF5), extract the *measured*
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument(
         "--out",
-        default=str(Path(__file__).resolve().parent.parent / "src" / "timedexec" / "models"),
+        default=str(Path(__file__).resolve().parent.parent / "models"),
     )
     args = parser.parse_args(argv)
     out_root = Path(args.out)

@@ -571,7 +571,7 @@ def test_estimators_warn_nothing(table: DelayTable) -> None:
 
 # ------------------------------------------------------- simulated robots
 
-MODELS = Path(__file__).resolve().parent.parent / "src" / "timedexec" / "models"
+MODELS = Path(__file__).resolve().parent.parent / "models"
 
 
 @pytest.mark.parametrize("name", ["ur10-sim", "ur10e-sim", "kr5-sim"])

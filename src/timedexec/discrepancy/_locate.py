@@ -16,12 +16,30 @@ from numpy.typing import NDArray
 
 from timedexec.discrepancy._conditions import Conditions, NoiseFloor
 
-__all__ = ["Variable", "condition_variables", "locate", "unexplained_entries", "variable_fit"]
+__all__ = [
+    "EFFECT_VARIABLE",
+    "Variable",
+    "condition_variables",
+    "locate",
+    "unexplained_entries",
+    "variable_fit",
+]
 
 FloatArray = NDArray[np.float64]
 
 #: A group whose chi-square p-value exceeds this shows no sign of a disagreement.
 CLEAN_P = 0.1
+
+#: The variable of the residual plots of each effect (a key of ``condition_variables``).
+EFFECT_VARIABLE = {
+    "gravity_load": "gravity_torque",
+    "gravity_direction": "direction_x_gravity",
+    "direction": "direction",
+    "inertia": "inertia",
+    "thermal_drift": "time",
+    "joint_offset": "joint",
+    "response_extra_cycle": "time",
+}
 
 
 @dataclass(frozen=True, eq=False)

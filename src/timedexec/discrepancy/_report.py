@@ -11,7 +11,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._files import make_dir
+from timedexec._plot import subplots
 from timedexec.delays import DELAY_COLUMNS
+from timedexec.discrepancy._locate import EFFECT_VARIABLE
 from timedexec.effects import make_effect
 from timedexec.errors import RecordingError
 
@@ -22,15 +24,6 @@ if TYPE_CHECKING:
 __all__ = ["write_report"]
 
 _WORDS = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
-
-
-def _plt() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _jitter(x: NDArray[np.float64], kind: str, seed: int = 0) -> NDArray[np.float64]:
@@ -71,9 +64,8 @@ def _residual_panel(
 
 
 def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
-    plt = _plt()
     labels = ["start"] + [f"+ {s.effect}" for s in result.steps]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    fig, axes = subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     floor = result.noise_floor_ms
     for ax, d in zip(axes, DELAY_COLUMNS, strict=True):
         values = [result.gap_before_ms[d]] + [s.gap_after_ms[d] for s in result.steps]
@@ -86,12 +78,10 @@ def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _where_figure(result: DiscrepancyResult, path: Path) -> None:
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    fig, axes = subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for ax, d in zip(axes, DELAY_COLUMNS, strict=True):
         before = result.locations_before[d]["by_joint_direction"]
         after = result.locations_after[d]["by_joint_direction"]
@@ -106,17 +96,14 @@ def _where_figure(result: DiscrepancyResult, path: Path) -> None:
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
-    from timedexec.discrepancy._workflow import EFFECT_VARIABLE
 
-    plt = _plt()
     step = result.steps[k]
     var = result.variables[EFFECT_VARIABLE[step.effect]]
     floor = result.noise_floor_ms[step.acts_on]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True, constrained_layout=True)
+    fig, axes = subplots(1, 2, figsize=(11, 4), sharey=True, constrained_layout=True)
     joints = result.cond.joint
     _residual_panel(
         axes[0], var, step.resid_before_s * 1e3, joints, floor, f"before adding {step.effect}"
@@ -127,11 +114,9 @@ def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
     axes[1].legend(fontsize=7, loc="upper right")
     fig.suptitle(f"{_WORDS[step.acts_on]}: residuals against {var.label}", fontsize=11)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: Path) -> None:
-    plt = _plt()
     d = entry["delay"]
     cond = result.cond
     mask = np.isin(cond.joint, entry["joints"])
@@ -139,7 +124,7 @@ def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: 
         mask &= cond.direction == int(entry["direction"])
     key = entry["variable"] or "time"
     var = result.variables[key]
-    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    fig, ax = subplots(figsize=(7, 4), constrained_layout=True)
     _residual_panel(
         ax,
         var,
@@ -151,7 +136,6 @@ def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: 
     )
     ax.legend(fontsize=7)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _fmt_p(p: float) -> str:

@@ -42,6 +42,7 @@ from timedexec.discrepancy._conditions import (
     replicate_noise,
 )
 from timedexec.discrepancy._locate import (
+    EFFECT_VARIABLE,
     Variable,
     condition_variables,
     locate,
@@ -73,17 +74,6 @@ from timedexec.sim import simulate_delays
 __all__ = ["DiscrepancyResult", "DiscrepancyStep", "analyse_discrepancy", "load_measured"]
 
 FloatArray = NDArray[np.float64]
-
-#: The variable of the residual plots of each effect (a key of ``condition_variables``).
-EFFECT_VARIABLE = {
-    "gravity_load": "gravity_torque",
-    "gravity_direction": "direction_x_gravity",
-    "direction": "direction",
-    "inertia": "inertia",
-    "thermal_drift": "time",
-    "joint_offset": "joint",
-    "response_extra_cycle": "time",
-}
 
 
 def load_measured(path: str | os.PathLike[str], *, progress: bool = False) -> DelayTable:

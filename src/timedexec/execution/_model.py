@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError, ModelError
+from timedexec.learning import BUNDLED_MODELS, bundled_model_dir
 from timedexec.robots import get_robot
 
 __all__ = [
@@ -184,26 +185,6 @@ def model_period_s(model: Any) -> float:
     raise ModelError(
         f"{type(model).__name__} does not say its controller period (controller_period_s)"
     )
-
-
-#: Model bundles shipped inside the package (trained on the simulated robots by
-#: scripts/train_bundled_models.py); load them by name: ``load_delay_model("kr5-sim")``.
-BUNDLED_MODELS: tuple[str, ...] = ("ur10-sim", "ur10e-sim", "kr5-sim")
-
-
-def bundled_model_dir(name: str) -> Path:
-    """The folder of the bundled model ``name`` (one of :data:`BUNDLED_MODELS`).
-
-    Raises
-    ------
-    ModelError
-        If ``name`` is not a bundled model.
-    """
-    if name not in BUNDLED_MODELS:
-        raise ModelError(
-            f"{name!r} is not a bundled model; bundled: {', '.join(BUNDLED_MODELS)}"
-        )
-    return Path(__file__).resolve().parents[1] / "models" / name
 
 
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:

@@ -36,6 +36,7 @@ from timedexec.learning._gpcore import (
     neg_log_likelihood,
     predictor_from_arrays,
 )
+from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
 from timedexec.learning._train import (
     DELAYS,
     METHODS,
@@ -75,6 +76,8 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "BUNDLED_MODELS",
+    "bundled_model_dir",
     "GPPairPredictor",
     "predictor_from_arrays",
     "fold_of_configuration",

@@ -38,6 +38,7 @@ from timedexec.learning._calibrate import STD_SCALE_RULE
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._forward import nn_forward, tree_predict
 from timedexec.learning._gpcore import GPPairPredictor, GPPredictor, predictor_from_arrays
+from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
 from timedexec.learning._threads import BLAS_PIN, BlasPin
 
 __all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
@@ -359,8 +360,9 @@ class DelayModel:
 
         Parameters
         ----------
-        path : path
-            Bundle directory, or its ``manifest.json``.
+        path : path or str
+            Bundle directory, or its ``manifest.json``, or the name of a shipped model
+            (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``; see ``models/README.md``).
         robot : str or RobotSpec, optional
             Refuse a bundle trained for another robot. A RobotSpec also fixes the period.
         period_s : float, optional
@@ -373,6 +375,8 @@ class DelayModel:
             the manifest's, or a bundle for another robot or period.
         """
         p = Path(path)
+        if not p.exists() and str(path) in BUNDLED_MODELS:
+            p = bundled_model_dir(str(path))  # a shipped model, by name
         manifest_path = p / MANIFEST_NAME if p.is_dir() else p
         try:
             manifest = json.loads(manifest_path.read_text(encoding="utf-8"))

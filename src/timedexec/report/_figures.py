@@ -14,13 +14,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from scipy import signal
 
+from timedexec._plot import subplots
 from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
 from timedexec.sim import pulse_profile
@@ -33,7 +30,6 @@ _DELAY_LABEL = {"actuation_delay": "actuation delay", "response_delay": "respons
 def _save(fig: Any, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -43,7 +39,7 @@ def fig_psd(traces: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     fs = traces["fs_hz"]
     w, h = signal.freqz(traces["taps"], worN=len(still.freq_hz), fs=fs)
     gain2 = np.interp(still.freq_hz, w, np.abs(h) ** 2)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = subplots(figsize=(7, 4))
     to_dps2 = np.rad2deg(1.0) ** 2
     ax.semilogy(still.freq_hz, still.psd * to_dps2, label="still recording (raw)", lw=1)
     ax.semilogy(
@@ -69,7 +65,7 @@ def fig_trial(traces: dict[str, Any], path: str | os.PathLike[str], i: int = 0) 
     act = float(traces["actuation_delay"][i])
     resp = float(traces["response_delay"][i])
     cmd = pulse_profile(t_g - t_send, **prof)
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig, ax = subplots(figsize=(8, 4.5))
     ms = 1e3
     ax.plot(t_g * ms, cmd, label="commanded", color="k", lw=1.5)
     ax.plot(
@@ -114,7 +110,7 @@ def fig_trial(traces: dict[str, Any], path: str | os.PathLike[str], i: int = 0) 
 def fig_histograms(table: DelayTable, path: str | os.PathLike[str], column: str) -> Path:
     """Figs. 7 (actuation) and 9 (response): histogram per joint, ms."""
     values = table[column] * 1e3
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = subplots(figsize=(7, 4))
     joints = sorted(set(table["joint"].tolist()))
     ok = np.isfinite(values)
     bins = np.linspace(np.nanpercentile(values, 0.5), np.nanpercentile(values, 99.5), 50)
@@ -138,7 +134,7 @@ def fig_boxplots(table: DelayTable, path: str | os.PathLike[str], column: str) -
     for j in joints:
         v = table[column][table["joint"] == j] * 1e3
         data.append(v[np.isfinite(v)])
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = subplots(figsize=(6, 4))
     ax.boxplot(
         data, tick_labels=[f"joint {j}" for j in joints], showfliers=True, flierprops={"ms": 2}
     )
@@ -192,7 +188,7 @@ def fig_model(
         q_ref = np.asarray(spec.home_q_rad, dtype=float)
         lo = np.maximum(q_ref - 1.0, spec.q_min_rad)
         hi = np.minimum(q_ref + 1.0, spec.q_max_rad)
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7), sharex="col", squeeze=False)
+    fig, axes = subplots(2, 2, figsize=(10, 7), sharex="col", squeeze=False)
     colors = {1: "tab:blue", -1: "tab:orange"}
     for col, angle in enumerate((2, 3)):
         k = angle - 1
@@ -245,7 +241,7 @@ def fig_seam(result: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     Solid: the physical distance (simulator truth); dashed: what the executor believes from
     its back-dated state.
     """
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = subplots(figsize=(7, 4))
     colors = {
         "uncompensated": "tab:red",
         "compensated": "tab:green",
