@@ -22,6 +22,6 @@ def subplots(*args: Any, **kwargs: Any) -> tuple[Any, Any]:
     from matplotlib.figure import Figure
 
     figsize = kwargs.pop("figsize", None)
-    layout = "constrained" if kwargs.pop("constrained_layout", False) else None
-    fig = Figure(figsize=figsize, layout=layout)
+    constrained = bool(kwargs.pop("constrained_layout", False))
+    fig = Figure(figsize=figsize, layout="constrained" if constrained else None)
     return fig, fig.subplots(*args, **kwargs)

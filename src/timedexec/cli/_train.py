@@ -1,10 +1,11 @@
-"""The ``timedexec train`` subcommand (wired into :mod:`timedexec.cli` by ``add_parser``).
+"""``timedexec train``: delay models with cross-validation, saved as a model bundle.
 
 ``timedexec train DELAYS.csv --out DIR [--folds 10] [--methods median,nn,rt,gpr]
-[--json CV.json] [--jobs N]``: cross-validates every method per joint and combined for both
-delays, prints Tables I/II beside the paper's numbers, and writes the model bundle trained
-on all data to DIR (``manifest.json``, ``arrays.npz``) with ``cv.json`` and
-``cv-table.txt``. Results to stdout, progress to stderr; bad input raises ConfigError (exit 2).
+[--json [CV.json]] [--jobs N]``: cross-validates every method per joint and combined for
+both delays, prints Tables I/II beside the paper's numbers, and writes the model bundle
+trained on all data to DIR (``manifest.json``, ``arrays.npz``) with ``cv.json`` and
+``cv-table.txt``. The JSON result (``--json``) is the CV scores, the same document as
+``DIR/cv.json``. Results to stdout, progress to stderr.
 """
 
 from __future__ import annotations
@@ -13,32 +14,29 @@ import argparse
 import hashlib
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_parser"]
+from timedexec.cli._common import (
+    add_command,
+    add_jobs,
+    add_json,
+    add_period,
+    add_quiet,
+    add_seed,
+    emit,
+)
+from timedexec.errors import ConfigError
 
-Emit = Callable[[dict[str, Any], argparse.Namespace, str], None]
+__all__ = ["add_parser", "run"]
 
 
-def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Emit) -> None:
-    """Add the ``train`` subcommand to the subparsers ``sub``.
-
-    Parameters
-    ----------
-    sub : argparse subparsers action
-        From ``parser.add_subparsers()``.
-    formatter_class : type
-        Help formatter shared by the subcommands.
-    emit : callable
-        ``emit(result, args, text)`` prints the result: JSON when ``args.json`` is true,
-        else ``text``.
-    """
-    p = sub.add_parser(
+def add_parser(sub: Any) -> None:
+    """Add ``train`` to the subparsers ``sub``."""
+    p = add_command(
+        sub,
         "train",
         help="train delay models (median, LM neural net, regression tree, GP) with 10-fold CV",
-        formatter_class=formatter_class,
         description=(
             "Train the paper's delay models on a delay table (from `timedexec extract`): the "
             "median baseline, a Levenberg-Marquardt neural net (30 tanh units), a regression "
@@ -48,7 +46,8 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
             "repeats of a test condition never train), error = sqrt(mean of fold MSEs) in ms, "
             "printed as Tables I/II beside the paper's numbers with the noise floor (replicate "
             "scatter). Then every method is trained on all data into a model bundle in --out "
-            "(manifest.json + arrays.npz, no pickle), with cv.json and cv-table.txt.\n\n"
+            "(manifest.json + arrays.npz, no pickle), with cv.json and cv-table.txt. The JSON "
+            "result (--json) is the CV scores, the document of cv.json.\n\n"
             "example:\n  timedexec train ur10-delays.csv --out models/my-ur10 --jobs 2 "
             "--json cv.json"
         ),
@@ -61,17 +60,10 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
     p.add_argument(
         "--methods", default="median,nn,rt,gpr", help="comma list of median, nn, rt, gpr"
     )
-    p.add_argument(
-        "--json",
-        dest="cv_json",
-        metavar="CV.json",
-        help="also write the CV scores here ({delay: {method: {column: ms}}}); '-' prints "
-        "them to stdout instead of the tables",
-    )
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (joblib; -1: all)")
-    p.add_argument(
-        "--period",
-        type=float,
+    add_json(p, "the CV scores ({delay: {method: {column: ms}}}; needs --folds >= 2)")
+    add_jobs(p, help="worker processes (joblib; -1: all)")
+    add_period(
+        p,
         help="controller period the table was measured at, s (default: the robot's; kr5: "
         "0.012 or 0.004)",
     )
@@ -81,19 +73,21 @@ def add_parser(sub: Any, formatter_class: type[argparse.HelpFormatter], emit: Em
         help="add the sweep time (t_start) as an input beside the published ones: separates "
         "warm-up drift from pose dependence; the bundle predicts at the end of the sweep (warm)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the folds and the estimators")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    p.set_defaults(func=lambda args: _cmd_train(args, emit))
+    add_seed(p, help="seed of the folds and the estimators")
+    add_quiet(p)
+    p.set_defaults(func=run)
 
 
-def _cmd_train(args: argparse.Namespace, emit: Emit) -> int:
+def run(args: argparse.Namespace) -> int:
+    """Run ``train``; return the exit code."""
     from timedexec.delays import DelayTable
-    from timedexec.errors import ConfigError
     from timedexec.learning import check_methods, train_delay_models
 
     methods = check_methods(args.methods)
     if args.folds < 0 or args.folds == 1:
         raise ConfigError(f"--folds {args.folds}: use 0 (no cross-validation) or 2 or more")
+    if args.folds == 0 and args.json is not None:
+        raise ConfigError("--json needs cross-validation; drop --folds 0")
     path = Path(args.delays)
     table = DelayTable.read_csv(path)
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
@@ -120,38 +114,18 @@ def _cmd_train(args: argparse.Namespace, emit: Emit) -> int:
     )
     model = result.model
     model.save(out)
-    info: dict[str, Any] = {
-        "robot": model.robot,
-        "controller_period_s": model.period_s,
-        "trials": model.manifest["training_data"]["trials"],
-        "bundle": str(out),
-        "bundle_bytes": int(model.manifest["arrays"]["bytes"]),
-        "seconds": round(result.seconds, 3),
-    }
+    bundle_bytes = int(model.manifest["arrays"]["bytes"])
     text_parts = []
+    cv: dict[str, Any] = {}
     if result.cv is not None:
         cv = result.cv.to_dict()
         table_text = result.cv.table_text()
         (out / "cv.json").write_text(json.dumps(cv, indent=2) + "\n", encoding="utf-8")
         (out / "cv-table.txt").write_text(table_text + "\n", encoding="utf-8")
-        if args.cv_json and args.cv_json != "-":
-            try:
-                Path(args.cv_json).write_text(json.dumps(cv, indent=2) + "\n", encoding="utf-8")
-            except OSError as exc:
-                raise ConfigError(
-                    f"--json {args.cv_json}: cannot write it ({exc.strerror})"
-                ) from exc
-        info["cv"] = cv
-        info["noise_floor_ms"] = result.cv.noise_floor_ms
         text_parts.append(table_text)
-    elif args.cv_json:
-        raise ConfigError("--json needs cross-validation; drop --folds 0")
     text_parts.append(
         f"bundle for {model.robot} at {model.period_s * 1e3:g} ms written to {out} "
-        f"({info['bundle_bytes'] / 1e3:.0f} kB arrays) in {result.seconds:.1f} s"
+        f"({bundle_bytes / 1e3:.0f} kB arrays) in {result.seconds:.1f} s"
     )
-    if args.cv_json == "-":
-        print(json.dumps(info["cv"], indent=2))
-        return 0
-    emit(info, argparse.Namespace(json=False), "\n".join(text_parts))
+    emit(args, cv, "\n".join(text_parts))
     return 0

@@ -1,0 +1,9 @@
+"""``python -m timedexec``: the ``timedexec`` command."""
+
+from __future__ import annotations
+
+import sys
+
+from timedexec.cli import main
+
+sys.exit(main())

@@ -1,0 +1,116 @@
+"""``timedexec calibrate``: a live calibration sweep through a robot driver and a gyro."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from timedexec.cli._common import add_command, add_json, add_quiet, add_robot, add_seed, emit
+from timedexec.errors import ConfigError
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``calibrate`` to the subparsers ``sub``."""
+    p = add_command(
+        sub,
+        "calibrate",
+        help="run a calibration sweep on a robot (or a simulated one) with a gyro",
+        description=(
+            "Run calibration trials through a robot driver with the gyro on the flange and "
+            "record them (HDF5, resumable): per trial wait until still, send the single-joint "
+            "command on the arrival of a state package, record every package (raw and parsed) "
+            "and the gyro stream. A still recording opens the sweep.\n\n"
+            "Robot URLs: sim://ur10 (simulator, virtual time), ur://HOST (ur_rtde), "
+            "rsi://PORT (KUKA RSI, this PC listens on the UDP port). --imu: a serial port "
+            "(/dev/ttyUSB0, a pty) or sim:// (required for real robots; sim:// robots bring "
+            "their own virtual gyro).\n\n"
+            "A robot or gyro that stops answering ends the command with exit code 3; "
+            "--resume continues the recording.\n\n"
+            "examples:\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
+            "--out cal.h5\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu "
+            "/dev/ttyUSB0 --trials 33500 --seed 1 --out ur10.h5 --resume"
+        ),
+    )
+    p.add_argument("--robot-url", required=True, help="sim://ROBOT, ur://HOST or rsi://PORT")
+    p.add_argument("--imu", help="gyro URL (serial device, pty path)")
+    add_robot(p, help="robot spec for ur:// and rsi:// (default: ur10 for ur://, kr5 for rsi://)")
+    p.add_argument("--trials", type=int, help="number of trials (with --seed)")
+    add_seed(p, help="plan seed")
+    p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
+    p.add_argument("--out", required=True, help="recording to write (HDF5)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted sweep")
+    add_quiet(p)
+    add_json(p, "the summary (recording, planned, recorded_now, ...)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``calibrate``; return the exit code."""
+    from urllib.parse import urlsplit
+
+    import numpy as np
+
+    from timedexec.calibration import run_calibration
+    from timedexec.drivers import open_driver
+    from timedexec.recording import SweepPlan
+    from timedexec.sim import default_settings
+
+    scheme = urlsplit(args.robot_url).scheme
+    robot = args.robot
+    if scheme == "sim":
+        robot = robot or (urlsplit(args.robot_url).netloc or "ur10")
+    elif robot is None:
+        robot = "kr5" if scheme == "rsi" else "ur10"
+    settings = default_settings(robot)
+    if (args.trials is None) == (args.plan is None):
+        raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
+    if args.plan:
+        try:
+            arrays = dict(np.load(args.plan, allow_pickle=False))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"--plan {args.plan}: cannot read it ({exc})") from exc
+        plan = SweepPlan.from_arrays(settings.robot, arrays)
+    else:
+        if args.trials < 1:
+            raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
+        plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
+    options = {"seed": args.seed} if scheme == "sim" else {}
+    driver = open_driver(args.robot_url, **options)
+    with driver:
+        if scheme == "sim" and not args.imu:
+            gyro: Any = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
+            result = run_calibration(
+                driver,
+                gyro,
+                plan,
+                args.out,
+                protocol=settings.protocol,
+                resume=args.resume,
+                progress=not args.quiet,
+                source=args.robot_url,
+            )
+        else:
+            if not args.imu:
+                raise ConfigError("--imu is required for real robots: give the gyro's serial port")
+            from timedexec.sensors import open_gyro
+
+            with open_gyro(args.imu) as gyro:
+                result = run_calibration(
+                    driver,
+                    gyro,
+                    plan,
+                    args.out,
+                    protocol=settings.protocol,
+                    resume=args.resume,
+                    progress=not args.quiet,
+                    source=args.robot_url,
+                )
+    info = result.summary()
+    emit(
+        args,
+        info,
+        f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}",
+    )
+    return 0
