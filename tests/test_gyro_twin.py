@@ -26,7 +26,7 @@ from timedexec.sim import (
     sine_rate_source,
     step_rate_source,
 )
-from timedexec.twins import GyroTwin
+from timedexec.twins import GyroTwin, Twin
 
 
 def _decode(data: bytes) -> tuple[np.ndarray, np.ndarray, FrameParser]:
@@ -217,6 +217,46 @@ def test_unread_backlog_is_dropped_like_a_usb_device() -> None:
             time.sleep(0.05)
         assert twin.bytes_dropped_overflow > 0
         assert twin.error is None
+
+
+def test_twin_lifecycle_stall_kill_and_drop() -> None:
+    """GyroTwin is driven like every twin: stall(s) delivers nothing for s seconds while the
+    sensor keeps sampling, then the backlog follows (counters without a gap); kill() makes
+    the device vanish; drop() has no meaning on a serial link and says what to use; a
+    stall before start or with a NaN duration is refused."""
+    twin = GyroTwin()
+    assert isinstance(twin, Twin)
+    with pytest.raises(NotImplementedError, match="drop_bytes"):
+        twin.drop()
+    with pytest.raises(ConfigError, match="must be >= 0"):
+        twin.stall(math.nan)
+    with pytest.raises(SensorError, match="not started"):
+        twin.stall(0.1)
+    stall_s = 0.4  # below max_backlog_s (0.5 s): the stalled data is kept, not dropped
+    data = bytearray()
+    with twin, serial.Serial(twin.slave_path, timeout=0.01) as port:
+        assert twin.is_alive
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.1:
+            data += port.read(max(port.in_waiting, 1))
+        twin.stall(stall_s)
+        t_stall = time.monotonic()
+        # Poll the delivery counter inside the stall (after the burst that may have been
+        # on its way when stall() was called, before the stall ends).
+        polls = []
+        while time.monotonic() < t_stall + stall_s + 0.3:
+            data += port.read(max(port.in_waiting, 1))
+            polls.append((time.monotonic(), twin.bytes_written, twin.samples_sent))
+        twin.kill()
+        assert not twin.is_alive
+    inside = [(w, s) for t, w, s in polls if t_stall + 0.05 <= t <= t_stall + stall_s - 0.02]
+    assert len(inside) >= 2  # polled every ~10 ms; a handful even on a loaded machine
+    assert inside[0][0] == inside[-1][0]  # nothing delivered during the stall
+    assert inside[-1][1] > inside[0][1]  # while the sensor kept sampling
+    counter, _, parser = _decode(bytes(data))
+    assert parser.checksum_errors == 0
+    assert np.all(np.diff(counter.astype(np.int64)) % 65536 == 1)  # the backlog came through
+    assert len(counter) > 8000 * (stall_s + 0.2)
 
 
 def test_twin_cli_runs_in_its_own_process() -> None:

@@ -1,4 +1,4 @@
-"""KUKA RSI driver and simulated KUKA controller (timedexec.drivers._rsi, timedexec.twins._rsi).
+"""KUKA RSI driver and simulated KUKA controller (timedexec.drivers, timedexec.twins).
 
 Two kinds of tests:
 
@@ -28,7 +28,7 @@ from timedexec.drivers import KukaRSIDriver, RSIState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.robots import forward_kinematics, get_robot
 from timedexec.sim import default_settings
-from timedexec.twins import RSITwin, RSITwinConfig, free_udp_port, read_rsi_truth
+from timedexec.twins import RSITwin, RSITwinConfig, Twin, free_udp_port, read_rsi_truth
 
 KR5 = get_robot("kr5")
 T12 = 0.012
@@ -606,6 +606,61 @@ def test_pause_looks_like_a_pulled_cable() -> None:
     # then sent a burst (bounded by its largest lateness).
     assert 1 <= status.frames_dropped <= 26 + math.ceil(status.max_send_lateness_s / T12)
     assert drv.stats().missed_cycles == status.frames_dropped
+
+
+def test_rsi_twin_shares_the_twin_lifecycle() -> None:
+    """RSITwin is driven like every twin: stall(s) loses the frames for s seconds (as
+    pause), kill() ends the controller's process at once (status "error", the driver times
+    out, leaving the context returns), drop() has no meaning over UDP and says what to use,
+    and a negative stall is refused before anything starts."""
+    with KukaRSIDriver(0) as drv:
+        twin = RSITwin(drv.port)
+        assert isinstance(twin, Twin)
+        assert not twin.is_alive
+        with pytest.raises(NotImplementedError, match=r"drop_frames"):
+            twin.drop()
+        with pytest.raises(ConfigError, match=r"must be >= 0"):
+            twin.stall(-1.0)
+        with twin:
+            assert twin.is_alive
+            _states_until(drv, 0.05)
+            twin.stall(0.3)
+            time.sleep(0.05)  # the twin takes the message within its 5 ms poll
+            _drain(drv, quiet_s=0.03)
+            with pytest.raises(DriverTimeout):
+                drv.read_state(0.08)
+            _states_until(drv, 0.05)
+            assert twin.status().frames_dropped >= 1
+            twin.kill()
+            assert not twin.is_alive
+            status = twin.status()
+            _drain(drv, quiet_s=0.05)
+            with pytest.raises(DriverTimeout):
+                drv.read_state(0.1)
+    assert status.reason == "error"
+    assert "kill" in status.detail
+    assert twin.truth() == []  # a crashed controller leaves no ground truth
+
+
+def test_read_rsi_truth_skips_a_line_being_written(tmp_path: Path) -> None:
+    """read_rsi_truth is a view of the one truth reader: meta, commands in file order and
+    the RSI stop, without the ``event`` tags; a torn last line (the file read while being
+    written) is skipped instead of raising."""
+    path = tmp_path / "truth.jsonl"
+    lines = [
+        {"event": "meta", "robot": "kr5", "period_s": 0.012, "t0_monotonic_s": 5.0},
+        {"event": "command", "id": 2, "kind": "ServoJ", "arrival_s": 0.1},
+        {"event": "command", "id": 1, "kind": "ServoJ", "arrival_s": 0.05},
+        {"event": "rsi", "reason": "stopped", "late_count": 0},
+    ]
+    path.write_text(
+        "".join(json.dumps(x) + "\n" for x in lines) + '{"event": "command", "id": 3, "ki'
+    )
+    data = read_rsi_truth(path)
+    assert data["meta"] == {"robot": "kr5", "period_s": 0.012, "t0_monotonic_s": 5.0}
+    assert [c["id"] for c in data["commands"]] == [2, 1]
+    assert data["commands"][0] == {"id": 2, "kind": "ServoJ", "arrival_s": 0.1}
+    assert data["rsi"] == {"reason": "stopped", "late_count": 0}
 
 
 def test_correction_beyond_the_rsi_limit_stops_rsi() -> None:

@@ -5,16 +5,21 @@
 * :class:`RSITwin` — a simulated KUKA controller speaking RSI XML over UDP;
 * :class:`GyroTwin` — a simulated MPU-6000 streaming frames over a pseudo-terminal;
 * the truth files they write (:func:`read_twin_truth`, one reader) and the truth of a live
-  calibration run against a twin (:func:`twin_truth_table`, :func:`compare_with_truth`).
+  calibration run against a twin (:func:`twin_truth_table`, :func:`compare_with_truth`);
+* the RTDE codec the UR twin speaks (:class:`RTDERecipe`, :class:`RTDEPackageType`,
+  :data:`RTDE_OUTPUT_TYPES`, :data:`RTDE_INPUT_TYPES`, :func:`encode_rtde_package`,
+  :func:`decode_rtde_header`), for a peer of the twin written without ``ur_rtde``.
 
-Each twin runs the simulated controller of :mod:`timedexec.sim` in its own process or
-thread; nothing here is needed to use a real robot.
+Every twin is a :class:`Twin`: one lifecycle (``start``, ``stop``, ``kill``, ``stall``,
+``drop``) and a context manager. Each runs the simulated controller of :mod:`timedexec.sim`
+in its own process or thread; nothing here is needed to use a real robot.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from timedexec.twins._lifecycle import Twin
 from timedexec.twins._truth import (
     GyroClockTruth,
     TruthComparison,
@@ -39,6 +44,16 @@ if TYPE_CHECKING:
         read_rsi_truth,
     )
     from timedexec.twins._rsi_gyro import publish_controller_origin, rsi_gyro_factory
+    from timedexec.twins._rtde import (
+        RTDE_HEADER_SIZE,
+        RTDE_INPUT_TYPES,
+        RTDE_OUTPUT_TYPES,
+        RTDE_TYPE_CODES,
+        RTDEPackageType,
+        RTDERecipe,
+        decode_rtde_header,
+        encode_rtde_package,
+    )
     from timedexec.twins._ur import (
         DASHBOARD_PORT,
         DEFAULT_PHYSICS_RATE_HZ,
@@ -61,6 +76,14 @@ _LAZY = {
     "read_rsi_truth": "timedexec.twins._rsi",
     "publish_controller_origin": "timedexec.twins._rsi_gyro",
     "rsi_gyro_factory": "timedexec.twins._rsi_gyro",
+    "RTDE_HEADER_SIZE": "timedexec.twins._rtde",
+    "RTDE_INPUT_TYPES": "timedexec.twins._rtde",
+    "RTDE_OUTPUT_TYPES": "timedexec.twins._rtde",
+    "RTDE_TYPE_CODES": "timedexec.twins._rtde",
+    "RTDEPackageType": "timedexec.twins._rtde",
+    "RTDERecipe": "timedexec.twins._rtde",
+    "decode_rtde_header": "timedexec.twins._rtde",
+    "encode_rtde_package": "timedexec.twins._rtde",
     "DASHBOARD_PORT": "timedexec.twins._ur",
     "DEFAULT_PHYSICS_RATE_HZ": "timedexec.twins._ur",
     "RTDE_PORT": "timedexec.twins._ur",
@@ -83,7 +106,11 @@ def __getattr__(name: str) -> Any:
 __all__ = [
     "DASHBOARD_PORT",
     "DEFAULT_PHYSICS_RATE_HZ",
+    "RTDE_HEADER_SIZE",
+    "RTDE_INPUT_TYPES",
+    "RTDE_OUTPUT_TYPES",
     "RTDE_PORT",
+    "RTDE_TYPE_CODES",
     "SCRIPT_PORT",
     "STOP_REASONS",
     "UR_CONTROLLER_VERSIONS",
@@ -92,10 +119,15 @@ __all__ = [
     "RSITwin",
     "RSITwinConfig",
     "RSITwinStatus",
+    "RTDEPackageType",
+    "RTDERecipe",
     "TruthComparison",
+    "Twin",
     "TwinTruth",
     "URTwin",
     "compare_with_truth",
+    "decode_rtde_header",
+    "encode_rtde_package",
     "envelope_transport_latency",
     "free_udp_port",
     "gyro_window_start_s",

@@ -1,0 +1,386 @@
+"""The program side of the simulated UR controller: the ``ur_rtde`` control script, script
+uploads on port 30003 and the dashboard server's replies.
+
+The ``ur_rtde`` control interface uploads a URScript program and then drives it through
+RTDE registers. The twin does not interpret the script text; it recognises a complete
+upload (:func:`_split_program`) and emulates the script's main loop
+(:class:`_ControlScript`): command id in ``input_int_register_0`` (24 with upper-range
+registers), arguments in the double registers, acknowledgement in
+``output_int_register_0`` (1 ready, 2 done), ``IS_STEADY`` in ``output_int_register_1``,
+async progress in ``output_int_register_2``. Registers are sampled once per controller
+cycle, not queued.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import sys
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol
+
+import numpy as np
+
+from timedexec.errors import ConfigError
+from timedexec.twins._rtde import RTDE_INPUT_TYPES
+
+_CMD_NO_CMD = 0
+_CMD_MOVEJ = 1
+_CMD_SPEEDJ = 9
+_CMD_SERVOJ = 11
+_CMD_SPEED_STOP = 15
+_CMD_SERVO_STOP = 16
+_CMD_STOPJ = 34
+_CMD_IS_STEADY = 47
+_CMD_WATCHDOG = 99
+_CMD_STOP_SCRIPT = 255
+#: Commands the script processes every cycle and only acknowledges with "ready".
+_REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, *range(66, 72)})
+
+_SIGNAL_BUSY = 0
+_SIGNAL_READY = 1
+_SIGNAL_DONE = 2
+
+_RUNTIME_STOPPED = 1
+_RUNTIME_PLAYING = 2
+
+#: Deceleration used when the program is stopped while the arm moves, rad/s².
+_PROGRAM_STOP_DECELERATION_RAD_S2 = 4.0
+#: Delay from the end of a script upload to ``runtime_state == PLAYING``, s.
+_PROGRAM_START_DELAY_S = 0.02
+
+
+class _SimLike(Protocol):
+    """The part of :class:`timedexec.sim.ControllerSim` the twin uses."""
+
+    period_s: float
+    time_s: float
+
+    @property
+    def q_rad(self) -> Any: ...
+
+    @property
+    def qd_rad_s(self) -> Any: ...
+
+    def packing_phase_s(self, t_s: float) -> float: ...
+
+    def submit(self, command: Any, *, arrival_s: float | None = None) -> int: ...
+
+    def cycle(self) -> Any: ...
+
+    def is_steady(self) -> bool: ...
+
+    def truth_records(self) -> list[dict[str, Any]]: ...
+
+
+def _command_types(sim: object) -> Any:
+    """The command classes (SpeedJ, MoveJ ...) that belong to ``sim``'s implementation."""
+    module = sys.modules.get(type(sim).__module__)
+    if module is not None and hasattr(module, "SpeedJ"):
+        return module
+    return importlib.import_module("timedexec.sim")
+
+
+def _finite(value: Any) -> bool:
+    return value is not None and not (isinstance(value, float) and math.isnan(value))
+
+
+def _field(event: Any, name: str) -> Any:
+    return event[name] if isinstance(event, Mapping) else getattr(event, name)
+
+
+def _as_record(event: Any) -> dict[str, Any]:
+    if isinstance(event, Mapping):
+        return dict(event)
+    to_dict = getattr(event, "to_dict", None)
+    if callable(to_dict):
+        record: dict[str, Any] = to_dict()
+        return record
+    if dataclasses.is_dataclass(event) and not isinstance(event, type):
+        return {f.name: getattr(event, f.name) for f in dataclasses.fields(event)}
+    return dict(vars(event))
+
+
+def _split_program(text: str) -> tuple[str | None, str]:
+    """Split off the first complete top-level ``def``/``sec`` ... ``end`` block."""
+    lines = text.split("\n")
+    start = None
+    for i, line in enumerate(lines):
+        if start is None:
+            if line.startswith(("def ", "sec ")):
+                start = i
+            continue
+        if line.rstrip() == "end" and i < len(lines) - 1:
+            return "\n".join(lines[start : i + 1]), "\n".join(lines[i + 1 :])
+    return None, text
+
+
+def _input_defaults() -> dict[str, Any]:
+    """Input registers at power-on: zero of each field's type."""
+    inputs: dict[str, Any] = dict.fromkeys(RTDE_INPUT_TYPES, 0)
+    for name, kind in RTDE_INPUT_TYPES.items():
+        if kind == "DOUBLE":
+            inputs[name] = 0.0
+        elif kind == "VECTOR6D":
+            inputs[name] = (0.0,) * 6
+    return inputs
+
+
+class _ControlScript:
+    """The ``ur_rtde`` control script's main loop, run on the simulated controller.
+
+    State touched by the server's clock thread, or under the server's lock: the runtime
+    state, the input registers the RTDE writes landed in, the output registers.
+    """
+
+    def __init__(self, sim: _SimLike, log: Callable[[str], None]) -> None:
+        self.sim = sim
+        self.commands = _command_types(sim)
+        self.log = log
+        self.runtime_state = _RUNTIME_STOPPED
+        self.program_start_s = math.inf
+        self.inputs = _input_defaults()
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+        self.register_offset = 0
+        self.pending_op: tuple[int, int] | None = None  # (command id, sim command id)
+        self.async_op: int | None = None
+        self.async_op_counter = 0
+
+    @property
+    def playing(self) -> bool:
+        """Whether the program runs (``runtime_state == PLAYING``)."""
+        return self.runtime_state == _RUNTIME_PLAYING
+
+    @property
+    def command_register(self) -> str:
+        """Name of the input register holding the command id."""
+        return f"input_int_register_{self.register_offset}"
+
+    def start_if_due(self, boundary_s: float) -> None:
+        """Start an uploaded program once its start time is reached (controller time, s)."""
+        if self.program_start_s <= boundary_s:
+            self.program_start_s = math.inf
+            self.runtime_state = _RUNTIME_PLAYING
+            self.out_int[0] = _SIGNAL_READY
+            self.pending_op = None
+
+    def _reg_d(self, i: int) -> float:
+        return float(self.inputs[f"input_double_register_{i + self.register_offset}"])
+
+    def _reg_i(self, i: int) -> int:
+        return int(self.inputs[f"input_int_register_{i + self.register_offset}"])
+
+    def _submit(self, kind: str, arrival_s: float, **fields: Any) -> int | None:
+        command = getattr(self.commands, kind)(**fields)
+        try:
+            return int(self.sim.submit(command, arrival_s=arrival_s))
+        except (ConfigError, ValueError) as exc:
+            # A real controller raises a protective stop / script error; the twin refuses
+            # the command and reports it, leaving the arm as it was.
+            self.log(f"refused {kind}: {exc}")
+            return None
+
+    def _stop_motion(self, arrival_s: float) -> None:
+        if not self.sim.is_steady():
+            self._submit("StopJ", arrival_s, deceleration_rad_s2=_PROGRAM_STOP_DECELERATION_RAD_S2)
+
+    def step(
+        self,
+        boundary_s: float,
+        write_arrival_s: float | None,
+        disconnected: bool,
+        stop_program: bool,
+    ) -> None:
+        """One iteration of the main loop at this cycle boundary (controller time, s).
+
+        ``write_arrival_s`` is the arrival time of the latest write of the command register
+        before the boundary (None: no new command), ``disconnected`` whether the register
+        owner went away, ``stop_program`` whether the dashboard asked to stop.
+        """
+        if stop_program or (disconnected and write_arrival_s is None):
+            arrival = boundary_s
+            if stop_program:
+                self.runtime_state = _RUNTIME_STOPPED
+                self.pending_op = None
+                self.out_int[0] = _SIGNAL_BUSY
+            self._stop_motion(arrival)
+            if stop_program:
+                return
+        if self.runtime_state != _RUNTIME_PLAYING:
+            return
+        if write_arrival_s is None:
+            return
+        arrival = write_arrival_s
+        cmd = self._reg_i(0)
+        if cmd in (_CMD_NO_CMD, _CMD_WATCHDOG):
+            if self.pending_op is None:
+                self.out_int[0] = _SIGNAL_READY
+            return
+        if cmd == _CMD_STOP_SCRIPT:
+            self.runtime_state = _RUNTIME_STOPPED
+            self.pending_op = None
+            self.out_int[0] = _SIGNAL_BUSY
+            self._stop_motion(arrival)
+            return
+        q = tuple(self._reg_d(i) for i in range(6))
+        if cmd == _CMD_SPEEDJ:
+            self.pending_op = None
+            self._submit(
+                "SpeedJ",
+                arrival,
+                qd_rad_s=np.array(q),
+                acceleration_rad_s2=self._reg_d(6),
+                duration_s=self._reg_d(7),
+            )
+            self.out_int[0] = _SIGNAL_READY
+        elif cmd == _CMD_SERVOJ:
+            self.pending_op = None
+            self._submit(
+                "ServoJ",
+                arrival,
+                q_rad=np.array(q),
+                time_s=self._reg_d(8),
+                lookahead_s=self._reg_d(9),
+                gain=self._reg_d(10),
+            )
+            self.out_int[0] = _SIGNAL_READY
+        elif cmd == _CMD_MOVEJ:
+            sim_id = self._submit(
+                "MoveJ",
+                arrival,
+                q_rad=np.array(q),
+                speed_rad_s=self._reg_d(6),
+                acceleration_rad_s2=self._reg_d(7),
+            )
+            self._finish_or_wait(cmd, sim_id, asynchronous=self._reg_i(1) != 0)
+        elif cmd in (_CMD_SPEED_STOP, _CMD_SERVO_STOP, _CMD_STOPJ):
+            deceleration = self._reg_d(0)
+            if cmd == _CMD_SPEED_STOP:
+                sim_id = self._submit("SpeedStop", arrival, deceleration_rad_s2=deceleration)
+            else:
+                sim_id = self._submit("StopJ", arrival, deceleration_rad_s2=deceleration)
+            self._finish_or_wait(
+                cmd, sim_id, asynchronous=cmd == _CMD_STOPJ and self._reg_i(1) != 0
+            )
+        elif cmd == _CMD_IS_STEADY:
+            self.out_int[1] = 1 if self.sim.is_steady() else 0
+            self.out_int[0] = _SIGNAL_DONE
+        elif cmd in _REALTIME_CMDS:
+            self.log(f"realtime command {cmd} is not simulated; acknowledged without motion")
+            self.out_int[0] = _SIGNAL_READY
+        else:
+            self.log(f"command {cmd} is not simulated; acknowledged as done without motion")
+            self.out_int[0] = _SIGNAL_DONE
+
+    def _finish_or_wait(self, cmd: int, sim_id: int | None, *, asynchronous: bool) -> None:
+        if sim_id is None:
+            self.pending_op = None
+            self.out_int[0] = _SIGNAL_DONE
+        elif asynchronous:
+            self.pending_op = None
+            self.async_op = sim_id
+            self.async_op_counter += 1
+            self.out_int[0] = _SIGNAL_DONE
+        else:
+            self.pending_op = (cmd, sim_id)
+            self.out_int[0] = _SIGNAL_BUSY
+
+    def _op_finished(self, sim_id: int) -> bool:
+        """A blocking command is done once its reference has started and the arm is still."""
+        record = self._truth_record(sim_id)
+        if record is None:
+            return False
+        start = record.get("reference_start_s")
+        if start is None or not _finite(start) or self.sim.time_s < float(start):
+            return False
+        return bool(self.sim.is_steady())
+
+    def _truth_record(self, sim_id: int) -> dict[str, Any] | None:
+        truth = getattr(self.sim, "truth", None)
+        if truth is not None:
+            for event in reversed(truth):
+                if int(_field(event, "id")) == sim_id:
+                    return _as_record(event)
+            return None
+        for record in reversed(self.sim.truth_records()):
+            if int(record["id"]) == sim_id:
+                return dict(record)
+        return None
+
+    def after_cycle(self) -> None:
+        """Signal blocking commands done and async progress once the cycle is computed."""
+        if self.pending_op is not None and self._op_finished(self.pending_op[1]):
+            self.pending_op = None
+            self.out_int[0] = _SIGNAL_DONE
+        if self.async_op is not None:
+            running = not self._op_finished(self.async_op)
+            op_id = self.async_op_counter & 0xFF
+            self.out_int[2] = (op_id << 24) | ((1 << 15) if running else 0)
+            if not running:
+                self.async_op = None
+
+    def output_registers(self) -> dict[str, Any]:
+        """The output registers a state package carries (ints 0-2, doubles 0-5)."""
+        values: dict[str, Any] = {}
+        for i in range(3):
+            values[f"output_int_register_{i + self.register_offset}"] = self.out_int[i]
+        for i in range(6):
+            values[f"output_double_register_{i + self.register_offset}"] = self.out_double[i]
+        return values
+
+
+def _dashboard_reply(
+    line: str,
+    *,
+    version: tuple[int, int, int, int],
+    serial_number: str,
+    model: str,
+    playing: bool,
+    request_stop: Callable[[], None],
+) -> str | None:
+    """The dashboard server's answer to one command line (None: ``quit``, disconnect)."""
+    cmd = line.strip()
+    low = cmd.lower()
+    major, minor, bugfix, build = version
+    if low == "polyscopeversion":
+        return f"URSoftware {major}.{minor}.{bugfix}.{build} (Oct 18 2022)"
+    if low == "get serial number":
+        return serial_number
+    if low == "get robot model":
+        return model
+    if low == "is in remote control":
+        return "true"
+    if low == "stop":
+        request_stop()
+        return "Stopped"
+    if low == "play":
+        return "Starting program"
+    if low == "pause":
+        return "Pausing program"
+    if low == "robotmode":
+        return "Robotmode: RUNNING"
+    if low == "safetymode":
+        return "Safetymode: NORMAL"
+    if low == "safetystatus":
+        return "Safetystatus: NORMAL"
+    if low == "programstate":
+        return "PLAYING rtde_control" if playing else "STOPPED <unnamed>"
+    if low == "running":
+        return f"Program running: {str(playing).lower()}"
+    if low == "power on":
+        return "Powering on"
+    if low == "power off":
+        return "Powering off"
+    if low == "brake release":
+        return "Brake releasing"
+    if low == "unlock protective stop":
+        return "Protective stop releasing"
+    if low in ("close popup", "close safety popup"):
+        return "closing popup" if low == "close popup" else "closing safety popup"
+    if low == "get loaded program":
+        return "No program loaded"
+    if low == "quit":
+        return None
+    return f"could not understand: '{cmd}'"
