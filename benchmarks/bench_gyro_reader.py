@@ -73,7 +73,8 @@ def _start_twin(duration_s: float) -> tuple[subprocess.Popen[str], dict[str, flo
         [
             sys.executable,
             "-m",
-            "timedexec.twins._gyro",
+            "timedexec.twins",
+            "gyro",
             "--duration-s",
             str(duration_s),
             "--profile",

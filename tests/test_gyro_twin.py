@@ -260,10 +260,10 @@ def test_twin_lifecycle_stall_kill_and_drop() -> None:
 
 
 def test_twin_cli_runs_in_its_own_process() -> None:
-    """`python -m timedexec.twins._gyro` prints a ready line with the port and the
+    """`python -m timedexec.twins gyro` prints a ready line with the port and the
     ground truth, streams, and prints a summary when its duration is over."""
     proc = subprocess.run(
-        [sys.executable, "-m", "timedexec.twins._gyro", "--duration-s", "0.3"],
+        [sys.executable, "-m", "timedexec.twins", "gyro", "--duration-s", "0.3"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -275,7 +275,7 @@ def test_twin_cli_runs_in_its_own_process() -> None:
     assert summary["samples_sent"] > 1000
     assert summary["error"] is None
     bad = subprocess.run(
-        [sys.executable, "-m", "timedexec.twins._gyro", "--full-scale-dps", "3"],
+        [sys.executable, "-m", "timedexec.twins", "gyro", "--full-scale-dps", "3"],
         capture_output=True,
         text=True,
         timeout=30,

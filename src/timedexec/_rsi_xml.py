@@ -12,7 +12,7 @@ PC -> robot, the answer, which must echo the latest IPOC::
 Axis values on the wire are in degrees, Cartesian positions in mm, Cartesian angles in
 degrees; this module converts at the boundary so that everything it returns or accepts is SI
 (rad, m). The PC side uses :func:`parse_rob` and :func:`build_sen`; the robot side (the
-simulated controller :mod:`timedexec.twins._rsi`) uses :func:`build_rob` and
+simulated controller :class:`timedexec.twins.RSITwin`) uses :func:`build_rob` and
 :func:`parse_sen`.
 
 Hardening

@@ -14,7 +14,7 @@ Time base: the twin's time ``t`` is seconds since :attr:`GyroTwin.start_time_s` 
 The sensor model and frame encoder are :class:`timedexec.sim.GyroFrameSource`'s; this module
 is the transport (the pty, USB-like bursts, overflow) and the process entry point.
 
-Run ``python -m timedexec.twins._gyro --help`` to start a twin in its own process.
+Run ``python -m timedexec.twins gyro --help`` to start a twin in its own process.
 """
 
 from __future__ import annotations
@@ -372,7 +372,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``start_time_s``, ``true_rate_hz``) and one summary line when it stops.
     """
     parser = argparse.ArgumentParser(
-        prog="python -m timedexec.twins._gyro", description=main.__doc__
+        prog="python -m timedexec.twins gyro", description=main.__doc__
     )
     parser.add_argument("--link", help="also expose the pty slave as this symlink")
     parser.add_argument("--duration-s", type=float, default=math.inf)
