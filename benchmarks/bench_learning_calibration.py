@@ -3,13 +3,16 @@
 For each training sweep (``--sweeps``, seeds 0, 1, ...): simulate ``--trials`` true delays
 of the robot (``simulate_delays``; a sweep plan of ``trials / 80`` configurations x 4 joints
 x 2 directions x 10 repeats, trials 1.05 s apart as the sweep clock lays them out, so an
-800-trial sweep is a 14-minute cold robot), train the GP with 10-fold CV
-(``train_delay_models(methods="gpr")``), and check the actuation delay of 10 fresh plans'
-configurations (one trial per condition, the same sweep times) against
+800-trial sweep is a 14-minute cold robot), cross-validate the GP as training does (10
+folds by start configuration, ``fold_of_configuration``; one GP per joint and one combined)
+to get the held-out standardised residuals ``z = (y - mean) / std`` of the actuation delay,
+train the GP bundle (``train_delay_models(methods="gpr")``), and check the actuation delay
+of 10 fresh plans' configurations (one trial per condition, the same sweep times) against
 ``TimingBounds.around(mean, std, 0.95, period)`` for three std's from the same fits:
 
 * ``gp``: the GP's own trial std (factor 1, what bundles reported before calibration);
-* ``rms``: the bundle's factor ``max(1, sqrt(mean z²))`` (what training stores);
+* ``rms``: the factor ``max(1, sqrt(mean z²))`` (``std_scale_factor``, the rule training
+  stores in the bundle);
 * ``q95``: the alternative rule ``max(1, q95(|z|) / 1.96)`` (the Gaussian 95 % quantile),
   computed from the same held-out residuals.
 
@@ -24,17 +27,59 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from typing import Any
 
 import numpy as np
 
-import timedexec.learning._train as train_module
+from timedexec.delays import DelayTable
 from timedexec.execution import TimingBounds
+from timedexec.learning import (
+    encode_inputs,
+    fold_of_configuration,
+    make_estimator,
+    std_scale_factor,
+    train_delay_models,
+)
 from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
 from timedexec.sim import simulate_delays
 
 KEYS = ("1", "2", "3", "5", "combined")
+
+
+def held_out_z(table: DelayTable, folds: int, random_state: int) -> dict[str, np.ndarray]:
+    """Held-out ``(y - mean) / std`` of the GP's actuation delay, per model (KEYS).
+
+    The cross-validation of ``train_delay_models``: folds by start configuration, one GP per
+    joint (inputs configuration and direction) and one combined (plus the joint one-hot);
+    ``std`` is the single-trial std (latent + noise) a bundle reports before calibration.
+    """
+    t = table.validated_for_training()
+    q = t.q
+    joint = t["joint"].astype(np.int64)
+    direction = t["direction"].astype(np.int64)
+    y = t["actuation_delay"].astype(float)
+    config = np.unique(q, axis=0, return_inverse=True)[1].reshape(-1)
+    fold = fold_of_configuration(config, folds, random_state)
+    joints = tuple(sorted({int(j) for j in joint}))
+    z: dict[str, np.ndarray] = {}
+    for key in KEYS:
+        if key == "combined":
+            rows = np.arange(len(y))
+            X = encode_inputs(q, direction, joint, joints)
+        else:
+            rows = np.flatnonzero(joint == int(key))
+            X = encode_inputs(q[rows], direction[rows])
+        parts = []
+        for k in range(folds):
+            test = fold[rows] == k
+            if not test.any() or test.all():
+                continue
+            gp = make_estimator("gpr", random_state=random_state + k)
+            gp.fit(X[~test], y[rows][~test])
+            mean, std = gp.predict(X[test], return_std=True)
+            parts.append((y[rows][test] - mean) / std)
+        z[key] = np.concatenate(parts)
+    return z
 
 
 def main() -> None:
@@ -47,30 +92,19 @@ def main() -> None:
     n = args.trials
     t = np.arange(n) * 1.05
 
-    # record the held-out residuals the factor is computed from (actuation first, in key order)
-    seen: list[tuple[np.ndarray, np.ndarray]] = []
-    rule = train_module.std_scale_factor
-
-    def recording(r: Any, s: Any) -> float:
-        seen.append((np.asarray(r, float), np.asarray(s, float)))
-        return rule(r, s)
-
-    train_module.std_scale_factor = recording  # type: ignore[assignment]
     cover: dict[str, list[list[float]]] = {"gp": [], "rms": [], "q95": []}
     start = time.perf_counter()
     for seed in range(args.sweeps):
-        seen.clear()
         plan = SweepPlan.generate(args.robot, n, seed=seed)
         table = simulate_delays(
             args.robot, plan.q_start_rad, plan.joint, plan.direction, t, seed=seed
         )
-        model = train_module.train_delay_models(
-            table, methods="gpr", folds=10, random_state=0
-        ).model
-        z = {k: r / s for k, (r, s) in zip(KEYS, seen[: len(KEYS)], strict=True)}
+        z = held_out_z(table, folds=10, random_state=0)
+        # folds=0: the bundle's GP std stays uncalibrated (factor 1); the rules scale it
+        model = train_delay_models(table, methods="gpr", folds=0, random_state=0).model
         factors = {
             "gp": dict.fromkeys(KEYS, 1.0),
-            "rms": dict(model.std_scale["actuation_delay"]),
+            "rms": {k: std_scale_factor(z[k], np.ones_like(z[k])) for k in KEYS},
             "q95": {k: max(1.0, float(np.quantile(np.abs(z[k]), 0.95)) / 1.959964) for k in KEYS},
         }
         parts = []

@@ -1,4 +1,4 @@
-"""Benchmark of the HDF5 recording store (timedexec.recording._store).
+"""Benchmark of the HDF5 recording store (RecordingWriter, RecordingReader).
 
 Writes a synthetic calibration sweep -- per trial a gyro recording (4800, 3) int16 (0.6 s at
 8 kHz: smooth joint motion + sensor noise + bias) and eleven small fields (start pose,

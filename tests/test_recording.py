@@ -1,4 +1,4 @@
-"""Tests of the HDF5 recording store (timedexec.recording._store).
+"""Tests of the HDF5 recording store (RecordingWriter, RecordingReader).
 
 The crash tests run a writer in a subprocess and SIGKILL it, either after seeded random
 delays or at named points of the commit protocol (``TIMEDEXEC_RECORDING_FAULT``), then
@@ -76,7 +76,7 @@ import sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 import test_recording as T
-from timedexec.recording._store import RecordingWriter
+from timedexec.recording import RecordingWriter
 
 path, seed, n = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 rng = np.random.default_rng(seed)
@@ -404,24 +404,26 @@ def test_failed_append_leaves_no_trace(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, error: BaseException
 ) -> None:
     """A journal write failing halfway (disk full, Ctrl-C) records nothing and breaks nothing."""
-    import timedexec.recording._store as rec
-
     path = tmp_path / "r.h5"
-    real_write_all = rec._write_all
+    journal = str(path) + ".journal"
+    real_write = os.write
     with RecordingWriter(path, header=HEADER, fields=FIELDS) as w:
         w.append(make_batch([0, 1]))
-        size = os.path.getsize(str(path) + ".journal")
+        size = os.path.getsize(journal)
 
-        def failing(fd: int, data: bytes | memoryview) -> None:
-            real_write_all(fd, memoryview(data)[: len(data) // 2])
+        def failing(fd: int, data: bytes | memoryview) -> int:
+            """Writes to the journal stop halfway, as on a full disk or at Ctrl-C."""
+            if not os.path.samestat(os.fstat(fd), os.stat(journal)):
+                return real_write(fd, data)
+            real_write(fd, memoryview(data)[: len(data) // 2])
             raise error
 
-        monkeypatch.setattr(rec, "_write_all", failing)
+        monkeypatch.setattr(os, "write", failing)
         expected = RecordingError if isinstance(error, OSError) else KeyboardInterrupt
         with pytest.raises(expected):
             w.append(make_batch([2, 3]))
-        monkeypatch.setattr(rec, "_write_all", real_write_all)
-        assert os.path.getsize(str(path) + ".journal") == size  # the torn bytes are gone
+        monkeypatch.setattr(os, "write", real_write)
+        assert os.path.getsize(journal) == size  # the torn bytes are gone
         w.append(make_batch([4]))
         with RecordingReader(path) as r:
             np.testing.assert_array_equal(r.read("trial"), [0, 1, 4])

@@ -12,8 +12,8 @@ from timedexec.extraction._extract import (
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
-    "REQUIRED_FIELDS",
     "METHODS",
+    "REQUIRED_FIELDS",
     "ExtractionResult",
     "StillAnalysis",
     "analyse_still",

@@ -11,6 +11,7 @@ See ``docs/recording-format.md``.
 
 from __future__ import annotations
 
+from timedexec.recording._fields import Field
 from timedexec.recording._plan import (
     FULL_SWEEP_TRIALS,
     SweepPlan,
@@ -18,14 +19,10 @@ from timedexec.recording._plan import (
     TrialProfile,
     calibration_ranges,
 )
+from timedexec.recording._protocol import FORMAT_NAME, FORMAT_VERSION
+from timedexec.recording._reader import RecordingReader
 from timedexec.recording._schema import GyroHeader, TrialLayout, trial_fields, trial_layout
-from timedexec.recording._store import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    Field,
-    RecordingReader,
-    RecordingWriter,
-)
+from timedexec.recording._writer import RecordingWriter
 
 __all__ = [
     "FORMAT_NAME",

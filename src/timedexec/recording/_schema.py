@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
-from timedexec.recording._store import Field
+from timedexec.recording._fields import Field
 
 if TYPE_CHECKING:
     from timedexec.recording._plan import SweepProtocol

@@ -25,10 +25,10 @@ from timedexec.sensors._frames import (
     crc8,
     encode_frames,
 )
+from timedexec.sensors._ports import SUPPORTED_URL_SCHEMES
 from timedexec.sensors._reader import (
     DLPF_GROUP_DELAY_S,
     SENSITIVITY_LSB_PER_DPS,
-    SUPPORTED_URL_SCHEMES,
     GyroReader,
     GyroSamples,
     GyroSettings,

@@ -1,12 +1,7 @@
 """GyroReader: the gyro stream over pyserial, parsed and time-stamped in a background thread.
 
-``open_gyro(url)`` picks the backend from the URL, like ``serial.serial_for_url``:
-
-- a device path (``/dev/ttyUSB0``, ``/dev/ttyACM0``, a pty ``/dev/pts/N``, ``COM3``),
-- ``sim://[?rate_dps=X,Y,Z&...]``: a simulated sensor inside this process (no pty).
-
-pyserial's network URLs (``socket://``) are not accepted: the reader relies on
-``in_waiting`` reporting a byte count, which their handlers do not.
+``open_gyro(url)`` picks the port backend from the URL, like ``serial.serial_for_url``
+(a device path or ``sim://``; see :mod:`timedexec.sensors._ports`).
 
 A reader thread cycles every ``read_period_s`` (20 ms): it sleeps, reads everything
 ``in_waiting`` (blocking for one byte only when nothing is there), and stamps the read with
@@ -28,21 +23,20 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import Any, Self
 
 import numpy as np
-import serial
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError, DriverTimeout, SensorError
 from timedexec.sensors._clock import ClockFit, SensorClock
 from timedexec.sensors._frames import FrameParser
+from timedexec.sensors._ports import Port, open_port
 from timedexec.sensors._unwrap import CounterUnwrapper
 
 __all__ = [
     "DLPF_GROUP_DELAY_S",
     "SENSITIVITY_LSB_PER_DPS",
-    "SUPPORTED_URL_SCHEMES",
     "GyroReader",
     "GyroSamples",
     "GyroSettings",
@@ -57,8 +51,6 @@ __all__ = [
 DLPF_GROUP_DELAY_S = 0.98e-3
 #: Gyro sensitivity per full-scale range, LSB per °/s (MPU-6000 datasheet, ±3 %).
 SENSITIVITY_LSB_PER_DPS: dict[int, float] = {250: 131.0, 500: 65.5, 1000: 32.8, 2000: 16.4}
-#: URL schemes ``open_gyro`` accepts besides plain device paths.
-SUPPORTED_URL_SCHEMES = ("sim",)
 
 _CHUNK_HISTORY = 64  # reads remembered to time-stamp frames finished by an earlier read
 
@@ -372,17 +364,6 @@ def _triple(values: ArrayLike) -> tuple[float, float, float]:
     return (float(arr[0]), float(arr[1]), float(arr[2]))
 
 
-class _Port(Protocol):
-    """What the reader needs from a port (pyserial ``Serial`` or :class:`SimGyroPort`)."""
-
-    @property
-    def in_waiting(self) -> int: ...
-
-    def read(self, size: int = 1) -> bytes: ...
-
-    def close(self) -> None: ...
-
-
 class _Ring:
     """Fixed-capacity FIFO of samples (index, arrival, raw)."""
 
@@ -461,7 +442,7 @@ class GyroReader:
 
     def __init__(
         self,
-        port: _Port,
+        port: Port,
         settings: GyroSettings,
         *,
         url: str,
@@ -816,41 +797,6 @@ class GyroReader:
         return calibration
 
 
-def _open_port(url: str, settings: GyroSettings) -> _Port:
-    if "://" in url:
-        scheme = url.split("://", 1)[0].lower()
-        if scheme not in SUPPORTED_URL_SCHEMES:
-            raise ConfigError(
-                f"unsupported gyro URL scheme {scheme!r} in {url!r}; use a device path such "
-                "as /dev/ttyUSB0 or one of " + ", ".join(f"{s}://" for s in SUPPORTED_URL_SCHEMES)
-            )
-        if scheme == "sim":
-            from timedexec.sensors._simport import SimGyroPort
-
-            return SimGyroPort(
-                url,
-                full_scale_dps=settings.full_scale_dps,
-                nominal_rate_hz=settings.nominal_rate_hz,
-                timeout=settings.read_timeout_s,
-            )
-    try:
-        port: _Port = serial.serial_for_url(
-            url,
-            baudrate=settings.baudrate,
-            timeout=settings.read_timeout_s,
-            exclusive=settings.exclusive,
-        )
-    except serial.SerialException as exc:
-        raise SensorError(
-            f"cannot open gyro port {url!r}: {exc}. Check that the sensor is plugged in and "
-            "the path is right (ls /dev/ttyUSB* /dev/ttyACM* /dev/serial/by-id/), that you "
-            "may open it (group 'dialout'), and that no other program holds it"
-        ) from exc
-    except ValueError as exc:
-        raise ConfigError(f"gyro port {url!r} rejected the settings: {exc}") from exc
-    return port
-
-
 def open_gyro(
     url: str,
     *,
@@ -902,7 +848,7 @@ def open_gyro(
                 + ", ".join(sorted(allowed))
             )
         config = GyroSettings(**settings)
-    port = _open_port(url, config)
+    port = open_port(url, config)
     reader = GyroReader(port, config, url=url, tap=tap)
     reader.start()
     return reader
