@@ -117,6 +117,11 @@ DEMO = {
 def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
     """Every library entry point the commands call, replaced by a :class:`Call`; the
     working folder is ``tmp_path`` so relative outputs land there."""
+    # Import every patched module's importers first: a module imported while a fake is in
+    # place (execution imports drivers.open_driver by name) would keep the fake afterwards.
+    import timedexec.evaluation
+    import timedexec.report  # noqa: F401
+
     monkeypatch.chdir(tmp_path)
     extraction = SimpleNamespace(table=FakeTable(), summary=lambda: dict(EXTRACT_SUMMARY))
     training = SimpleNamespace(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -330,6 +331,9 @@ def test_cli_writes_json_and_report(gravity_table, tmp_path, capsys):
     assert _all_finite(doc)
     md = (report / "report.md").read_text()
     assert "## Step 1: gravity_load" in md
+    # The evidence line is formatted, not the literal f-string source.
+    assert "{ev[" not in md
+    assert re.search(r"falls from \d+\.\d{3} to \d+\.\d{3} ms²", md)
     assert "noise floor" in md
     for png in ("gap_per_step.png", "where.png", "step1_gravity_load.png"):
         assert (report / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

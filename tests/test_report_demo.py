@@ -37,6 +37,11 @@ def test_demo_runs_end_to_end_and_reports(demo, capsys):
     info = json.loads(captured.out)
     # Progress names every step on stderr.
     assert all(f"[{k}/6]" in captured.err for k in range(1, 7))
+    # The count printed is the count used: 160 trials hold 2 configurations, not the 8 asked.
+    assert "2 held-out configurations (of 8 asked: a held-out sweep of 160 trials holds 2)" in (
+        captured.err
+    )
+    assert info["evaluation"]["n_configurations"] == 2
     assert info["folds"] == 2  # 160 trials hold two start configurations: one fold each
     assert set(info["cv_ms"]["actuation_delay"]) == {"median", "nn", "rt", "gpr"}
     assert (demo / "model" / "manifest.json").exists()

@@ -19,6 +19,13 @@ flag                      optional str: why a trial could not be measured ("" wh
 ========================  ==================================================================
 
 Extra columns are kept as they are. Delays are in seconds; human-facing tables show ms.
+
+A table is refused (:class:`~timedexec.errors.ConfigError`) when a trial id occurs twice:
+a duplicated row would count twice in training and in every statistic, so the message
+names the ids and their rows (drop the copies, or renumber a merged table). A UTF-8
+byte-order mark at the start of a CSV file (as Excel writes) is ignored. Joint angles are
+checked against the robot's limits where the robot is known: when training
+(:func:`timedexec.learning.train_delay_models`).
 """
 
 from __future__ import annotations
@@ -109,6 +116,7 @@ class DelayTable:
         if n == 0:
             raise ConfigError(f"{source}: the delay table is empty (no rows)")
         self._check_values(allow_nan)
+        self._check_unique_trials()
 
     def _as_int(self, name: str, raw: NDArray[Any]) -> NDArray[np.int64]:
         try:
@@ -157,6 +165,24 @@ class DelayTable:
                     f"{self.source}: column {name!r} row {row} is {values[row]}; delays must be "
                     "finite seconds (flag unmeasurable trials and drop them before training)"
                 )
+
+    def _check_unique_trials(self) -> None:
+        trial = self.columns["trial"]
+        ids, counts = np.unique(trial, return_counts=True)
+        if (counts == 1).all():
+            return
+        dup = ids[counts > 1]
+        shown = []
+        for t in dup[:5]:
+            rows = np.flatnonzero(trial == t)
+            shown.append(f"{int(t)} (rows {', '.join(str(int(r)) for r in rows[:4])}"
+                         + (", ..." if len(rows) > 4 else "") + ")")  # fmt: skip
+        more = f" and {len(dup) - 5} more" if len(dup) > 5 else ""
+        raise ConfigError(
+            f"{self.source}: trial id(s) {'; '.join(shown)}{more} occur more than once; a "
+            "trial id is unique within a sweep (a duplicated row would count twice): drop the "
+            "copies, or renumber the trials of a merged table"
+        )
 
     # ---------------------------------------------------------------- access
     def __len__(self) -> int:
@@ -227,7 +253,7 @@ class DelayTable:
         """Read and validate a delay table; errors name the column and row."""
         p = Path(path)
         try:
-            text = p.read_text(encoding="utf-8")
+            text = p.read_text(encoding="utf-8-sig")  # -sig: a BOM (Excel) is not a name
         except FileNotFoundError:
             raise RecordingError(f"delay table {p} does not exist") from None
         except (OSError, UnicodeDecodeError) as exc:

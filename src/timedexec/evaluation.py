@@ -55,6 +55,7 @@ __all__ = [
     "Evaluation",
     "SimulatedOracle",
     "evaluate",
+    "held_out_capacity",
     "warm_effects",
 ]
 
@@ -194,7 +195,19 @@ class Evaluation:
                 row += f" {s.get('seam_physics_cm', math.nan):>12.3f} cm"
             lines.append(row)
         lines.append(f"model 95 % bounds cover {self.coverage_95 * 100:.1f} % of true onsets")
+        lines += [f"note: {text}" for text in self.details.get("notes", [])]
         return "\n".join(lines)
+
+
+def held_out_capacity(robot: str, sweep_trials: int, joints: Sequence[int] = (1, 2, 3, 5)) -> int:
+    """Start configurations a held-out sweep of ``sweep_trials`` trials holds.
+
+    :func:`evaluate` lays its held-out conditions out in a sweep of the training sweep's
+    size (so the joints are as warm as in training); it evaluates on at most this many
+    configurations, whatever ``n_configs`` asks (and says so in its notes).
+    """
+    plan = SweepPlan.generate(get_robot(robot), int(sweep_trials), seed=0, joints=joints)
+    return int(plan.config_index.max()) + 1
 
 
 def _held_out(
@@ -313,18 +326,42 @@ def evaluate(
     physics_configs : int
         Held-out configurations on which to verify the seam error by running the stepped
         physics (joint 1 follows a seam) for each strategy; 0 skips it.
+
+    Notes
+    -----
+    Counts are reported as used: ``n_configurations`` is the number evaluated, which is
+    fewer than ``n_configs`` when the held-out sweep holds fewer
+    (:func:`held_out_capacity`), and ``details["physics_configurations"]`` may be fewer
+    than ``physics_configs`` when fewer held-out configurations let joint 1 follow the
+    seam; each shortfall adds a line to ``details["notes"]`` (printed by :meth:`table`).
     """
     spec = get_robot(robot)
+    counts = (
+        ("n_configs", n_configs, 1),
+        ("draws", draws, 2),
+        ("physics_configs", physics_configs, 0),
+    )
+    for name, value, low in counts:
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
+    if not (math.isfinite(speed_m_s) and speed_m_s > 0):
+        raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
     if model is None:
         model = f"{spec.name}-sim"  # the bundled model
     predictor = load_delay_model(model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)
-    if n_configs < 1 or draws < 2:
-        raise ConfigError(f"n_configs={n_configs} must be >= 1 and draws={draws} >= 2")
     t_begin = time.monotonic()
     if sweep_trials is None:
         trained_on = getattr(predictor, "manifest", {}).get("training_data", {}).get("trials")
         sweep_trials = int(trained_on) if trained_on else FULL_SWEEP_TRIALS
+    notes: list[str] = []
+    capacity = held_out_capacity(spec.name, sweep_trials, joints)
+    if capacity < n_configs:
+        notes.append(
+            f"{n_configs} held-out configurations were asked for, but a held-out sweep of "
+            f"{sweep_trials:,} trials (the size of the model's training sweep) holds only "
+            f"{capacity}; evaluated on {capacity}"
+        )
     q, joint, direction, t0 = _held_out(spec.name, n_configs, seed, sweep_trials, joints)
     n = len(joint)
     bar = Progress(
@@ -400,6 +437,7 @@ def evaluate(
         "oracle_draws": draws,
         "seed": seed,
         "medians_ms": {"overall": overall * 1e3, "per_joint": (per_joint * 1e3).tolist()},
+        "n_configs_requested": int(n_configs),
     }
     if physics_configs > 0:
         pq, pt = _physics_configs(spec.name, q, joint, t0, physics_configs, speed_m_s)
@@ -421,8 +459,15 @@ def evaluate(
             phys = _seam_physics(spec.name, predictors, pq, pt, speed_m_s, effects, seed, bar)
             for name, dist in phys.items():
                 strategies[name]["seam_physics_cm"] = float(np.mean(dist)) * 100
-            details["physics_configurations"] = len(pq)
+        details["physics_configurations"] = len(pq)
+        if len(pq) < physics_configs:
+            notes.append(
+                f"the physics check was asked for {physics_configs} configurations; "
+                f"{len(pq)} of the held-out ones let joint 1 follow a seam at {speed_m_s:g} m/s"
+                + (", so it ran on those" if len(pq) else ", so it did not run")
+            )
     bar.close()
+    details["notes"] = notes
     details["elapsed_s"] = time.monotonic() - t_begin
     return Evaluation(
         robot=spec.name,

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from timedexec.cli._common import add_command, add_json, add_quiet, add_robot, add_seed, emit
+from timedexec.cli._common import (
+    add_command,
+    add_json,
+    add_quiet,
+    add_robot,
+    add_seed,
+    check_files,
+    emit,
+)
 from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "run"]
@@ -50,8 +58,6 @@ def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; return the exit code."""
     from urllib.parse import urlsplit
 
-    import numpy as np
-
     from timedexec.calibration import run_calibration
     from timedexec.drivers import open_driver
     from timedexec.recording import SweepPlan
@@ -63,15 +69,19 @@ def run(args: argparse.Namespace) -> int:
         robot = robot or (urlsplit(args.robot_url).netloc or "ur10")
     elif robot is None:
         robot = "kr5" if scheme == "rsi" else "ur10"
-    settings = default_settings(robot)
     if (args.trials is None) == (args.plan is None):
         raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
+    imu = args.imu if args.imu and "://" not in args.imu else None
+    check_files(
+        args,
+        "calibrate",
+        # the recording refuses an existing file itself unless --resume continues it
+        inputs={"--plan": args.plan, "--imu": imu},
+        outputs={"--out": args.out},
+    )
+    settings = default_settings(robot)
     if args.plan:
-        try:
-            arrays = dict(np.load(args.plan, allow_pickle=False))
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"--plan {args.plan}: cannot read it ({exc})") from exc
-        plan = SweepPlan.from_arrays(settings.robot, arrays)
+        plan = _read_plan(args.plan, settings.robot)
     else:
         if args.trials < 1:
             raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
@@ -114,3 +124,47 @@ def run(args: argparse.Namespace) -> int:
         f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}",
     )
     return 0
+
+
+def _read_plan(path: str, robot: Any) -> Any:
+    """The sweep plan in the .npz file ``path`` (the arrays of ``SweepPlan.to_arrays``).
+
+    Raises
+    ------
+    ConfigError
+        An unreadable file, a missing array or arrays that do not form a plan, naming
+        the file, what is wrong and the fix.
+    """
+    import zipfile
+
+    import numpy as np
+
+    from timedexec.errors import TimedExecError
+    from timedexec.recording import SweepPlan
+
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ConfigError(
+            f"--plan {path}: cannot read it as a .npz plan ({exc}); save one with "
+            "numpy.savez(PATH, **SweepPlan.to_arrays())"
+        ) from exc
+    except AttributeError:  # a plain .npy array, not an archive of named arrays
+        arrays = {}
+    try:
+        return SweepPlan.from_arrays(robot, arrays)
+    except KeyError as exc:
+        raise ConfigError(
+            f"--plan {path}: the array {exc.args[0]!r} is missing (it holds "
+            f"{', '.join(sorted(arrays)) or 'no named arrays'}); a plan file holds the arrays "
+            "of SweepPlan.to_arrays(): plan_q_start_rad, plan_joint, plan_direction, "
+            "plan_config_index, plan_repeat"
+        ) from None
+    except TimedExecError:
+        raise
+    except (TypeError, ValueError, IndexError) as exc:
+        raise ConfigError(
+            f"--plan {path}: its arrays do not form a sweep plan ({exc}); save one with "
+            "numpy.savez(PATH, **SweepPlan.to_arrays())"
+        ) from exc

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +22,7 @@ from timedexec.robots import ROBOT_NAMES
 
 __all__ = [
     "JSON_CONVENTION",
+    "MAX_SEED",
     "Formatter",
     "StdoutClosed",
     "add_command",
@@ -29,12 +32,21 @@ __all__ = [
     "add_quiet",
     "add_robot",
     "add_seed",
+    "check_files",
     "check_json_path",
+    "cpu_count",
     "emit",
+    "float_arg",
+    "int_arg",
+    "note",
     "out",
     "robot_name",
+    "used_jobs",
     "warn",
 ]
+
+#: Largest accepted ``--seed`` (seeds are 32-bit unsigned integers, as in scikit-learn).
+MAX_SEED = 2**32 - 1
 
 #: The ``--json`` convention, as the top-level ``--help`` and the README state it.
 JSON_CONVENTION = (
@@ -90,11 +102,90 @@ def add_robot(
     )
 
 
+def int_arg(
+    low: int | None = None, high: int | None = None, *, fix: str = ""
+) -> Callable[[str], int]:
+    """argparse type: an integer in ``[low, high]`` (None: unbounded on that side).
+
+    The message of a bad value names the value, the allowed range and, with ``fix``, what
+    to do; argparse prefixes the option (``argument --seed: -1 is out of range; ...``) and
+    exits 2.
+    """
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"invalid int value: {text!r}; {_range_words(low, high, 'an integer')}{fix}"
+            ) from None
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(
+                f"{value} is out of range; {_range_words(low, high, 'an integer')}{fix}"
+            )
+        return value
+
+    return parse
+
+
+def float_arg(
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+    unit: str = "",
+    fix: str = "",
+) -> Callable[[str], float]:
+    """argparse type: a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``).
+
+    NaN and infinities are refused at the boundary, with a message naming the value, the
+    allowed range (in ``unit``) and, with ``fix``, what to do (argparse names the option).
+    """
+    lo = "" if low is None else ("> " if low_open else ">= ") + f"{low:g}"
+    hi = "" if high is None else f"<= {high:g}"
+    span = " and ".join(w for w in (lo, hi) if w)
+    words = f"use a finite number{' ' + span if span else ''}{' ' + unit if unit else ''}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"invalid float value: {text!r}; {words}{fix}"
+            ) from None
+        bad = not math.isfinite(value)
+        if low is not None:
+            bad |= value <= low if low_open else value < low
+        if high is not None:
+            bad |= value > high
+        if bad:
+            raise argparse.ArgumentTypeError(f"{text.strip()} is out of range; {words}{fix}")
+        return value
+
+    return parse
+
+
+def _range_words(low: int | None, high: int | None, noun: str) -> str:
+    if low is not None and high is not None:
+        return f"use {noun} from {low} to {high}"
+    if low is not None:
+        return f"use {noun} >= {low}"
+    if high is not None:
+        return f"use {noun} <= {high}"
+    return f"use {noun}"
+
+
 def add_seed(
     parser: argparse.ArgumentParser, *, default: int = 0, help: str = "random seed"
 ) -> None:
-    """``--seed N``: the seed of every random choice of the command (same seed, same output)."""
-    parser.add_argument("--seed", type=int, default=default, help=help)
+    """``--seed N``: the seed of every random choice of the command (same seed, same output);
+    0 .. :data:`MAX_SEED` (exit 2 outside)."""
+    parser.add_argument(
+        "--seed",
+        type=int_arg(0, MAX_SEED),
+        default=default,
+        help=f"{help} (0 .. {MAX_SEED})",
+    )
 
 
 def add_period(
@@ -102,13 +193,56 @@ def add_period(
     *,
     help: str = "controller period, s (kr5: 0.012 or 0.004)",
 ) -> None:
-    """``--period S``: the controller period, s (default: the robot's)."""
-    parser.add_argument("--period", type=float, metavar="S", help=help)
+    """``--period S``: the controller period, s (default: the robot's); finite and > 0."""
+    period = float_arg(0.0, low_open=True, unit="s")
+    parser.add_argument("--period", type=period, metavar="S", help=help)
 
 
 def add_jobs(parser: argparse.ArgumentParser, *, help: str = "worker processes (joblib)") -> None:
-    """``--jobs N``: worker processes; results never depend on it."""
-    parser.add_argument("--jobs", type=int, default=1, help=help)
+    """``--jobs N``: worker processes, >= 1 or -1 (one per CPU); results never depend on it.
+
+    More than the CPUs of this machine are accepted and capped at the CPU count with a
+    warning on stderr (:func:`used_jobs`): more workers than CPUs only add start-up time
+    and memory.
+    """
+    parser.add_argument(
+        "--jobs",
+        type=_jobs,
+        default=1,
+        help=f"{help}; -1: one per CPU; more than the CPUs are capped at the CPU count "
+        "(with a warning)",
+    )
+
+
+def _jobs(text: str) -> int:
+    value = int_arg(-1)(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(
+            "0 is out of range; use a worker count >= 1, or -1 for one per CPU"
+        )
+    return value
+
+
+def cpu_count() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def used_jobs(command: str, jobs: int) -> int:
+    """The worker count a command uses for ``--jobs jobs``: ``-1`` stays (one per CPU);
+    more than :func:`cpu_count` is capped at it, with a warning on stderr naming both."""
+    cpus = cpu_count()
+    if jobs > cpus:
+        warn(
+            command,
+            f"--jobs {jobs} is more than the {cpus} CPU(s) of this machine; using {cpus} "
+            "(results do not depend on --jobs)",
+        )
+        return cpus
+    return jobs
 
 
 def add_quiet(parser: argparse.ArgumentParser) -> None:
@@ -146,6 +280,39 @@ def check_json_path(args: argparse.Namespace) -> None:
     folder = Path(dest).parent
     if not folder.is_dir():
         raise ConfigError(f"--json {dest}: the folder {folder} does not exist; create it first")
+
+
+def check_files(
+    args: argparse.Namespace,
+    command: str,
+    *,
+    inputs: Mapping[str, Any] | None = None,
+    outputs: Mapping[str, Any] | None = None,
+    folders: Mapping[str, Any] | None = None,
+    what: Mapping[str, str] | None = None,
+) -> None:
+    """The output-path policy (:func:`timedexec._files.check_paths`) for a command, before
+    any work: ``--json PATH`` is added to the outputs; the notes (existing outputs that will
+    be replaced) go to stderr unless ``--quiet``.
+
+    Raises
+    ------
+    ConfigError
+        An output that is an input or another output, or not a regular file, or in a
+        missing folder (see :func:`~timedexec._files.check_paths`).
+    """
+    from timedexec._files import check_paths
+
+    outs = dict(outputs or {})
+    describe = dict(what or {})
+    dest = getattr(args, "json", None)
+    if dest is not None and dest != "-":
+        outs["--json"] = dest
+        describe.setdefault("--json", "the JSON result")
+    notes = check_paths(inputs=inputs, outputs=outs, folders=folders, what=describe)
+    if not getattr(args, "quiet", False):
+        for text in notes:
+            note(command, text)
 
 
 def out(text: str) -> None:
@@ -188,3 +355,8 @@ def emit(args: argparse.Namespace, result: Mapping[str, Any], text: str) -> None
 def warn(command: str, message: str) -> None:
     """A warning line on stderr, prefixed with the command."""
     print(f"timedexec {command}: warning: {message}", file=sys.stderr)
+
+
+def note(command: str, message: str) -> None:
+    """A status line on stderr, prefixed with the command."""
+    print(f"timedexec {command}: note: {message}", file=sys.stderr)

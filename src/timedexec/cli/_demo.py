@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from timedexec.cli._common import add_command, add_json, add_robot, add_seed, emit
+from timedexec.cli._common import (
+    add_command,
+    add_json,
+    add_robot,
+    add_seed,
+    check_files,
+    emit,
+    int_arg,
+)
 
 __all__ = ["add_parser", "run"]
 
@@ -37,8 +45,14 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--out", default="timedexec-demo", help="output folder")
     add_seed(p)
-    p.add_argument("--trials", type=int, help="calibration trials (overrides --quick)")
-    p.add_argument("--eval-configs", type=int, help=argparse.SUPPRESS)  # tests: tiny evaluation
+    p.add_argument(
+        "--trials",
+        type=int_arg(160, 10_000_000, fix=" (--quick: 2000)"),
+        help="calibration trials (>= 160; overrides --quick)",
+    )
+    p.add_argument(  # tests: a tiny evaluation
+        "--eval-configs", type=int_arg(1), help=argparse.SUPPRESS
+    )
     add_json(p, "the summary (summary, extraction_rmse_ms, cv_ms, evaluation, conveyor, ...)")
     p.set_defaults(func=run)
 
@@ -49,13 +63,14 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.robots import get_robot
 
     quick = args.quick
-    trials = args.trials or (2000 if quick else 8000)
+    trials = args.trials if args.trials is not None else (2000 if quick else 8000)
+    check_files(args, "demo", folders={"--out": args.out})
     info = run_demo(
         args.robot,
         args.out,
         trials=trials,
         seed=args.seed,
-        eval_configs=args.eval_configs or 300,
+        eval_configs=args.eval_configs if args.eval_configs is not None else 300,
         eval_draws=10 if quick else 20,
         progress=True,
     )
@@ -93,14 +108,19 @@ def _text(info: dict[str, Any], description: str, trials: int) -> str:
             f"  {delay.split('_')[0]:<9} {cells}  floor {info['noise_floor_ms'][delay]:.2f}"
         )
     ev = info["evaluation"]["strategies"]
+    used = info["evaluation"].get("n_configurations")
+    where = (
+        "" if used is None else f" ({info['evaluation']['n_trials']:,} on {used} configurations)"
+    )
     lines += [
         "",
-        "held-out trials, motion-onset timing error and seam error at 0.5 m/s:",
+        f"held-out trials{where}, motion-onset timing error and seam error at 0.5 m/s:",
     ]
     for name, row in ev.items():
         lines.append(
             f"  {name:<9} {row['timing_rms_ms']:6.2f} ms RMS  {row['seam_error_cm']:.3f} cm"
         )
+    lines += [f"  note: {text}" for text in info["evaluation"].get("notes", [])]
     cov = info["evaluation"]["coverage_95"]
     if cov is not None:
         lines.append(f"  the model's 95 % timing bounds held on {100 * cov:.1f} % of trials")

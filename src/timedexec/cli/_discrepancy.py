@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from timedexec.cli._common import (
@@ -12,7 +13,9 @@ from timedexec.cli._common import (
     add_quiet,
     add_robot,
     add_seed,
+    check_files,
     emit,
+    float_arg,
     warn,
 )
 from timedexec.effects import EFFECT_NAMES
@@ -53,7 +56,12 @@ def add_parser(sub: Any) -> None:
     add_period(p)
     add_json(p, "the full result (added_effects, gap_before_ms, steps, unexplained, ...)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with figures here")
-    p.add_argument("--alpha", type=float, default=0.01, help="significance level of the tests")
+    p.add_argument(
+        "--alpha",
+        type=float_arg(0.0, 1.0, low_open=True, fix=" (e.g. 0.01)"),
+        default=0.01,
+        help="significance level of the tests (0 < alpha <= 1)",
+    )
     add_seed(p, help="seed of the cross-validation folds")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -63,6 +71,15 @@ def run(args: argparse.Namespace) -> int:
     """Run ``discrepancy``; return the exit code."""
     from timedexec.discrepancy import analyse_discrepancy
 
+    report = None if args.report is None else Path(args.report)
+    check_files(
+        args,
+        "discrepancy",
+        inputs={"MEASURED": args.measured},
+        outputs={} if report is None else {"--report (report.md)": report / "report.md"},
+        folders={} if report is None else {"--report": report},
+        what={"--report (report.md)": "the new discrepancy report"},
+    )
     result = analyse_discrepancy(
         args.measured,
         robot=args.robot,

@@ -5,8 +5,18 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from timedexec.cli._common import add_command, add_json, add_quiet, add_robot, add_seed, emit
-from timedexec.errors import ConfigError
+from timedexec.cli._common import (
+    add_command,
+    add_json,
+    add_quiet,
+    add_robot,
+    add_seed,
+    check_files,
+    emit,
+    float_arg,
+    int_arg,
+    warn,
+)
 
 __all__ = ["add_parser", "run"]
 
@@ -39,16 +49,32 @@ def add_parser(sub: Any) -> None:
         help="model bundle directory or bundled model name (default: the bundled ROBOT-sim)",
     )
     add_json(p, "the result ({robot, strategies, coverage_95, ...})")
-    p.add_argument("--configs", type=int, default=300, help="held-out configurations")
+    p.add_argument(
+        "--configs",
+        type=int_arg(1),
+        default=300,
+        help="held-out configurations (>= 1; at most the configurations of a sweep the size "
+        "of the model's training sweep: the count used is printed, with a warning when fewer)",
+    )
     add_seed(p, default=20261, help="plan seed of the held-out set")
-    p.add_argument("--draws", type=int, default=20, help="simulated trials behind the oracle")
-    p.add_argument("--speed", type=float, default=0.5, help="seam speed, m/s")
+    p.add_argument(
+        "--draws",
+        type=int_arg(2),
+        default=20,
+        help="simulated trials behind the oracle (>= 2)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float_arg(0.0, low_open=True, unit="m/s", fix=" (e.g. 0.5)"),
+        default=0.5,
+        help="seam speed, m/s (finite, > 0)",
+    )
     p.add_argument(
         "--physics",
-        type=int,
+        type=int_arg(0, fix=" (0 skips the physics check)"),
         default=0,
         metavar="N",
-        help="verify the seam error by running the physics on N configurations",
+        help="verify the seam error by running the physics on N configurations (0: skip)",
     )
     add_quiet(p)
     p.set_defaults(func=run)
@@ -58,8 +84,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``evaluate``; return the exit code."""
     from timedexec.evaluation import evaluate
 
-    if args.speed <= 0:
-        raise ConfigError(f"--speed {args.speed}: the seam speed must be > 0 m/s")
+    check_files(args, "evaluate", inputs={"--model": args.model})
     result = evaluate(
         args.robot,
         args.model,
@@ -70,5 +95,8 @@ def run(args: argparse.Namespace) -> int:
         physics_configs=args.physics,
         progress=not args.quiet,
     )
-    emit(args, result.to_dict(), result.table())
+    info = result.to_dict()
+    for text in info.get("notes", []):
+        warn("evaluate", text)
+    emit(args, info, result.table())
     return 0

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from timedexec.cli._common import add_command, add_jobs, add_json, add_quiet, emit
+from timedexec.cli._common import (
+    add_command,
+    add_jobs,
+    add_json,
+    add_quiet,
+    check_files,
+    emit,
+    used_jobs,
+)
 
 __all__ = ["add_parser", "run"]
 
@@ -45,8 +53,18 @@ def run(args: argparse.Namespace) -> int:
 
     from timedexec.extraction import extract_recording
 
+    check_files(
+        args,
+        "extract",
+        inputs={"RECORDING": args.recording},
+        outputs={"--out": args.out},
+        what={"--out": "the delay table (CSV)"},
+    )
     result = extract_recording(
-        args.recording, method=args.method, jobs=args.jobs, progress=not args.quiet
+        args.recording,
+        method=args.method,
+        jobs=used_jobs("extract", args.jobs),
+        progress=not args.quiet,
     )
     result.table.to_csv(args.out)
     info = {**result.summary(), "out": args.out, "method": args.method}

@@ -110,7 +110,12 @@ _EPILOG = (
     "  timedexec report rec.h5 delays.csv model/ --out report/\n\n"
     "output:\n"
     "  Results go to stdout (or the file named), progress and status to stderr.\n"
-    f"  {JSON_CONVENTION}\n\n"
+    f"  {JSON_CONVENTION}\n"
+    "  Output files are written whole (a new file renamed into place). An output that is\n"
+    "  one of the command's inputs or another output, or that is a symlink, device, FIFO or\n"
+    "  folder, is refused before any work (exit 2); an existing regular file is replaced,\n"
+    "  with a note on stderr (an existing recording only continues, with --resume).\n"
+    "  --jobs above the CPU count is capped at it, with a warning.\n\n"
     f"{EXIT_CODES_HELP}\n\n"
     "`timedexec COMMAND --help` describes each command."
 )

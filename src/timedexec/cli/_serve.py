@@ -7,7 +7,15 @@ import contextlib
 import sys
 from typing import Any
 
-from timedexec.cli._common import add_command, add_period, add_robot, add_seed
+from timedexec.cli._common import (
+    add_command,
+    add_period,
+    add_robot,
+    add_seed,
+    check_files,
+    int_arg,
+    note,
+)
 from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "run"]
@@ -35,7 +43,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (UR) / to send to (RSI)")
     p.add_argument("--imu-link", help="path for a symlink to the gyro's pseudo-terminal")
     p.add_argument("--truth", help="write ground truth (JSON lines) here")
-    p.add_argument("--rsi-port", type=int, default=49152, help="the PC's RSI UDP port (kr5)")
+    p.add_argument(
+        "--rsi-port",
+        type=int_arg(1, 65535),
+        default=49152,
+        help="the PC's RSI UDP port (kr5; 1 .. 65535)",
+    )
     add_period(p, help="RSI period, s (kr5: 0.012 or 0.004)")
     add_seed(p)
     p.set_defaults(func=run)
@@ -46,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    _check_serve_paths(args)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     if args.robot.startswith("ur"):
@@ -82,3 +96,63 @@ def run(args: argparse.Namespace) -> int:
             while not stop.wait(0.5):
                 pass
     return 0
+
+
+def _check_serve_paths(args: argparse.Namespace) -> None:
+    """Refuse ``--truth`` and ``--imu-link`` paths the twin could not write, before serving.
+
+    ``--truth`` follows the output-path policy (a regular file or nothing; the UR twin
+    appends to it, the RSI twin replaces it when it stops); ``--imu-link`` is a symbolic
+    link the twin makes (an existing symlink there is replaced, anything else refused).
+    Both folders must exist and take a new file now, not when the twin first writes
+    (a thread's traceback, or the truth lost after a whole session).
+
+    Raises
+    ------
+    ConfigError
+        Naming the option, the path and the reason.
+    """
+    import os
+    import tempfile
+    from pathlib import Path
+
+    ur = args.robot.startswith("ur")
+    check_files(
+        args,
+        "serve",
+        outputs={"--truth": args.truth},
+        # the UR twin appends to an existing file; the RSI twin replaces it when it stops
+        what={} if ur else {"--truth": "this session's ground truth when the twin stops"},
+    )
+    if ur and args.truth and os.path.isfile(args.truth):
+        note("serve", f"--truth {args.truth} exists; this session's ground truth is appended to it")
+    if args.imu_link and os.path.lexists(args.imu_link) and not os.path.islink(args.imu_link):
+        raise ConfigError(
+            f"--imu-link {args.imu_link} exists and is not a symbolic link; the twin makes a "
+            "symlink to its pseudo-terminal there: give a new path (or an old link)"
+        )
+    if (
+        args.imu_link
+        and args.truth
+        and Path(args.imu_link).absolute() == Path(args.truth).absolute()
+    ):
+        raise ConfigError(
+            f"--imu-link {args.imu_link} and --truth {args.truth} are the same path; give two"
+        )
+    for option, path in (("--truth", args.truth), ("--imu-link", args.imu_link)):
+        if not path:
+            continue
+        folder = Path(path).parent if str(Path(path).parent) else Path(".")
+        if not folder.is_dir():
+            raise ConfigError(
+                f"{option} {path}: the folder {folder} does not exist; create it first"
+            )
+        try:  # the one reliable test (root ignores mode bits, a read-only mount does not)
+            fd, probe = tempfile.mkstemp(prefix=".timedexec-probe.", dir=folder)
+        except OSError as exc:
+            raise ConfigError(
+                f"{option} {path}: cannot create files in the folder {folder} "
+                f"({exc.strerror or exc}); choose a writable folder"
+            ) from None
+        os.close(fd)
+        os.unlink(probe)

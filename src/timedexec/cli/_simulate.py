@@ -13,7 +13,9 @@ from timedexec.cli._common import (
     add_quiet,
     add_robot,
     add_seed,
+    check_files,
     emit,
+    used_jobs,
 )
 from timedexec.errors import ConfigError
 
@@ -63,9 +65,18 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.robots import get_robot
     from timedexec.sim import default_settings, simulate_sweep
 
-    spec = get_robot(args.robot, period_s=args.period)
     if args.trials < 1:
-        raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
+        raise ConfigError(
+            f"--trials {args.trials}: the number of trials must be >= 1 (the paper's sweep: 33500)"
+        )
+    check_files(
+        args,
+        "simulate",
+        # the recording refuses an existing file itself unless --resume continues it
+        outputs={"--out": args.out, "--truth": args.truth},
+        what={"--truth": "the ground-truth delay table (CSV)"},
+    )
+    spec = get_robot(args.robot, period_s=args.period)
     effects = parse_effects(args.effects, spec.name)
     result = simulate_sweep(
         spec,
@@ -76,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         settings=default_settings(spec),
         truth_path=args.truth,
         resume=args.resume,
-        jobs=args.jobs,
+        jobs=used_jobs("simulate", args.jobs),
         progress=not args.quiet,
     )
     info = result.summary()

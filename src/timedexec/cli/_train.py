@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from timedexec._files import write_atomic
 from timedexec.cli._common import (
     add_command,
     add_jobs,
@@ -24,7 +25,9 @@ from timedexec.cli._common import (
     add_period,
     add_quiet,
     add_seed,
+    check_files,
     emit,
+    used_jobs,
 )
 from timedexec.errors import ConfigError
 
@@ -89,22 +92,36 @@ def run(args: argparse.Namespace) -> int:
     if args.folds == 0 and args.json is not None:
         raise ConfigError("--json needs cross-validation; drop --folds 0")
     path = Path(args.delays)
+    out = Path(args.out)
+    bundle = {
+        f"--out (the bundle's {name})": out / name
+        for name in ("manifest.json", "arrays.npz", "cv.json", "cv-table.txt")
+    }
+    check_files(
+        args,
+        "train",
+        inputs={"DELAYS.csv": path},
+        outputs=bundle,
+        folders={"--out": out},
+        what={
+            "--out (the bundle's manifest.json)": "the new bundle's (as are arrays.npz, "
+            "cv.json and cv-table.txt)"
+        },
+    )
     table = DelayTable.read_csv(path)
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out}: exists and is not a directory")
+    jobs = used_jobs("train", args.jobs)
     if not args.quiet:
         print(
             f"training {', '.join(methods)} on {len(table):,} trials of {path} "
-            f"({args.folds}-fold CV, {args.jobs} job(s))",
+            f"({args.folds}-fold CV, {jobs} job(s))",
             file=sys.stderr,
         )
     result = train_delay_models(
         table,
         methods=methods,
         folds=args.folds,
-        jobs=args.jobs,
+        jobs=jobs,
         random_state=args.seed,
         progress=not args.quiet,
         period_s=args.period,
@@ -120,8 +137,8 @@ def run(args: argparse.Namespace) -> int:
     if result.cv is not None:
         cv = result.cv.to_dict()
         table_text = result.cv.table_text()
-        (out / "cv.json").write_text(json.dumps(cv, indent=2) + "\n", encoding="utf-8")
-        (out / "cv-table.txt").write_text(table_text + "\n", encoding="utf-8")
+        write_atomic(out / "cv.json", json.dumps(cv, indent=2) + "\n")
+        write_atomic(out / "cv-table.txt", table_text + "\n")
         text_parts.append(table_text)
     text_parts.append(
         f"bundle for {model.robot} at {model.period_s * 1e3:g} ms written to {out} "

@@ -3,6 +3,7 @@ know the code."""
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -10,12 +11,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from timedexec._files import make_dir
+from timedexec._files import check_paths, make_dir, write_atomic
 from timedexec._plot import subplots
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._locate import EFFECT_VARIABLE
 from timedexec.effects import make_effect
-from timedexec.errors import RecordingError
 
 if TYPE_CHECKING:
     from timedexec.discrepancy._locate import Variable
@@ -24,6 +24,14 @@ if TYPE_CHECKING:
 __all__ = ["write_report"]
 
 _WORDS = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
+
+
+def _save(fig: Any, path: Path) -> None:
+    """Render to PNG in memory, then write atomically (the output-path policy of
+    :mod:`timedexec._files`: never over a symlink, a device or a folder)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    write_atomic(path, buf.getvalue())
 
 
 def _jitter(x: NDArray[np.float64], kind: str, seed: int = 0) -> NDArray[np.float64]:
@@ -77,7 +85,7 @@ def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
         ax.set_title(_WORDS[d])
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
 
 
 def _where_figure(result: DiscrepancyResult, path: Path) -> None:
@@ -95,7 +103,7 @@ def _where_figure(result: DiscrepancyResult, path: Path) -> None:
         ax.set_title(f"{_WORDS[d]} per joint and direction")
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
 
 
 def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
@@ -113,7 +121,7 @@ def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
     )
     axes[1].legend(fontsize=7, loc="upper right")
     fig.suptitle(f"{_WORDS[step.acts_on]}: residuals against {var.label}", fontsize=11)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
 
 
 def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: Path) -> None:
@@ -135,7 +143,7 @@ def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: 
         mask,
     )
     ax.legend(fontsize=7)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
 
 
 def _fmt_p(p: float) -> str:
@@ -238,7 +246,8 @@ def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
             f"What it does: {s.explanation}.",
             "",
             f"Evidence ({_method_words(ev['method'])}): with the effect, the "
-            "cross-validated error of the condition means (5 folds of conditions) falls from {ev['cv_mse_without_ms2']:.3f} to "
+            "cross-validated error of the condition means (5 folds of conditions) falls "
+            f"from {ev['cv_mse_without_ms2']:.3f} to "
             f"{ev['cv_mse_with_ms2']:.3f} ms², {100 * ev['cv_share_of_excess_explained']:.0f} % "
             f"of its excess over the noise; F = {ev['f_statistic']:.1f}, p = "
             f"{_fmt_p(ev['p_value'])} (significant below {result.settings['alpha']} / number "
@@ -387,19 +396,22 @@ def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -
 
     Returns the path of the markdown file.
     """
-    out = make_dir(directory, "report folder")
+    folder = Path(directory)
+    step_figs = [f"step{k + 1}_{s.effect}.png" for k, s in enumerate(result.steps)]
+    un_figs = [f"unexplained{k + 1}.png" for k in range(len(result.unexplained))]
+    names = ["gap_per_step.png", "where.png", *step_figs, *un_figs, "report.md"]
+    check_paths(
+        inputs={"measured data": result.source} if os.path.exists(result.source) else {},
+        outputs={f"report file {n}": folder / n for n in names},
+        folders={"report folder": folder},
+    )
+    out = make_dir(folder, "report folder")
     _gap_figure(result, out / "gap_per_step.png")
     _where_figure(result, out / "where.png")
-    step_figs = []
-    for k, s in enumerate(result.steps):
-        name = f"step{k + 1}_{s.effect}.png"
+    for k, name in enumerate(step_figs):
         _step_figure(result, k, out / name)
-        step_figs.append(name)
-    un_figs = []
-    for k, entry in enumerate(result.unexplained):
-        name = f"unexplained{k + 1}.png"
+    for entry, name in zip(result.unexplained, un_figs, strict=True):
         _unexplained_figure(result, entry, out / name)
-        un_figs.append(name)
     lines = (
         _lines_intro(result)
         + _lines_terms()
@@ -410,9 +422,4 @@ def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -
         + _lines_model(result)
         + _lines_method(result)
     )
-    md = out / "report.md"
-    try:
-        md.write_text("\n".join(lines), encoding="utf-8")
-    except OSError as exc:
-        raise RecordingError(f"cannot write {md}: {exc.strerror or exc}") from exc
-    return md
+    return write_atomic(out / "report.md", "\n".join(lines))

@@ -18,10 +18,10 @@ if TYPE_CHECKING:
     from timedexec.drivers._ur import URDriver
 
 __all__ = [
-    "RSIState",
     "SCHEMES",
     "HostTimeTap",
     "KukaRSIDriver",
+    "RSIState",
     "RobotDriver",
     "RobotState",
     "SimDriver",

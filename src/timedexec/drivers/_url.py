@@ -1,58 +1,157 @@
-"""Drivers chosen by URL: ``sim://ROBOT``, ``ur://HOST``, ``rsi://PORT``."""
+"""Drivers chosen by URL: ``sim://ROBOT``, ``ur://HOST``, ``rsi://PORT``.
+
+Every part of a URL means something or is refused: an unknown query parameter, a repeated
+one, a malformed value or a path where none belongs is a
+:class:`~timedexec.errors.ConfigError` naming it and what is allowed (a typo never falls
+back silently to a default).
+"""
 
 from __future__ import annotations
 
+import math
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from timedexec.drivers._base import RobotDriver
 from timedexec.errors import ConfigError
 
-__all__ = ["SCHEMES", "open_driver"]
+__all__ = ["SCHEMES", "URL_PARAMS", "open_driver"]
 
 SCHEMES = ("sim", "ur", "rsi")
+
+#: Query parameters each scheme accepts (anything else is an error).
+URL_PARAMS: dict[str, tuple[str, ...]] = {
+    "sim": ("realtime", "seed"),
+    "ur": (),
+    "rsi": ("period",),
+}
+
+#: Largest seed (32-bit unsigned, as the command line's ``--seed``).
+_MAX_SEED = 2**32 - 1
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off", "")
+
+
+def _query(url: str, scheme: str, query: str) -> dict[str, str]:
+    allowed = URL_PARAMS[scheme]
+    out: dict[str, str] = {}
+    try:
+        pairs = parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
+    except ValueError:
+        raise ConfigError(
+            f"robot URL {url!r}: malformed query {query!r}; write it as ?name=value&name=value"
+        ) from None
+    for key, value in pairs:
+        if key not in allowed:
+            what = f"allowed: {', '.join(allowed)}" if allowed else "it takes none"
+            raise ConfigError(
+                f"robot URL {url!r}: unknown parameter {key!r} for {scheme}:// URLs ({what})"
+            )
+        if key in out:
+            raise ConfigError(f"robot URL {url!r}: parameter {key!r} is given twice; give it once")
+        out[key] = value
+    return out
+
+
+def _seed(url: str, value: Any) -> int:
+    try:
+        seed = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"robot URL {url!r}: seed={value!r} is not an integer; use 0 .. {_MAX_SEED}, "
+            "e.g. sim://ur10?seed=1"
+        ) from None
+    if isinstance(value, float) or not 0 <= seed <= _MAX_SEED:
+        raise ConfigError(f"robot URL {url!r}: seed={value!r} must be an integer 0 .. {_MAX_SEED}")
+    return seed
+
+
+def _no_path(url: str, path: str, form: str) -> None:
+    if path not in ("", "/"):
+        raise ConfigError(f"robot URL {url!r}: unexpected path {path!r}; use {form}")
 
 
 def open_driver(url: str, **options: Any) -> RobotDriver:
     """A (not yet connected) driver for ``url``.
 
     ``sim://ur10`` (in-process simulator, virtual time; ``sim://ur10?realtime=1`` real
-    time), ``ur://192.168.1.10`` (ur_rtde; a UR twin: ``ur://127.0.0.2``), ``rsi://49152``
-    (the PC side of KUKA RSI listening on that UDP port; ``rsi://49152?period=0.004``).
-    Extra keyword options go to the driver's constructor.
+    time, ``?seed=N`` its seed, which wins over a ``seed=`` option), ``ur://192.168.1.10``
+    (ur_rtde; a UR twin: ``ur://127.0.0.2``; no parameters), ``rsi://49152`` (the PC side
+    of KUKA RSI listening on that UDP port; ``rsi://49152?period=0.004``). Extra keyword
+    options go to the driver's constructor.
+
+    Raises
+    ------
+    ConfigError
+        ``url`` not a string, an unknown scheme, a missing host or port, an unknown or
+        repeated parameter (:data:`URL_PARAMS`), or a malformed value; the message names
+        the part and what is allowed.
     """
-    parts = urlsplit(url)
-    scheme, where = parts.scheme, parts.netloc or parts.path
-    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    if not isinstance(url, str):
+        raise ConfigError(
+            f"robot URL must be a string such as 'sim://ur10', 'ur://HOST' or 'rsi://PORT', "
+            f"got {type(url).__name__} {url!r}"
+        )
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:
+        raise ConfigError(f"robot URL {url!r} is malformed ({exc})") from None
+    scheme = parts.scheme
+    if scheme not in SCHEMES:
+        raise ConfigError(
+            f"robot URL {url!r} has an unknown scheme {scheme!r}; use one of "
+            "sim://ROBOT (ur10, ur10e, kr5), ur://HOST, rsi://PORT"
+        )
+    if parts.fragment:
+        raise ConfigError(f"robot URL {url!r}: unexpected fragment #{parts.fragment}")
+    query = _query(url, scheme, parts.query)
     if scheme == "sim":
         from timedexec.drivers._sim import SimDriver
 
-        realtime = query.pop("realtime", "0") not in ("0", "", "false")
-        seed = int(query.pop("seed", options.pop("seed", 0)))
-        return SimDriver(where or "ur10", virtual=not realtime, seed=seed, **options)
+        _no_path(url, parts.path if parts.netloc else "", "sim://ROBOT, e.g. sim://ur10")
+        where = parts.netloc or parts.path.strip("/")
+        flag = query.get("realtime", "0").strip().lower()
+        if flag not in _TRUE + _FALSE:
+            raise ConfigError(
+                f"robot URL {url!r}: realtime={query['realtime']!r} must be 1 or 0 "
+                "(true/false, yes/no)"
+            )
+        option_seed = options.pop("seed", 0)
+        seed = _seed(url, query["seed"]) if "seed" in query else _seed(url, option_seed)
+        return SimDriver(where or "ur10", virtual=flag in _FALSE, seed=seed, **options)
     if scheme == "ur":
         from timedexec.drivers._ur import URDriver
 
+        where = parts.netloc or parts.path
         if not where:
             raise ConfigError(
                 f"robot URL {url!r} names no host; use ur://HOST, e.g. ur://192.168.1.10"
             )
+        if parts.netloc:
+            _no_path(url, parts.path, "ur://HOST, e.g. ur://192.168.1.10")
         return URDriver(where, **options)
-    if scheme == "rsi":
-        from timedexec.drivers._rsi import KukaRSIDriver
+    from timedexec.drivers._rsi import KukaRSIDriver
 
+    where = parts.netloc or parts.path
+    try:
+        port = int(where)
+    except ValueError:
+        raise ConfigError(
+            f"robot URL {url!r}: the RSI port {where!r} is not a number; use rsi://49152"
+        ) from None
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"robot URL {url!r}: port {port} outside 1..65535")
+    if parts.netloc:
+        _no_path(url, parts.path, "rsi://PORT, e.g. rsi://49152")
+    if "period" in query:
         try:
-            port = int(where)
+            period = float(query["period"])
         except ValueError:
+            period = math.nan
+        if not (math.isfinite(period) and period > 0):
             raise ConfigError(
-                f"robot URL {url!r}: the RSI port {where!r} is not a number; use rsi://49152"
-            ) from None
-        if not 1 <= port <= 65535:
-            raise ConfigError(f"robot URL {url!r}: port {port} outside 1..65535")
-        if "period" in query:
-            options.setdefault("period_s", float(query.pop("period")))
-        return KukaRSIDriver(port, **options)
-    raise ConfigError(
-        f"robot URL {url!r} has an unknown scheme {scheme!r}; use one of "
-        "sim://ROBOT (ur10, ur10e, kr5), ur://HOST, rsi://PORT"
-    )
+                f"robot URL {url!r}: period={query['period']!r} must be a controller period "
+                "in s > 0 (KUKA RSI: 0.012 or 0.004)"
+            )
+        options.setdefault("period_s", period)
+    return KukaRSIDriver(port, **options)

@@ -24,6 +24,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -160,6 +161,136 @@ def _npz_bytes(arrays: Mapping[str, NDArray[Any]]) -> bytes:
             info.external_attr = 0o644 << 16
             zf.writestr(info, member.getvalue())
     return buf.getvalue()
+
+
+def _inside_bundle(manifest_path: Path, name: Any) -> Path:
+    """The bundle file ``name`` (from the manifest), which must resolve inside the bundle
+    folder: a manifest cannot make timedexec read a file elsewhere.
+
+    Raises
+    ------
+    ModelError
+        A name that is not a plain string, or that resolves (``..``, an absolute path, a
+        symlink) outside the bundle folder.
+    """
+    folder = manifest_path.parent
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{manifest_path}: arrays.file must be a file name, got {name!r}")
+    path = folder / name
+    root = folder.resolve()
+    resolved = path.resolve()
+    if resolved.parent != root and root not in resolved.parents:
+        raise ModelError(
+            f"{manifest_path}: arrays.file {name!r} points outside the bundle folder {folder} "
+            f"(to {resolved}); a bundle reads only its own files: restore the manifest or "
+            "retrain"
+        )
+    return path
+
+
+#: Per method: (array, expected shape) with "f" the input features, "a" the active ones,
+#: "n" the GP's conditions, "h" the hidden units, "m" the tree's nodes; "*" any length.
+_SHAPES: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "gpr": (
+        ("X_train", ("n", "f")),
+        ("y_train", ("n",)),
+        ("counts", ("n",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("length_scale", ("f",)),
+        ("scalars", ("4",)),
+    ),
+    "nn": (
+        ("active", ("f",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("W1", ("h", "a")),
+        ("b1", ("h",)),
+        ("W2", ("h",)),
+        ("scalars", ("3",)),
+    ),
+    "rt": (
+        ("active", ("f",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("feature", ("m",)),
+        ("threshold", ("m",)),
+        ("left", ("m",)),
+        ("right", ("m",)),
+        ("coef", ("m", "a+1")),
+        ("scalars", ("2",)),
+    ),
+    "median": (("scalars", ("1",)),),
+}
+
+
+def _check_group(group: Mapping[str, NDArray[Any]], method: str, features: int | None) -> str:
+    """'' if the arrays of one model are consistent, else what is wrong."""
+    sizes: dict[str, int] = {}
+    if features is not None:
+        sizes["f"] = features
+    if "active" in group and group["active"].ndim == 1:
+        sizes["a"] = int(np.count_nonzero(group["active"]))
+    for name, dims in _SHAPES[method]:
+        arr = group.get(name)
+        if arr is None:
+            return f"array {name!r} is missing"
+        if arr.dtype.kind not in "biuf":
+            return f"array {name!r} holds {arr.dtype} values, not numbers"
+        if arr.ndim != len(dims):
+            return f"array {name!r} has shape {arr.shape}, expected {len(dims)} dimension(s)"
+        for axis, dim in enumerate(dims):
+            if dim.isdigit():
+                want: int | None = int(dim)
+            elif dim == "a+1":
+                want = sizes["a"] + 1 if "a" in sizes else None
+            else:
+                want = sizes.setdefault(dim, arr.shape[axis])
+            if want is not None and arr.shape[axis] != want:
+                return f"array {name!r} has shape {arr.shape}; axis {axis} should be {want}"
+        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+            return f"array {name!r} holds NaN or infinite values"
+    if sizes.get("n", 1) < 1 or sizes.get("m", 1) < 1 or sizes.get("h", 1) < 1:
+        return "a model array is empty"
+    if method == "rt":
+        m = sizes["m"]
+        inner = group["feature"] >= 0
+        children = np.concatenate([group["left"][inner], group["right"][inner]])
+        if np.any(group["feature"][inner] >= sizes.get("a", 0)) or np.any(
+            (children < 0) | (children >= m)
+        ):
+            return "the tree's node indices point outside its arrays"
+    return ""
+
+
+def _check_arrays(model: DelayModel, arrays_path: Path) -> None:
+    """Refuse a bundle whose arrays do not fit together (truncated or tampered arrays that
+    kept a matching hash), before any prediction could fail or mislead.
+
+    Raises
+    ------
+    ModelError
+        Naming the model (method, delay, model key), the array and what is wrong.
+    """
+    order = model.manifest.get("feature_order") or {}
+    for method in model.methods:
+        if method not in _SHAPES:
+            raise ModelError(
+                f"{arrays_path}: unknown method {method!r} in the manifest; this timedexec "
+                f"knows {', '.join(_SHAPES)}"
+            )
+        for delay in _DELAYS:
+            for key in model.keys:
+                names = order.get("combined" if key == "combined" else "per_joint")
+                features = len(names) if isinstance(names, list) else None
+                group = model._group(method, delay, key)
+                problem = _check_group(group, method, features)
+                if problem:
+                    raise ModelError(
+                        f"{arrays_path}: the {method} model of the {delay} ({key}) is corrupt: "
+                        f"{problem}; the arrays are truncated or were altered — retrain or "
+                        "restore the bundle"
+                    )
 
 
 def _robot_of(robot: Any) -> tuple[str | None, float | None]:
@@ -396,7 +527,9 @@ class DelayModel:
                 f"timedexec supports ({BUNDLE_VERSION}); upgrade timedexec"
             )
         info = manifest.get("arrays") or {}
-        arrays_path = manifest_path.parent / str(info.get("file", ARRAYS_NAME))
+        if not isinstance(info, dict):
+            raise ModelError(f"{manifest_path}: 'arrays' must be an object, got {info!r}")
+        arrays_path = _inside_bundle(manifest_path, info.get("file", ARRAYS_NAME))
         try:
             data = arrays_path.read_bytes()
         except OSError as exc:
@@ -413,12 +546,19 @@ class DelayModel:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise ModelError(f"cannot read the bundle arrays {arrays_path}: {exc}") from exc
+        except AttributeError:  # a bare .npy, not an archive of named arrays
+            raise ModelError(
+                f"cannot read the bundle arrays {arrays_path}: not an .npz archive"
+            ) from None
         try:
             model = cls(manifest, arrays, path=manifest_path.parent)
+        except ModelError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"{manifest_path}: incomplete manifest ({exc})") from exc
+        _check_arrays(model, arrays_path)
         model.check(robot, period_s)
         return model
 

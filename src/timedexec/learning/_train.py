@@ -177,6 +177,7 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
         raise ConfigError(
             f"{table.source}: the table mixes robots ({', '.join(robots)}); train one robot at a time"
         )
+    _check_joint_limits(table, robots[0])
     q = t.q
     joint = t["joint"].astype(np.int64)
     direction = t["direction"].astype(np.int64)
@@ -204,6 +205,21 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
         t_h=t_h,
         time_input=time_input,
     )
+
+
+def _check_joint_limits(table: DelayTable, robot: str) -> None:
+    """Refuse start configurations outside the robot's joint limits (every row, flagged or
+    not: such a row is corrupt, e.g. degrees in a rad column); the message names the row
+    (0-based, as the table's other messages), the joint, the value and the limits."""
+    from timedexec.robots import check_configuration, get_robot
+
+    try:
+        check_configuration(get_robot(robot), table.q)
+    except ConfigError as exc:
+        raise ConfigError(
+            f"{table.source}: {exc} (q1..q6 of a delay table are the start configuration in "
+            "rad: fix or drop that row)"
+        ) from None
 
 
 def _keys(data: _Data) -> list[str]:

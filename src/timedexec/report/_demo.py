@@ -81,7 +81,7 @@ def run_demo(
         ``conveyor`` (physical seam lag without and with compensation), ``seconds`` per
         step, and the paths written.
     """
-    from timedexec.evaluation import evaluate
+    from timedexec.evaluation import evaluate, held_out_capacity
     from timedexec.execution import compare_seam_tracking
     from timedexec.extraction import extract_recording
     from timedexec.learning import train_delay_models
@@ -97,6 +97,10 @@ def run_demo(
         )
     if folds < 2:
         raise ConfigError(f"folds={folds}: cross-validation needs at least 2 folds")
+    if eval_configs < 1 or eval_draws < 2:
+        raise ConfigError(
+            f"eval_configs={eval_configs} must be >= 1 and eval_draws={eval_draws} >= 2"
+        )
     out = make_dir(out_dir, "output folder (--out)")
     n_jobs = jobs or min(2, os.cpu_count() or 1)
     rec = out / f"{spec.name}-sweep.h5"
@@ -150,7 +154,16 @@ def run_demo(
         for delay, by_method in cv.items()
     }
 
-    step(3, f"{eval_configs} held-out configurations x 8 conditions, 5 strategies")
+    # The held-out sweep has the training sweep's size: it holds at most `capacity`
+    # configurations, and the line says how many are used.
+    capacity = held_out_capacity(spec.name, trials)
+    used = min(eval_configs, capacity)
+    shortfall = (
+        f" (of {eval_configs} asked: a held-out sweep of {trials:,} trials holds {capacity})"
+        if used < eval_configs
+        else ""
+    )
+    step(3, f"{used} held-out configurations{shortfall} x 8 conditions, 5 strategies")
     evaluation = evaluate(
         spec.name,
         model_dir,
@@ -187,6 +200,9 @@ def run_demo(
                 for name, row in eval_info["strategies"].items()
             },
             "coverage_95": eval_info.get("coverage_95"),
+            "n_trials": eval_info["n_trials"],
+            "n_configurations": eval_info["n_configurations"],
+            "notes": eval_info.get("notes", []),
         },
         "conveyor": {
             name: {

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import Any
@@ -17,9 +18,11 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from timedexec._files import write_atomic
 from timedexec._plot import subplots
 from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
+from timedexec.errors import ConfigError
 from timedexec.sim import pulse_profile
 
 __all__ = ["fig_boxplots", "fig_histograms", "fig_model", "fig_psd", "fig_seam", "fig_trial"]
@@ -28,9 +31,12 @@ _DELAY_LABEL = {"actuation_delay": "actuation delay", "response_delay": "respons
 
 
 def _save(fig: Any, path: Path) -> Path:
+    """Render to PNG in memory, then write atomically (never over an input, a symlink or a
+    device: :func:`timedexec._files.write_atomic`)."""
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    return write_atomic(path, buf.getvalue())
 
 
 def fig_psd(traces: dict[str, Any], path: str | os.PathLike[str]) -> Path:
@@ -110,10 +116,14 @@ def fig_trial(traces: dict[str, Any], path: str | os.PathLike[str], i: int = 0) 
 def fig_histograms(table: DelayTable, path: str | os.PathLike[str], column: str) -> Path:
     """Figs. 7 (actuation) and 9 (response): histogram per joint, ms."""
     values = table[column] * 1e3
-    fig, ax = subplots(figsize=(7, 4))
-    joints = sorted(set(table["joint"].tolist()))
     ok = np.isfinite(values)
-    bins = np.linspace(np.nanpercentile(values, 0.5), np.nanpercentile(values, 99.5), 50)
+    if not ok.any():
+        raise ConfigError(
+            f"{table.source}: no finite {_DELAY_LABEL[column]} to plot (every trial flagged)"
+        )
+    fig, ax = subplots(figsize=(7, 4))
+    joints = [j for j in sorted(set(table["joint"].tolist())) if (ok & (table["joint"] == j)).any()]
+    bins = np.linspace(np.percentile(values[ok], 0.5), np.percentile(values[ok], 99.5), 50)
     for j in joints:
         m = ok & (table["joint"] == j)
         ax.hist(values[m], bins=bins.tolist(), histtype="step", lw=1.3, label=f"joint {j}")
@@ -129,11 +139,18 @@ def fig_histograms(table: DelayTable, path: str | os.PathLike[str], column: str)
 
 def fig_boxplots(table: DelayTable, path: str | os.PathLike[str], column: str) -> Path:
     """Figs. 8 (actuation) and 10 (response): per-joint boxplots, ms."""
-    joints = sorted(set(table["joint"].tolist()))
+    joints = []
     data = []
-    for j in joints:
+    for j in sorted(set(table["joint"].tolist())):
         v = table[column][table["joint"] == j] * 1e3
-        data.append(v[np.isfinite(v)])
+        v = v[np.isfinite(v)]
+        if len(v):  # a joint without a valid trial gets no empty box
+            joints.append(j)
+            data.append(v)
+    if not data:
+        raise ConfigError(
+            f"{table.source}: no finite {_DELAY_LABEL[column]} to plot (every trial flagged)"
+        )
     fig, ax = subplots(figsize=(6, 4))
     ax.boxplot(
         data, tick_labels=[f"joint {j}" for j in joints], showfliers=True, flierprops={"ms": 2}
@@ -160,7 +177,8 @@ def fig_model(
     Each panel sweeps one angle through the range the table covers (or ±1 rad around the
     home pose without a table) with the other joints at the table's median start pose,
     for both directions: the mean with a band of ±2 single-trial standard deviations
-    (where about 95 % of trials should fall). The table's trials of ``joint`` are shown
+    (where about 95 % of trials should fall), clipped at 0 ms below (a delay is never
+    negative; the Gaussian band of a short delay would dip under 0). The table's trials of ``joint`` are shown
     as dots; they differ in the other joints too, so they scatter around the slice.
 
     Parameters
@@ -203,9 +221,10 @@ def fig_model(
                 std = np.asarray(getattr(pred, f"{name}_std")) * 1e3
                 label = f"direction {direction:+d}"
                 ax.plot(np.rad2deg(grid), mean, color=colors[direction], lw=1.5, label=label)
+                # A delay is never negative: the band stops at 0 ms.
                 ax.fill_between(
                     np.rad2deg(grid),
-                    mean - 2 * std,
+                    np.maximum(mean - 2 * std, 0.0),
                     mean + 2 * std,
                     color=colors[direction],
                     alpha=0.15,

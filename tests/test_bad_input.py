@@ -1,0 +1,498 @@
+"""Files and errors a user can trust: every bad input of the issue through the real CLI.
+
+Each case runs ``timedexec.cli.main([...])`` in this process on small files in ``tmp_path``
+(an 8-trial recording simulated once per module, a shipped model bundle copied and
+tampered with, hand-made delay tables) and proves four things: the exit code, a message
+that names the bad value (and its allowed range or the fix), no traceback, and no input
+file changed (sha256 of every file present before the run, compared after it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import shutil
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from timedexec.cli import main
+from timedexec.delays import DelayTable
+from timedexec.drivers import open_driver
+from timedexec.errors import ConfigError, ModelError
+from timedexec.learning import DelayModel
+from timedexec.recording import SweepPlan
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_learning import synthetic_table
+
+MODEL = "ur10-sim"
+
+
+# ----------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """An 8-trial UR10 recording and its ground-truth delay table (simulated once)."""
+    folder = tmp_path_factory.mktemp("sim")
+    rec, truth = folder / "rec.h5", folder / "truth.csv"
+    argv = ["simulate", "--robot", "ur10", "--trials", "8", "--seed", "1", "--out", str(rec),
+            "--truth", str(truth), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    return {"rec": rec, "truth": truth}
+
+
+@pytest.fixture
+def work(simulated: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """``tmp_path`` as the working folder, holding a copy of the recording and the table."""
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(simulated["rec"], tmp_path / "rec.h5")
+    shutil.copy(simulated["truth"], tmp_path / "truth.csv")
+    return tmp_path
+
+
+def _bundle(folder: Path, change: Callable[[dict[str, Any], dict[str, np.ndarray]], None]) -> None:
+    """A copy of the shipped UR10 bundle in ``folder`` whose manifest and arrays ``change``
+    edits; the arrays' sha256 in the manifest is updated, so only the content is bad."""
+    source = DelayModel.load(MODEL).path
+    assert source is not None
+    shutil.copytree(source, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    with np.load(folder / "arrays.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    change(manifest, arrays)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    raw = buf.getvalue()
+    (folder / "arrays.npz").write_bytes(raw)
+    manifest["arrays"]["sha256"] = hashlib.sha256(raw).hexdigest()
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+
+
+def _truncate(manifest: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+    key = "gpr.actuation_delay.2.y_train"
+    arrays[key] = arrays[key][:3]
+
+
+def _outside(manifest: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+    manifest["arrays"]["file"] = "../rec.h5"
+
+
+def _table(path: Path, edit: Callable[[dict[str, Any]], None] | None = None) -> None:
+    """A small valid UR10 delay table (4 configurations x 4 joints x 2 directions x 2
+    repeats) written to ``path`` after ``edit`` changed its columns."""
+    cols = dict(synthetic_table(n_cfg=4, repeats=2).columns)
+    if edit is None:
+        DelayTable(cols).to_csv(path)
+        return
+    edit(cols)
+    _write_raw(path, cols)
+
+
+def _write_raw(path: Path, cols: dict[str, Any]) -> None:
+    """Write columns as CSV without the DelayTable checks (to make invalid tables)."""
+    names = list(cols)
+    rows = zip(*(np.asarray(cols[n]).astype(str) for n in names), strict=True)
+    path.write_text(",".join(names) + "\n" + "\n".join(",".join(r) for r in rows) + "\n")
+
+
+def _duplicate(cols: dict[str, Any]) -> None:
+    for name, values in cols.items():
+        cols[name] = np.concatenate([values, values[5:6]])
+
+
+def _far_joint(cols: dict[str, Any]) -> None:
+    cols["q2"] = cols["q2"].copy()
+    cols["q2"][3] = 170.0  # rad: degrees typed into a rad column
+
+
+def _setup_plan(work: Path) -> None:
+    plan = SweepPlan.generate("ur10", 4, seed=1).to_arrays()
+    del plan["plan_joint"]
+    np.savez(work / "plan.npz", **plan)
+
+
+def _setup_symlink(work: Path) -> None:
+    (work / "target.txt").write_text("keep me\n")
+    (work / "link.csv").symlink_to(work / "target.txt")
+
+
+def _setup_fifo(work: Path) -> None:
+    os.mkfifo(work / "fifo.csv")
+
+
+def _setup_link_file(work: Path) -> None:
+    (work / "gyro").write_text("not a link\n")
+
+
+def _setup_garbage(work: Path) -> None:
+    (work / "result.json").write_text("{'not': json,\n")
+
+
+def _readonly_folder() -> Path:
+    """A folder no file can be created in, even by root (procfs), else skip."""
+    if not Path("/proc/self").is_dir():
+        pytest.skip("needs /proc for a folder that refuses new files")
+    return Path("/proc")
+
+
+@dataclass
+class Case:
+    """One bad input: the command line (split at spaces; ``{ro}`` is a folder that takes no
+    new file), what to make first, the exit code and the fragments the error must hold."""
+
+    argv: str
+    expect: list[str]
+    setup: Callable[[Path], None] | None = None
+    code: int = 2
+    absent: list[str] = field(default_factory=list)  # files that must not appear
+
+
+def _setup_bundle(change: Callable[..., None]) -> Callable[[Path], None]:
+    return lambda work: _bundle(work / "bundle", change)
+
+
+def _setup_table(name: str, edit: Callable[[dict[str, Any]], None]) -> Callable[[Path], None]:
+    return lambda work: _table(work / name, edit)
+
+
+CASES: dict[str, Case] = {
+    # --- data loss: an output that is an input, another output, or not a regular file
+    "extract-out-is-the-recording": Case(
+        "extract rec.h5 --out rec.h5 --quiet",
+        ["--out rec.h5 is the same file as RECORDING rec.h5", "choose another path"],
+    ),
+    "extract-out-is-a-hard-link-to-the-recording": Case(
+        "extract rec.h5 --out alias.h5 --quiet",
+        ["--out alias.h5 is the same file as RECORDING rec.h5"],
+        setup=lambda work: os.link(work / "rec.h5", work / "alias.h5"),
+    ),
+    "simulate-out-is-truth": Case(
+        "simulate --robot ur10 --trials 4 --out x.h5 --truth x.h5 --quiet",
+        ["--truth x.h5 is the same file as --out x.h5"],
+        absent=["x.h5"],
+    ),
+    "extract-out-is-a-symlink": Case(
+        "extract rec.h5 --out link.csv --quiet",
+        ["--out link.csv is a symbolic link, not a regular file"],
+        setup=_setup_symlink,
+    ),
+    "extract-out-is-a-fifo": Case(
+        "extract rec.h5 --out fifo.csv --quiet",
+        ["--out fifo.csv is a named pipe (FIFO), not a regular file"],
+        setup=_setup_fifo,
+    ),
+    "extract-out-is-a-folder": Case(
+        "extract rec.h5 --out . --quiet",
+        ["--out . is a directory, not a regular file"],
+    ),
+    "train-json-is-the-table": Case(
+        "train truth.csv --out b --folds 2 --methods median --quiet --json truth.csv",
+        ["--json truth.csv is the same file as DELAYS.csv truth.csv"],
+        absent=["b"],
+    ),
+    # --- tracebacks that must be exit 2
+    "simulate-negative-seed": Case(
+        "simulate --robot ur10 --trials 4 --seed -1 --out s.h5",
+        ["argument --seed: -1 is out of range; use an integer from 0 to 4294967295"],
+        absent=["s.h5"],
+    ),
+    "calibrate-plan-without-keys": Case(
+        "calibrate --robot-url sim://ur10 --plan plan.npz --out c.h5 --quiet",
+        ["--plan plan.npz: the array 'plan_joint' is missing", "SweepPlan.to_arrays"],
+        setup=_setup_plan,
+        absent=["c.h5"],
+    ),
+    "calibrate-url-seed-not-a-number": Case(
+        "calibrate --robot-url sim://ur10?seed=abc --trials 2 --out c.h5 --quiet",
+        ["seed='abc' is not an integer; use 0 .. 4294967295"],
+        absent=["c.h5"],
+    ),
+    "calibrate-url-unknown-parameter": Case(
+        "calibrate --robot-url sim://ur10?typo=1 --trials 2 --out c.h5 --quiet",
+        ["unknown parameter 'typo' for sim:// URLs (allowed: realtime, seed)"],
+        absent=["c.h5"],
+    ),
+    "calibrate-rsi-url-unknown-parameter": Case(
+        "calibrate --robot-url rsi://49152?host=10.0.0.2 --imu sim:// --trials 2 --out c.h5",
+        ["unknown parameter 'host' for rsi:// URLs (allowed: period)"],
+        absent=["c.h5"],
+    ),
+    "report-garbage-json": Case(
+        "report result.json --out rep",
+        ["result.json: not valid JSON", "line 1"],
+        setup=_setup_garbage,
+        absent=["rep"],
+    ),
+    "evaluate-json-in-a-missing-folder": Case(
+        "evaluate --robot ur10 --json no/such/e.json --quiet",
+        ["--json no/such/e.json: the folder no/such does not exist"],
+    ),
+    "bundle-truncated-arrays": Case(
+        "evaluate --robot ur10 --model bundle --quiet",
+        ["gpr model of the actuation_delay (2) is corrupt", "'y_train' has shape (3,)"],
+        setup=_setup_bundle(_truncate),
+    ),
+    "bundle-arrays-outside-the-folder": Case(
+        "evaluate --robot ur10 --model bundle --quiet",
+        ["arrays.file '../rec.h5' points outside the bundle folder"],
+        setup=_setup_bundle(_outside),
+    ),
+    "serve-imu-link-in-a-read-only-folder": Case(
+        "serve --robot ur10 --imu-link {ro}/timedexec-gyro",
+        ["--imu-link", "cannot create files in the folder"],
+    ),
+    "serve-truth-in-a-read-only-folder": Case(
+        "serve --robot kr5 --truth {ro}/timedexec-truth.jsonl",
+        ["--truth", "cannot create files in the folder"],
+    ),
+    "serve-imu-link-over-a-file": Case(
+        "serve --robot ur10 --imu-link gyro",
+        ["--imu-link gyro exists and is not a symbolic link"],
+        setup=_setup_link_file,
+    ),
+    # --- silent wrongness that must be refused
+    "demo-zero-trials": Case(
+        "demo --trials 0 --out demo",
+        ["argument --trials: 0 is out of range; use an integer from 160"],
+        absent=["demo"],
+    ),
+    "evaluate-speed-nan": Case(
+        "evaluate --robot ur10 --speed nan",
+        ["argument --speed: nan is out of range; use a finite number > 0 m/s"],
+    ),
+    "evaluate-speed-inf": Case(
+        "evaluate --robot ur10 --speed inf",
+        ["argument --speed: inf is out of range"],
+    ),
+    "evaluate-negative-physics": Case(
+        "evaluate --robot ur10 --physics -2",
+        ["argument --physics: -2 is out of range; use an integer >= 0"],
+    ),
+    "extract-zero-jobs": Case(
+        "extract rec.h5 --out d.csv --jobs 0",
+        ["argument --jobs: 0 is out of range", "-1 for one per CPU"],
+        absent=["d.csv"],
+    ),
+    "train-duplicated-trials": Case(
+        "train dup.csv --out b --folds 0 --methods median --quiet",
+        ["trial id(s) 5 (rows 5, 64) occur more than once", "drop the copies"],
+        setup=_setup_table("dup.csv", _duplicate),
+        absent=["b"],
+    ),
+    "train-joint-angle-170-rad": Case(
+        "train far.csv --out b --folds 0 --methods median --quiet",
+        ["row 3: joint 2 = 170 rad", "outside the allowed range [-6.28319, 6.28319] rad"],
+        setup=_setup_table("far.csv", _far_joint),
+        absent=["b"],
+    ),
+    "report-trial-minus-one": Case(
+        "report rec.h5 --out rep --trial -1",
+        ["trial -1 is not a trial of rec.h5: it holds 8 trials, rows 0 .. 7"],
+        absent=["rep"],
+    ),
+    "report-trial-past-the-end": Case(
+        "report rec.h5 --out rep --trial 8",
+        ["trial 8 is not a trial of rec.h5", "rows 0 .. 7"],
+        absent=["rep"],
+    ),
+}
+
+
+def _hashes(folder: Path) -> dict[Path, str]:
+    """sha256 of every regular file under ``folder`` (symlinks and FIFOs not followed)."""
+    out = {}
+    for p in folder.rglob("*"):
+        if p.is_file() and not p.is_symlink():
+            out[p] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_exits_2_naming_the_value_and_changes_nothing(
+    name: str, work: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each bad input of the issue: exit 2, one error line naming the value (and the range
+    or the fix), no traceback, every input file byte for byte as before, and no output
+    file left behind."""
+    case = CASES[name]
+    # `serve` must never start a twin here: if a check let it through, fail, do not hang.
+    monkeypatch.setattr("timedexec.twins.run_ur_twin", _no_twin)
+    monkeypatch.setattr("timedexec.twins.RSITwin", _no_twin)
+    if case.setup is not None:
+        case.setup(work)
+    if "{ro}" in case.argv:
+        argv = case.argv.replace("{ro}", str(_readonly_folder())).split()
+    else:
+        argv = case.argv.split()
+    before = _hashes(work)
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == case.code, err
+    for fragment in case.expect:
+        assert fragment in err
+    assert "Traceback" not in err
+    assert f"timedexec {argv[0]}: error: " in err
+    assert _hashes(work) == before  # no input changed, no file added
+    for absent in case.absent:
+        assert not (work / absent).exists(), absent
+    if name == "extract-out-is-a-symlink":
+        assert (work / "link.csv").is_symlink()
+        assert (work / "target.txt").read_text() == "keep me\n"
+
+
+def _no_twin(*args: Any, **kwargs: Any) -> None:
+    raise AssertionError("a protocol twin was started although its paths are bad")
+
+
+# ------------------------------------------------------------------ accepted, but visible
+def test_jobs_above_the_cpu_count_is_capped_with_a_warning(
+    work: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`--jobs 500` on a (pretended) 1-CPU machine runs, with a warning naming both numbers
+    and the count used; the result is the same as with one job."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    assert main(["extract", "rec.h5", "--out", "d500.csv", "--jobs", "500", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: --jobs 500 is more than the 1 CPU(s) of this machine; using 1" in err
+    assert main(["extract", "rec.h5", "--out", "d1.csv", "--quiet"]) == 0
+    assert (work / "d500.csv").read_bytes() == (work / "d1.csv").read_bytes()
+
+
+def test_existing_output_is_replaced_with_a_note(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Overwriting a regular file that is not an input is allowed, and said on stderr."""
+    (work / "d.csv").write_text("old\n")
+    assert main(["extract", "rec.h5", "--out", "d.csv"]) == 0
+    assert "note: --out d.csv exists; it will be replaced by the delay table (CSV)" in (
+        capsys.readouterr().err
+    )
+    assert DelayTable.read_csv(work / "d.csv")["trial"].tolist() == list(range(8))
+
+
+def test_evaluate_configs_cap_is_a_visible_note(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`evaluate --configs 500` on a bundle trained on an 8,000-trial sweep evaluates the
+    100 configurations such a sweep holds; the count used is in the result and a warning
+    names both numbers (never a silent cap)."""
+    argv = ["evaluate", "--robot", "ur10", "--configs", "500", "--draws", "2", "--quiet",
+            "--json", "e.json"]  # fmt: skip
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    doc = json.loads((work / "e.json").read_text())
+    used = doc["n_configurations"]
+    assert used < 500
+    assert doc["n_configs_requested"] == 500
+    message = "500 held-out configurations were asked for, but a held-out sweep of"
+    assert message in captured.err
+    assert f"evaluated on {used}" in captured.err
+    assert f"note: {message}" in captured.out
+    assert f"on {used} configurations" in captured.out
+
+
+def test_utf8_bom_is_ignored(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A delay table saved by Excel (UTF-8 with a byte-order mark) reads as without it:
+    the first column is still `trial`, and training works."""
+    _table(work / "plain.csv")
+    (work / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (work / "plain.csv").read_bytes())
+    table = DelayTable.read_csv(work / "bom.csv")
+    assert next(iter(table)) == "trial"
+    assert main(["train", "bom.csv", "--out", "b", "--folds", "0", "--methods", "median",
+                 "--quiet"]) == 0  # fmt: skip
+
+
+def test_open_driver_refuses_what_is_not_a_url() -> None:
+    """`open_driver(42)` and malformed URL parts are ConfigErrors naming the part, not
+    TypeErrors or silently ignored parameters."""
+    with pytest.raises(ConfigError, match=r"robot URL must be a string .* got int 42"):
+        open_driver(42)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"seed='-1' must be an integer 0 \.\. 4294967295"):
+        open_driver("sim://ur10?seed=-1")
+    with pytest.raises(ConfigError, match="'period' is given twice"):
+        open_driver("rsi://49152?period=0.004&period=0.012")
+    with pytest.raises(
+        ConfigError, match=r"unknown parameter 'x' for ur:// URLs \(it takes none\)"
+    ):
+        open_driver("ur://10.0.0.2?x=1")
+
+
+def test_bundle_errors_are_model_errors(tmp_path: Path) -> None:
+    """The library side of the bundle checks: ModelError (exit 2 class) for arrays out of
+    the folder and for truncated arrays, before any prediction."""
+    (tmp_path / "rec.h5").write_bytes(b"not arrays")
+    _bundle(tmp_path / "out", _outside)
+    with pytest.raises(ModelError, match="points outside the bundle folder"):
+        DelayModel.load(tmp_path / "out")
+    _bundle(tmp_path / "cut", _truncate)
+    with pytest.raises(ModelError, match="truncated or were altered"):
+        DelayModel.load(tmp_path / "cut")
+
+
+# ----------------------------------------------------------------------------- reports
+def test_report_gives_every_input_its_own_figures(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two delay tables of the same name from different folders give two sets of figures
+    (none overwritten) and two sections; a fully flagged table says "No valid trials"
+    instead of NaN rows, and draws no empty figure."""
+    for folder in ("a", "b"):
+        (work / folder).mkdir()
+    _table(work / "a" / "delays.csv")
+    cols = dict(synthetic_table(n_cfg=4, repeats=2, seed=9).columns)
+    DelayTable(cols).to_csv(work / "b" / "delays.csv")
+    cols["flag"] = np.full(len(cols["trial"]), "no onset", dtype=object)
+    cols["actuation_delay"] = np.full(len(cols["trial"]), np.nan)
+    cols["response_delay"] = np.full(len(cols["trial"]), np.nan)
+    DelayTable(cols).to_csv(work / "flagged.csv")
+    argv = ["report", "a/delays.csv", "b/delays.csv", "flagged.csv", "--out", "rep"]
+    assert main(argv) == 0, capsys.readouterr().err
+    md = (work / "rep" / "report.md").read_text()
+    pngs = sorted(p.name for p in (work / "rep").glob("*.png"))
+    assert pngs == sorted(f"{stem}-fig{k}-{kind}.png" for stem in ("delays", "b-delays")
+                          for k, kind in ((7, "hist"), (8, "box"), (9, "hist"), (10, "box")))  # fmt: skip
+    for name in pngs:
+        assert f"({name})" in md
+    assert (work / "rep" / "delays-fig7-hist.png").read_bytes() != (
+        work / "rep" / "b-delays-fig7-hist.png"
+    ).read_bytes()
+    assert (
+        "No valid trials: none of the 64 trials has a measured delay (flags: no onset (64))" in md
+    )
+    assert "nan" not in md
+
+
+def test_fig6_band_never_goes_below_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fig. 6's ±2σ band is clipped at 0 ms: a model with a short delay and a wide std
+    would otherwise draw negative delays."""
+    from matplotlib.axes import Axes
+
+    from timedexec.report import fig_model
+
+    lows: list[np.ndarray] = []
+    original = Axes.fill_between
+
+    def spy(self: Axes, x: Any, y1: Any, *args: Any, **kwargs: Any) -> Any:
+        lows.append(np.asarray(y1))
+        return original(self, x, y1, *args, **kwargs)
+
+    monkeypatch.setattr(Axes, "fill_between", spy)
+
+    def predict_many(joint: int, direction: int, q: np.ndarray, method: str) -> Any:
+        n = len(q)
+        return SimpleNamespace(actuation_mean=np.full(n, 0.002), actuation_std=np.full(n, 0.004),
+                               response_mean=np.full(n, 0.001), response_std=np.full(n, 0.003))  # fmt: skip
+
+    model = SimpleNamespace(robot="ur10", period_s=0.008, predict_many=predict_many)
+    fig_model(model, tmp_path / "fig6.png", points=20)
+    assert lows
+    assert min(float(y.min()) for y in lows) == 0.0
