@@ -8,16 +8,10 @@ uncertainty, and :meth:`TimedExecutor.plan_to_meet` for deadlines.
 
 from __future__ import annotations
 
+from timedexec.errors import StaleStateError, UnreachableError
 from timedexec.execution._bounds import TimingBounds, delay_cdf, delay_quantile
-from timedexec.execution._executor import (
-    CycleLog,
-    ExecutionResult,
-    MeetPlan,
-    StaleStateError,
-    StateEstimate,
-    TimedExecutor,
-    UnreachableError,
-)
+from timedexec.execution._executor import TimedExecutor
+from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     BUNDLED_MODELS,
     DelayPredictions,
@@ -30,6 +24,7 @@ from timedexec.execution._model import (
     predict_delays,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
+from timedexec.execution._state import StalenessLimits, StateEstimate
 from timedexec.execution._tasks import (
     InterceptResult,
     SeamResult,
@@ -39,6 +34,7 @@ from timedexec.execution._tasks import (
     tool_radius_m,
     track_seam,
 )
+from timedexec.execution._timing import MeetPlan
 
 __all__ = [
     "BUNDLED_MODELS",
@@ -53,6 +49,7 @@ __all__ = [
     "MeetPlan",
     "SeamResult",
     "StaleStateError",
+    "StalenessLimits",
     "StateEstimate",
     "TimedExecutor",
     "TimingBounds",

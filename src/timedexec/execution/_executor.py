@@ -12,8 +12,11 @@ host's send time to the physical onset, and that is what is shifted away.
 Safety: commands never exceed the spec's speed and acceleration limits (clipped, counted in
 the log), a joint approaching a position limit is slowed so it can stop before it, targets
 outside the limits are refused with a :class:`~timedexec.errors.ConfigError` before any
-motion, and a state stream older than ``stale_periods`` periods is a fault: the robot is
-stopped at once and :class:`StaleStateError` raised.
+motion, and a state stream silent for ``stale_periods`` periods (or a package that much
+later than the fastest) is a fault: the robot is stopped at once and
+:class:`~timedexec.errors.StaleStateError` raised. The loop composes ``_timing``
+(predictions, bounds, deadlines), ``_state`` (back-dating, staleness), ``_command`` (the
+Smith predictor, the limits) and ``_log`` (the bookkeeping).
 """
 
 from __future__ import annotations
@@ -21,275 +24,48 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Self
+from typing import Any, NoReturn, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
-from timedexec.errors import (
-    ConfigError,
-    DriverError,
-    DriverTimeout,
-    ModelError,
-    StaleStateError,
-    UnreachableError,
-)
-from timedexec.execution._bounds import TimingBounds, check_confidence, delay_cdf, delay_quantile
+from timedexec.errors import ConfigError, DriverError, StaleStateError
+from timedexec.execution._bounds import TimingBounds, check_confidence
+from timedexec.execution._command import SmithPredictor, limit_command, ramp_acceleration
+from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     DelayPredictions,
     DelayPredictor,
     check_model_robot,
     load_delay_model,
-    predict_delays,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
-from timedexec.robots import RobotSpec, get_robot
+from timedexec.execution._session import DriverSession
+from timedexec.execution._state import (
+    StalenessLimits,
+    StateEstimate,
+    StateTracker,
+    read_fresh_state,
+)
+from timedexec.execution._timing import (
+    MeetPlan,
+    PredictionCache,
+    arrival_bounds,
+    check_start,
+    meet_deadline,
+    onset_bounds,
+    plan_lead_s,
+    prepare_plan,
+    require_scheduled,
+)
+from timedexec.robots import RobotSpec
 
-__all__ = [
-    "CycleLog",
-    "ExecutionResult",
-    "MeetPlan",
-    "StaleStateError",
-    "StateEstimate",
-    "TimedExecutor",
-    "UnreachableError",
-]
+__all__ = ["TimedExecutor"]
 
 FloatArray = NDArray[np.float64]
-
-
-#: Window of the lower-envelope clock model (arrival minus controller time), s.
-ENVELOPE_S = 0.5
-
-
-@dataclass(frozen=True)
-class StateEstimate:
-    """The executor's belief of the physical joint state at ``time_s``.
-
-    Attributes
-    ----------
-    time_s : float
-        Host time the estimate is for, s.
-    q_rad, qd_rad_s : ndarray (6,)
-        Estimated physical joint positions and speeds.
-    sample_time_s : float
-        Host time the newest package describes (its arrival minus the predicted response
-        delay), s.
-    response_delay_s : float
-        The predicted response delay used to back-date it, s.
-    horizon_s : float
-        ``time_s - sample_time_s``: how far the estimate extrapolates, s.
-    """
-
-    time_s: float
-    q_rad: FloatArray
-    qd_rad_s: FloatArray
-    sample_time_s: float
-    response_delay_s: float
-    horizon_s: float
-
-
-@dataclass(frozen=True)
-class MeetPlan:
-    """A plan that reaches ``plan.q_end_rad`` by ``deadline_s`` with probability
-    ``confidence`` (see :meth:`TimedExecutor.plan_to_meet`).
-
-    Attributes
-    ----------
-    plan : JointPlan
-        The trajectory, scheduled (``plan.start_time_s`` is when the physical motion
-        starts).
-    deadline_s : float
-        Host time by which the target must be reached, s.
-    confidence : float
-        Requested probability of arriving by the deadline.
-    first_send_s : float
-        Host time the first command must leave (plan start minus the largest predicted
-        actuation delay), s.
-    slack_s : float
-        How much later than planned the motion could still start, s (>= 0).
-    arrival : TimingBounds
-        Per joint (6,): central ``confidence`` interval of the arrival time.
-    probability : float
-        Predicted probability that every moving joint arrives by the deadline (the
-        slowest joint's).
-    """
-
-    plan: JointPlan
-    deadline_s: float
-    confidence: float
-    first_send_s: float
-    slack_s: float
-    arrival: TimingBounds
-    probability: float
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-safe summary."""
-        return {
-            "deadline_s": self.deadline_s,
-            "confidence": self.confidence,
-            "start_time_s": self.plan.start_time_s,
-            "duration_s": self.plan.duration_s,
-            "first_send_s": self.first_send_s,
-            "slack_s": self.slack_s,
-            "probability": self.probability,
-            "arrival": self.arrival.to_dict(),
-        }
-
-
-class CycleLog:
-    """Per-cycle record of the loop: one row per state package handled.
-
-    Columns (numpy arrays from :meth:`arrays`): ``arrival_s`` (host arrival), ``controller_s``
-    (controller time stamp of the cycle commanded), ``sequence``, ``send_s`` (host time the
-    command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
-    ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
-    command went out from the estimate, the row repeats the previous package).
-    """
-
-    def __init__(self) -> None:
-        self._rows: list[tuple[float, float, int, float, bool, bool]] = []
-        self._qd: list[FloatArray] = []
-        self._q: list[FloatArray] = []
-
-    def __len__(self) -> int:
-        return len(self._rows)
-
-    def add(
-        self,
-        state: RobotState,
-        send_s: float,
-        qd_cmd: FloatArray | None,
-        clipped: bool,
-        *,
-        controller_s: float | None = None,
-    ) -> None:
-        """Append a row (``controller_s``: the cycle commanded, default the package's)."""
-        ctrl = state.controller_time_s if controller_s is None else controller_s
-        coasted = controller_s is not None and controller_s != state.controller_time_s
-        self._rows.append((state.host_time_s, ctrl, state.sequence, send_s, clipped, coasted))
-        self._qd.append(np.full(6, np.nan) if qd_cmd is None else qd_cmd)
-        self._q.append(state.q)
-
-    def clear(self) -> None:
-        """Forget every row."""
-        self._rows.clear()
-        self._qd.clear()
-        self._q.clear()
-
-    def arrays(self, start: int = 0) -> dict[str, NDArray[Any]]:
-        """The log from row ``start`` on as arrays."""
-        rows = self._rows[start:]
-        if not rows:
-            z = np.zeros(0)
-            return {
-                "arrival_s": z,
-                "controller_s": z,
-                "sequence": np.zeros(0, np.int64),
-                "send_s": z,
-                "clipped": np.zeros(0, bool),
-                "coasted": np.zeros(0, bool),
-                "qd_cmd": np.zeros((0, 6)),
-                "q": np.zeros((0, 6)),
-            }
-        a = np.asarray([r[0] for r in rows])
-        return {
-            "arrival_s": a,
-            "controller_s": np.asarray([r[1] for r in rows]),
-            "sequence": np.asarray([r[2] for r in rows], dtype=np.int64),
-            "send_s": np.asarray([r[3] for r in rows]),
-            "clipped": np.asarray([r[4] for r in rows], dtype=bool),
-            "coasted": np.asarray([r[5] for r in rows], dtype=bool),
-            "qd_cmd": np.asarray(self._qd[start:]),
-            "q": np.asarray(self._q[start:]),
-        }
-
-    def timing(self, start: int = 0, *, window_s: float = 0.5) -> dict[str, Any]:
-        """Send-time statistics of the loop.
-
-        The ideal send time of the command answering package ``k`` is the earliest the
-        package can arrive: its controller time stamp mapped to the host clock by a
-        lower-envelope clock model (the minimum of arrival minus controller time over a
-        sliding ``window_s``). The send-time error is the actual send time minus that
-        (network, client polling and the executor's own work). ``missed`` counts controller
-        cycles without a handled package (sequence gaps).
-        """
-        from scipy.ndimage import minimum_filter1d
-
-        arr = self.arrays(start)
-        if len(arr["arrival_s"]) < 2:
-            return {"cycles": len(arr["arrival_s"]), "missed": 0}
-        ctrl = arr["controller_s"]
-        period = float(np.median(np.diff(ctrl)))
-        off = np.where(arr["coasted"], np.inf, arr["arrival_s"] - ctrl)
-        size = max(1, round(window_s / period))
-        env = minimum_filter1d(off, size=size, mode="nearest")
-        sent = np.isfinite(arr["send_s"])
-        err = (arr["send_s"] - (ctrl + env))[sent]
-        proc = (arr["send_s"] - arr["arrival_s"])[sent & ~arr["coasted"]]
-        gaps = np.diff(arr["sequence"][~arr["coasted"]])
-        q = [50, 90, 99, 99.9]
-        return {
-            "cycles": len(ctrl),
-            "expected_cycles": int(arr["sequence"][-1] - arr["sequence"][0] + 1),
-            "missed": int(np.sum(np.maximum(gaps - 1, 0))),
-            "commands": int(sent.sum()),
-            "coasted": int(arr["coasted"].sum()),
-            "period_s": period,
-            "send_error_s": {f"p{p:g}": float(np.percentile(err, p)) for p in q}
-            | {"mean": float(err.mean()), "max": float(err.max())},
-            "processing_s": {f"p{p:g}": float(np.percentile(proc, p)) for p in q}
-            | {"max": float(proc.max())},
-        }
-
-
-@dataclass
-class ExecutionResult:
-    """What :meth:`TimedExecutor.execute` did.
-
-    Attributes
-    ----------
-    plan : JointPlan
-        The executed plan (scheduled).
-    actuation_s, actuation_std_s : ndarray (6,)
-        The per-joint shift applied and its predicted single-trial std, s.
-    response_s : float
-        The response delay states were back-dated by, s.
-    first_send_s, last_send_s : float
-        Host times of the first and last command, s.
-    log : dict
-        :meth:`CycleLog.arrays` of the execution.
-    """
-
-    plan: JointPlan
-    actuation_s: FloatArray
-    actuation_std_s: FloatArray
-    response_s: float
-    first_send_s: float
-    last_send_s: float
-    log: dict[str, NDArray[Any]] = field(repr=False)
-
-    @property
-    def missed_cycles(self) -> int:
-        """Controller cycles without a handled package during the execution."""
-        seq = self.log["sequence"]
-        return int(np.sum(np.maximum(np.diff(seq) - 1, 0))) if len(seq) > 1 else 0
-
-
-def _driver_spec(driver: RobotDriver, robot: str, period_s: float) -> RobotSpec:
-    """The connected driver's robot spec (its own when it has one)."""
-    spec = getattr(driver, "spec", None)
-    if isinstance(spec, RobotSpec):
-        return spec
-    settings = getattr(driver, "settings", None)
-    if isinstance(getattr(settings, "spec", None), RobotSpec):
-        return settings.spec  # type: ignore[union-attr,no-any-return]
-    return get_robot(robot, period_s=period_s)
 
 
 class TimedExecutor:
@@ -307,8 +83,16 @@ class TimedExecutor:
     confidence : float
         Default confidence of the timing bounds.
     stale_periods : float
-        A state package older than this many controller periods (or none for that long) is
-        a fault: the robot is stopped and :class:`StaleStateError` raised.
+        How old the state may get, controller periods (>= 1; default 3): the default of
+        both limits below. A fault stops the robot at once and raises
+        :class:`~timedexec.errors.StaleStateError`.
+    stall_periods : float, optional
+        While streaming, no package for this long is a fault (a silent stream; coasting
+        ends there too). Each ``speedj`` is held for this plus two periods, so the
+        controller's own watchdog runs out only after the executor has stopped the arm.
+    late_periods : float, optional
+        A package arriving this much later than the fastest packages (lower-envelope
+        clock model) is a fault (a queued stream: the package is there, but old).
     limits : ExecutionLimits, optional
         Fractions of the spec's limits to plan and command with.
     position_gain_1_s : float
@@ -332,6 +116,15 @@ class TimedExecutor:
         from the estimate, and the late package is then only read (real-time drivers only;
         a virtual-time simulator never has late packages).
 
+    Attributes
+    ----------
+    staleness : StalenessLimits
+        The limits in force (with ``command_hold_periods``, the ``speedj`` duration).
+    log : CycleLog
+        One row per state package handled.
+    clip_count, coasted : int
+        Commands a limit clipped; cycles commanded from the estimate (``coast``).
+
     Examples
     --------
     >>> from timedexec.drivers import open_driver                    # doctest: +SKIP
@@ -347,6 +140,8 @@ class TimedExecutor:
         *,
         confidence: float = 0.95,
         stale_periods: float = 3.0,
+        stall_periods: float | None = None,
+        late_periods: float | None = None,
         limits: ExecutionLimits | None = None,
         position_gain_1_s: float = 0.0,
         compensate: bool = True,
@@ -354,8 +149,9 @@ class TimedExecutor:
         coast: bool = False,
     ) -> None:
         self.confidence = check_confidence(confidence)
-        if not stale_periods >= 1:
-            raise ConfigError(f"stale_periods={stale_periods!r} must be >= 1 controller period")
+        self.staleness = StalenessLimits.from_stale_periods(
+            stale_periods, stall_periods=stall_periods, late_periods=late_periods
+        )
         if not position_gain_1_s >= 0:
             raise ConfigError(f"position_gain_1_s={position_gain_1_s!r} must be >= 0")
         self.driver = driver
@@ -370,28 +166,19 @@ class TimedExecutor:
             check_model_robot(self.model, robot)
         clock = getattr(driver, "clock", None)
         self._clock: Callable[[], float] = clock if callable(clock) else time.monotonic
-        self._spec: RobotSpec | None = None
+        self._session = DriverSession(driver, self.model)
         self._period = math.nan
-        self._connected_here = False
-        self._pin: Any = None  # the model's BLAS pin, held while connected
-        self._last: RobotState | None = None
-        self._last_arrival = math.nan
-        self._offset_min = math.inf  # lower envelope of arrival - controller time, s
-        self._samples: deque[tuple[float, FloatArray, FloatArray]] = deque(maxlen=256)
-        self._response_s = 0.0
+        self._predictions = PredictionCache(self.model)
+        self._state = StateTracker()
+        self._correction = SmithPredictor()
         self._plan: JointPlan | None = None
         self._last_plan: JointPlan | None = None
         self._tau = np.zeros(6)
         self._tau_std = np.zeros(6)
         self._v_prev = np.zeros(6)
-        # Position corrections sent: (host send time, rad/s per joint), for the predictor.
-        self._corrections: deque[tuple[float, FloatArray]] = deque(maxlen=4096)
         self._fault: str | None = None
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
-        self._cache: dict[tuple[bytes, bytes], DelayPredictions] = {}
-        self._envelope: deque[tuple[float, float]] = deque()
-        self._ctrl_ref = math.nan
         self._served = -1  # last controller cycle a command was sent for
         self.coast = bool(coast) and not bool(getattr(driver, "virtual", False))
         self.coasted = 0
@@ -402,9 +189,9 @@ class TimedExecutor:
     @property
     def spec(self) -> RobotSpec:
         """The robot spec (limits, period); known once connected."""
-        if self._spec is None:
+        if self._session.spec is None:
             raise DriverError("the executor is not connected; use it as a context manager")
-        return self._spec
+        return self._session.spec
 
     @property
     def period_s(self) -> float:
@@ -413,42 +200,17 @@ class TimedExecutor:
 
     def connect(self) -> None:
         """Connect the driver (if needed), check the model against it, read a first state."""
-        if self._spec is not None:
-            return
-        self.driver.connect()
-        self._connected_here = True
-        try:
-            robot = str(self.driver.robot)
-            period = float(self.driver.controller_period_s)
-            check_model_robot(self.model, robot, period)
-            self._spec = _driver_spec(self.driver, robot, period)
-            self._period = period
-            state = self.driver.read_state(timeout_s=max(1.0, 10 * period))
-            self._response_s = self._predict_response(state.q)
-            self._ingest(state)
-        except BaseException:
-            self._spec = None
-            self.driver.close()
-            raise
-        # A model with a BLAS pin (DelayModel) keeps BLAS on one thread while connected:
-        # queries during the loop then skip the per-call pin and its thread wake-ups.
-        pinned = getattr(self.model, "pinned", None)
-        if callable(pinned) and self._pin is None:
-            self._pin = pinned()
-            self._pin.__enter__()
+        self._session.open(self._first_state)
+        self._period = self._session.period_s
+
+    def _first_state(self, state: RobotState) -> None:
+        self._state.response_s = self._predictions.response_s(state.q)
+        self._state.ingest(state)
 
     def close(self) -> None:
         """Stop any motion and close the driver if the executor connected it."""
-        try:
-            if self._spec is not None and self._fault is None and np.any(self._v_prev != 0):
-                self.driver.stop(self._decel())
-        finally:
-            self._spec = None
-            if self._pin is not None:
-                pin, self._pin = self._pin, None
-                pin.__exit__(None, None, None)
-            if self._connected_here:
-                self.driver.close()
+        moving = self._fault is None and bool(np.any(self._v_prev != 0))
+        self._session.close((lambda: self.driver.stop(self._decel())) if moving else None)
 
     def __enter__(self) -> Self:
         self.connect()
@@ -476,116 +238,11 @@ class TimedExecutor:
         """Predicted delays of joints 1..6 at ``q_rad`` for ``directions`` (6,), s.
 
         Joints the model does not cover (a sweep of joints 1, 2, 3, 5) get the mean of the
-        covered joints' predictions.
+        covered joints' predictions. Cached per configuration (to 0.1 mrad) and directions.
         """
-        q = np.asarray(q_rad, dtype=float).reshape(6)
-        d = np.ones(6, np.int64) if directions is None else np.asarray(directions, np.int64)
-        # Predictions are cached per configuration (to 0.1 mrad) and directions: a model
-        # query may take milliseconds, and a plan is prepared more than once.
-        key = (np.round(q, 4).tobytes(), d.tobytes())
-        hit = self._cache.get(key)
-        if hit is not None:
-            return hit
-        out = self._predict_uncached(q, d)
-        if len(self._cache) > 256:
-            self._cache.clear()
-        self._cache[key] = out
-        return out
-
-    def _predict_uncached(self, q: FloatArray, d: NDArray[np.int64]) -> DelayPredictions:
-        joints = np.arange(1, 7)
-        try:
-            return predict_delays(self.model, joints, d, np.tile(q, (6, 1)))
-        except (ConfigError, ModelError, KeyError, IndexError, ValueError):
-            covered = np.array(getattr(self.model, "joints", (1, 2, 3, 5)), dtype=np.int64)
-            part = predict_delays(self.model, covered, d[covered - 1], np.tile(q, (4, 1)))
-            out = {}
-            for name in ("actuation_mean", "actuation_std", "response_mean", "response_std"):
-                v = getattr(part, name)
-                full = np.full(6, float(np.mean(v)))
-                full[covered - 1] = v
-                out[name] = full
-            return DelayPredictions(**out)
-
-    def _predict_response(self, q: FloatArray) -> float:
-        p = self.predict(q)
-        return float(np.median(p.response_mean))
+        return self._predictions.predict(q_rad, directions)
 
     # ------------------------------------------------------------------ state
-    def _ingest(self, state: RobotState) -> None:
-        self._last = state
-        self._last_arrival = state.host_time_s
-        # Lower envelope of (arrival - controller time) over the last ENVELOPE_S: the
-        # fastest packages' offset, i.e. the host time of each controller cycle boundary
-        # plus the shortest sampling-to-arrival time (follows a slowly drifting phase).
-        off = state.host_time_s - state.controller_time_s
-        env = self._envelope
-        while env and env[-1][1] >= off:
-            env.pop()
-        env.append((state.host_time_s, off))
-        while env[0][0] < state.host_time_s - ENVELOPE_S:
-            env.popleft()
-        self._offset_min = env[0][1]
-        if not math.isfinite(self._ctrl_ref):
-            self._ctrl_ref = state.controller_time_s
-        t_phys = state.host_time_s - self._response_s
-        self._samples.append((t_phys, np.asarray(state.q, float), np.asarray(state.qd, float)))
-
-    def _fault_stop(self, message: str) -> None:
-        self._fault = message
-        self._plan = None
-        decel = self._decel()
-        try:
-            # A zero-speed speedj goes out at once (realtime command); the drivers' stop()
-            # may first wait for the controller's acknowledgement of the previous command
-            # (ur_rtde's speedStop: ~30 ms when the stream has stalled).
-            self.driver.speedj(np.zeros(6), decel, 0.0)
-        finally:
-            self._v_prev = np.zeros(6)
-            with contextlib.suppress(DriverError):
-                self.driver.stop(decel)
-        raise StaleStateError(message)
-
-    def _read(self, coast_at: float | None = None) -> RobotState | None:
-        if self._fault is not None:
-            raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
-        limit = self.stale_periods * self._period
-        if self._plan is None and not np.any(self._v_prev != 0):
-            # Idle at rest: gaps in reading are the caller's, not the stream's.
-            return self.driver.read_state(timeout_s=max(limit, 0.5))
-        deadline = max(self._last_arrival, self._streaming_since) + limit
-        timeout = deadline - self.now()
-        if timeout <= 0:
-            self._fault_stop(
-                f"no state package for {(self.now() - self._last_arrival) * 1e3:.1f} ms "
-                f"(> {self.stale_periods:g} periods of {self._period * 1e3:g} ms); robot stopped"
-            )
-        if coast_at is not None and coast_at < deadline:
-            try:
-                got = self.driver.read_state(timeout_s=max(coast_at - self.now(), 0.0))
-            except DriverTimeout:
-                return None
-            return self._check_age(got)
-        try:
-            state = self.driver.read_state(timeout_s=timeout)
-        except DriverTimeout as exc:
-            self._fault_stop(
-                f"the state stream stalled: no package within {self.stale_periods:g} periods "
-                f"({limit * 1e3:.1f} ms) of the last one ({exc}); robot stopped"
-            )
-        return self._check_age(state)
-
-    def _check_age(self, state: RobotState) -> RobotState:
-        limit = self.stale_periods * self._period
-        age = (state.host_time_s - state.controller_time_s) - self._offset_min
-        if math.isfinite(age) and age > limit:
-            self._fault_stop(
-                f"stale state: package of controller time {state.controller_time_s:.4f} s arrived "
-                f"{age * 1e3:.1f} ms later than the fastest packages (> {self.stale_periods:g} "
-                "periods); robot stopped"
-            )
-        return state
-
     def estimate(self, t_s: float | None = None) -> StateEstimate:
         """The physical joint state at host time ``t_s`` (default: now).
 
@@ -593,41 +250,14 @@ class TimedExecutor:
         the estimate follows the active plan (keeping the offset between plan and robot
         seen in the package) or, without a plan, the reported speed.
         """
-        if not self._samples:
-            raise DriverError("no state received yet; connect() first")
+        self._state.newest()  # no state yet: DriverError before reading the clock
         t = self.now() if t_s is None else float(t_s)
-        t_phys, q, qd = self._samples[-1]
-        plan = self._plan or self._last_plan
-        if plan is not None and math.isfinite(plan.start_time_s):
-            q_then, _, _ = plan.sample(t_phys - plan.start_time_s)
-            q_t, qd_t, _ = plan.sample(t - plan.start_time_s)
-            q_est = q_t + (q - q_then)
-            qd_est = qd_t
-        else:
-            q_est = q + qd * (t - t_phys)
-            qd_est = qd
-        return StateEstimate(
-            time_s=t,
-            q_rad=q_est,
-            qd_rad_s=qd_est,
-            sample_time_s=t_phys,
-            response_delay_s=self._response_s,
-            horizon_s=t - t_phys,
-        )
-
-    def _q_per_joint(self, t_s: FloatArray) -> FloatArray:
-        """Estimated position of joint j at host time ``t_s[j]``, rad (6,)."""
-        t_phys, q, qd = self._samples[-1]
-        plan = self._plan or self._last_plan
-        if plan is not None and math.isfinite(plan.start_time_s):
-            q_then, _, _ = plan.sample(t_phys - plan.start_time_s)
-            return plan.position_per_joint(t_s - plan.start_time_s) + (q - q_then)
-        return q + qd * (t_s - t_phys)
+        return self._state.estimate(t, self._plan or self._last_plan)
 
     @property
     def last_state(self) -> RobotState | None:
         """The newest package as received."""
-        return self._last
+        return self._state.last
 
     # ------------------------------------------------------------------ planning
     def plan(
@@ -661,38 +291,18 @@ class TimedExecutor:
     def prepare(self, plan: JointPlan) -> JointPlan:
         """Attach the predicted delays of the plan's start configuration and directions
         (``plan.meta``: ``actuation_s``, ``actuation_std_s``, ``response_s``)."""
-        if "actuation_s" in plan.meta:
-            return plan
-        dirs = plan.directions()
-        p = self.predict(plan.q_start_rad, dirs)
-        out = plan.at(plan.start_time_s)
-        moving = plan.moving_joints()
-        out.meta.update(
-            actuation_s=np.where(moving, p.actuation_mean, 0.0) if self.compensate else np.zeros(6),
-            predicted_actuation_s=p.actuation_mean,
-            actuation_std_s=p.actuation_std,
-            response_s=float(np.median(p.response_mean)),
-            directions=dirs,
-            moving=moving,
-        )
-        return out
+        return prepare_plan(plan, self._predictions, compensate=self.compensate)
 
     def lead_time_s(self, plan: JointPlan) -> float:
         """How long before the plan's start its first command must leave, s."""
-        tau = self.prepare(plan).meta["actuation_s"]
-        return float(np.max(tau))
+        return plan_lead_s(self.prepare(plan))
 
     # ------------------------------------------------------------------ bounds
     def _q_of(self, confidence: float | None) -> float:
         return self.confidence if confidence is None else check_confidence(confidence)
 
     def _scheduled(self, plan: JointPlan | None) -> JointPlan:
-        plan = plan or self._plan or self._last_plan
-        if plan is None:
-            raise ConfigError("no plan: pass one (scheduled with plan.at(start_time_s))")
-        if not math.isfinite(plan.start_time_s):
-            raise ConfigError("the plan is not scheduled; use plan.at(start_time_s)")
-        return self.prepare(plan)
+        return self.prepare(require_scheduled(plan or self._plan or self._last_plan))
 
     def onset_bounds(
         self,
@@ -712,26 +322,13 @@ class TimedExecutor:
         if joint not in range(1, 7):
             raise ConfigError(f"joint={joint!r} outside 1..6")
         p = self._scheduled(plan)
-        t_on = p.onset_times(level_rad_s)[joint - 1]
-        if not math.isfinite(t_on):
-            raise ConfigError(f"joint {joint} does not move in this plan")
-        late = p.meta["predicted_actuation_s"][joint - 1] - p.meta["actuation_s"][joint - 1]
-        return TimingBounds.around(
-            p.start_time_s + t_on + late,
-            p.meta["actuation_std_s"][joint - 1],
-            self._q_of(confidence),
-            self._period,
-        )
+        return onset_bounds(p, joint, self._q_of(confidence), self._period, level_rad_s=level_rad_s)
 
     def arrival_bounds(
         self, plan: JointPlan | None = None, *, confidence: float | None = None
     ) -> TimingBounds:
         """Per joint (6,): interval in which each joint reaches its planned end state."""
-        p = self._scheduled(plan)
-        late = p.meta["predicted_actuation_s"] - p.meta["actuation_s"]
-        expected = np.where(p.meta["moving"], p.end_time_s + late, p.start_time_s)
-        std = np.where(p.meta["moving"], p.meta["actuation_std_s"], 0.0)
-        return TimingBounds.around(expected, std, self._q_of(confidence), self._period)
+        return arrival_bounds(self._scheduled(plan), self._q_of(confidence), self._period)
 
     # ------------------------------------------------------------------ the inverse question
     def plan_to_meet(
@@ -760,40 +357,7 @@ class TimedExecutor:
         """
         c = check_confidence(confidence)
         plan = self.prepare(self.plan(target_q_rad, target_qd_rad_s=target_qd_rad_s))
-        moving = plan.meta["moving"]
-        if not moving.any():
-            raise ConfigError("the robot is already at the target; nothing to plan")
-        tau = plan.meta["actuation_s"]
-        std = plan.meta["actuation_std_s"]
-        u = np.where(moving, delay_quantile(np.full(6, c), std, self._period), -np.inf)
-        margin = float(np.max(u))
-        latest_start = float(deadline_s) - plan.duration_s - margin
-        lead = float(np.max(np.where(moving, tau, 0.0)))
-        # The first command leaves on the next package: one period, plus one of safety.
-        earliest_start = self.now() + lead + 2.0 * self._period
-        if latest_start < earliest_start:
-            miss = earliest_start - latest_start
-            raise UnreachableError(
-                f"cannot reach the target by the deadline with probability {c:g}: it misses by "
-                f"{miss * 1e3:.1f} ms (motion {plan.duration_s * 1e3:.1f} ms, actuation delay "
-                f"up to {lead * 1e3:.1f} ms, {c:g} timing margin {margin * 1e3:.1f} ms, "
-                f"deadline in {(deadline_s - self.now()) * 1e3:.1f} ms); move the deadline "
-                f"{miss * 1e3:.1f} ms later, lower the confidence or choose a closer target",
-                miss_s=miss,
-            )
-        scheduled = plan.at(latest_start)
-        arrival = self.arrival_bounds(scheduled, confidence=c)
-        cdf = delay_cdf(float(deadline_s) - scheduled.end_time_s, std, self._period)
-        prob = float(np.min(np.where(moving, cdf, 1.0)))
-        return MeetPlan(
-            plan=scheduled,
-            deadline_s=float(deadline_s),
-            confidence=c,
-            first_send_s=latest_start - lead,
-            slack_s=latest_start - earliest_start,
-            arrival=arrival,
-            probability=prob,
-        )
+        return meet_deadline(plan, deadline_s, c, now_s=self.now(), period_s=self._period)
 
     # ------------------------------------------------------------------ the loop
     def schedule(self, plan: JointPlan | MeetPlan, start_time_s: float | None = None) -> JointPlan:
@@ -814,23 +378,17 @@ class TimedExecutor:
         if not math.isfinite(p.start_time_s):
             raise ConfigError("give start_time_s (host time at which the motion should start)")
         p = self.prepare(p)
-        lead = float(np.max(p.meta["actuation_s"]))
-        late = self.now() + self._period - (p.start_time_s - lead)
-        if late > 0 and np.all(self._v_prev == 0):
-            raise ConfigError(
-                f"start time too soon: the first command had to leave {late * 1e3:.1f} ms ago "
-                f"(actuation delay {lead * 1e3:.1f} ms plus one period); start at least "
-                f"{late * 1e3:.1f} ms later"
-            )
+        if np.all(self._v_prev == 0):  # from rest: the first command must leave in time
+            check_start(p, now_s=self.now(), period_s=self._period)
         if self._plan is None and not np.any(self._v_prev != 0):
             self._streaming_since = self.now()
         if p is not self._plan:
-            self._corrections.clear()
+            self._correction.clear()
         self._plan = p
         self._last_plan = p
         self._tau = np.asarray(p.meta["actuation_s"], float)
         self._tau_std = np.asarray(p.meta["actuation_std_s"], float)
-        self._response_s = float(p.meta["response_s"])
+        self._state.response_s = float(p.meta["response_s"])
         return p
 
     def step(self) -> RobotState:
@@ -839,20 +397,21 @@ class TimedExecutor:
         ``coast``, a cycle whose package is late gets its command from the estimate."""
         plan = self._plan
         streaming = plan is not None or bool(np.any(self._v_prev != 0))
+        st = self._state
         coast_at = None
-        if streaming and self.coast and math.isfinite(self._ctrl_ref) and self._served >= 0:
-            due = self._ctrl_ref + (self._served + 1) * self._period + self._offset_min
+        if streaming and self.coast and math.isfinite(st.controller_ref_s) and self._served >= 0:
+            due = st.earliest_arrival_s(self._served + 1, self._period)
             coast_at = due + 0.5 * self._period
         got = self._read(coast_at)
         if got is None:  # the cycle's package is late: command it from the estimate
-            assert self._last is not None
+            assert st.last is not None
             self._served += 1
             self.coasted += 1
-            self._send(plan, self._last, self._ctrl_ref + self._served * self._period)
-            return self._last
+            self._send(plan, st.last, st.controller_time_of(self._served, self._period))
+            return st.last
         state = got
-        self._ingest(state)
-        cycle = round((state.controller_time_s - self._ctrl_ref) / self._period)
+        st.ingest(state)
+        cycle = st.cycle_of(state.controller_time_s, self._period)
         if not streaming:
             self._served = cycle
             self.log.add(state, math.nan, None, False)
@@ -864,86 +423,84 @@ class TimedExecutor:
         self._send(plan, state, state.controller_time_s)
         return state
 
+    def _fault_stop(self, message: str) -> NoReturn:
+        self._fault = message
+        self._plan = None
+        decel = self._decel()
+        try:
+            # A zero-speed speedj goes out at once (realtime command); the drivers' stop()
+            # may first wait for the controller's acknowledgement of the previous command
+            # (ur_rtde's speedStop: ~30 ms when the stream has stalled).
+            self.driver.speedj(np.zeros(6), decel, 0.0)
+        finally:
+            self._v_prev = np.zeros(6)
+            with contextlib.suppress(DriverError):
+                self.driver.stop(decel)
+        raise StaleStateError(message)
+
+    def _read(self, coast_at: float | None = None) -> RobotState | None:
+        """The next package; None when ``coast_at`` (host time) passes first. Faults
+        (:meth:`_fault_stop`) when the stream stalls or the package is late."""
+        if self._fault is not None:
+            raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
+        if self._plan is None and not np.any(self._v_prev != 0):
+            # Idle at rest: gaps in reading are the caller's, not the stream's.
+            timeout = self.staleness.idle_timeout_s(self._period)
+            return self.driver.read_state(timeout_s=timeout)
+        return read_fresh_state(
+            self.driver,
+            self._state,
+            self.staleness,
+            clock=self.now,
+            period_s=self._period,
+            streaming_since_s=self._streaming_since,
+            coast_at_s=coast_at,
+            fault=self._fault_stop,
+        )
+
     def _send(self, plan: JointPlan | None, state: RobotState, controller_s: float) -> None:
         now = self.now()
         v, clipped = self._command(plan, now)
-        a = self._ramp_acceleration(v)
-        self.driver.speedj(v, a, (self.stale_periods + 2.0) * self._period)
+        amax = self.limits.acceleration(self.spec)
+        a = ramp_acceleration(v, self._v_prev, amax, self._period)
+        self.driver.speedj(v, a, self.staleness.command_hold_periods * self._period)
         self._v_prev = v
         self._last_send_s = now
         self.log.add(state, now, v, clipped, controller_s=controller_s)
 
     def _command(self, plan: JointPlan | None, now: float) -> tuple[FloatArray, bool]:
-        spec = self.spec
+        """This cycle's speed command (6,), rad/s, and whether a limit clipped it."""
         period = self._period
-        correcting = plan is not None and self.position_gain_1_s > 0 and bool(self._samples)
-        if plan is None:
-            target = np.zeros(6)
-        else:
-            t_plan = now - plan.start_time_s + self._tau + period
-            target = plan.velocity_per_joint(t_plan)
-            feed_forward = target
-            if correcting:
-                target = target + self.position_gain_1_s * self._predicted_error(plan, now)
-        vmax = self.limits.velocity(spec)
-        amax = self.limits.acceleration(spec)
-        v = np.clip(target, -vmax, vmax)
-        # The speed may change by the acceleration limit times the time since the previous
-        # command (more than one period when packages were missed).
+        target = feed_forward = np.zeros(6)
+        correcting = False
+        if plan is not None:
+            # Joint j gets the plan's speed where its command acts: tau_j plus the ramp later.
+            feed_forward = plan.velocity_per_joint(now - plan.start_time_s + self._tau + period)
+            target = feed_forward
+            sample = self._state.sample
+            if self.position_gain_1_s > 0 and sample is not None:
+                correcting = True
+                t_phys, q, _ = sample
+                error = self._correction.predicted_error(plan, t_phys, q, self._tau, now)
+                target = feed_forward + self.position_gain_1_s * error
         since = now - self._last_send_s if math.isfinite(self._last_send_s) else period
-        step = amax * min(max(period, since), 4.0 * period)
-        v = np.clip(v, self._v_prev - step, self._v_prev + step)
-        # Position guard: where this command acts (after the joint's delay), the joint must
-        # still be able to stop before its limit.
-        q_act = self._q_per_joint(now + self._tau + period)
-        lo = np.asarray(spec.q_min_rad)
-        hi = np.asarray(spec.q_max_rad)
-        room_hi = np.maximum(hi - q_act - v * period, 0.0)
-        room_lo = np.maximum(q_act - lo + v * period, 0.0)
-        v = np.minimum(v, np.sqrt(2.0 * amax * room_hi))
-        v = np.maximum(v, -np.sqrt(2.0 * amax * room_lo))
+        # Where this command acts (after each joint's delay) the joint must be able to stop.
+        q_act = self._state.q_per_joint(now + self._tau + period, self._plan or self._last_plan)
+        v = limit_command(
+            target,
+            v_prev_rad_s=self._v_prev,
+            since_s=since,
+            q_act_rad=q_act,
+            spec=self.spec,
+            limits=self.limits,
+            period_s=period,
+        )
         clipped = bool(np.any(np.abs(v - target) > 1e-12))
         if clipped:
             self.clip_count += 1
         if correcting:
-            self._corrections.append((now, v - feed_forward))
+            self._correction.record(now, v - feed_forward)
         return v, clipped
-
-    def _predicted_error(self, plan: JointPlan, now: float) -> FloatArray:
-        """Plan minus physical position where the next command acts, rad (Smith predictor).
-
-        The newest back-dated package shows the error at its physical instant ``t_phys``;
-        corrections sent at ``s`` act over ``[s + tau, s_next + tau]``, so the part of
-        them after ``t_phys`` is not in the package yet and is subtracted.
-        """
-        t_phys, q, _ = self._samples[-1]
-        q_plan, _, _ = plan.sample(t_phys - plan.start_time_s)
-        error = q_plan - q
-        sends = self._corrections
-        tau_max = float(np.max(self._tau))
-        # A command acts until the next one is sent (plus tau): once that lies before the
-        # package's instant it is fully visible, and so for every later package.
-        while len(sends) > 1 and sends[1][0] + tau_max <= t_phys:
-            sends.popleft()
-        if not sends:
-            return np.asarray(error)
-        start = np.fromiter((c[0] for c in sends), float, len(sends))
-        end = np.append(start[1:], now)
-        u = np.stack([c[1] for c in sends])
-        # Duration of each command's action after t_phys, per joint (tau differs).
-        pending = np.clip(
-            end[:, None] + self._tau - np.maximum(start[:, None] + self._tau, t_phys),
-            0.0,
-            (end - start)[:, None],
-        )
-        return np.asarray(error - np.sum(u * pending, axis=0))
-
-    def _ramp_acceleration(self, v: FloatArray) -> float:
-        """speedj acceleration: the leading joint's change over one period (clamped)."""
-        amax = self.limits.acceleration(self.spec)
-        need = float(np.max(np.abs(v - self._v_prev))) / self._period
-        floor = 0.5 * float(np.min(amax))
-        return float(min(max(need, floor), float(np.max(amax))))
 
     def idle(self, until_s: float) -> None:
         """Handle packages (holding still) until host time ``until_s``."""
@@ -983,7 +540,6 @@ class TimedExecutor:
                 raise ConfigError("this plan ends moving (a cruise); give until_s")
             settle = float(np.max(self._tau)) + 3 * self._period if settle_s is None else settle_s
             until_s = p.end_time_s + settle
-        first_send = math.nan
         ends_at_rest = not np.any(p.qd_end_rad_s != 0)
         give_up = until_s + 1.0
         try:
@@ -993,26 +549,18 @@ class TimedExecutor:
                 state = self.step()
                 if on_step is not None:
                     on_step(state)
-                if not math.isfinite(first_send) and len(self.log) > start_row:
-                    sent = self.log._rows[-1][3]
-                    if math.isfinite(sent):
-                        first_send = sent
         finally:
             if self._plan is p:
                 self._plan = None
         if np.any(p.qd_end_rad_s != 0):
             # Ended while cruising: bring the arm to rest.
             self.stop()
-        log = self.log.arrays(start_row)
-        sends = log["send_s"][np.isfinite(log["send_s"])]
-        return ExecutionResult(
-            plan=p,
-            actuation_s=self._tau.copy(),
-            actuation_std_s=self._tau_std.copy(),
-            response_s=self._response_s,
-            first_send_s=float(sends[0]) if len(sends) else math.nan,
-            last_send_s=float(sends[-1]) if len(sends) else math.nan,
-            log=log,
+        return ExecutionResult.from_log(
+            p,
+            self.log.arrays(start_row),
+            actuation_s=self._tau,
+            actuation_std_s=self._tau_std,
+            response_s=self._state.response_s,
         )
 
     def stop(self) -> None:

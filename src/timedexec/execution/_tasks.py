@@ -27,8 +27,10 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec.drivers import RobotState, open_driver
 from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
-from timedexec.execution._executor import ExecutionResult, MeetPlan, TimedExecutor
+from timedexec.execution._executor import TimedExecutor
+from timedexec.execution._log import ExecutionResult
 from timedexec.execution._model import load_delay_model
+from timedexec.execution._timing import MeetPlan
 from timedexec.robots import RobotSpec, check_configuration, forward_kinematics, get_robot
 
 __all__ = [

@@ -1,0 +1,186 @@
+"""The bookkeeping of a run: the per-cycle log of the loop and the result of an execution.
+
+:class:`CycleLog` gets one row per state package the loop handles (arrival, controller time,
+sequence number, send time, command, reported position, whether a limit clipped the command
+or the command went out from the estimate); :meth:`CycleLog.timing` turns it into send-time
+statistics. :class:`ExecutionResult` is what :meth:`TimedExecutor.execute` returns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from timedexec.drivers import RobotState
+from timedexec.execution._plan import JointPlan
+
+__all__ = ["CycleLog", "ExecutionResult"]
+
+FloatArray = NDArray[np.float64]
+
+
+class CycleLog:
+    """Per-cycle record of the loop: one row per state package handled.
+
+    Columns (numpy arrays from :meth:`arrays`): ``arrival_s`` (host arrival), ``controller_s``
+    (controller time stamp of the cycle commanded), ``sequence``, ``send_s`` (host time the
+    command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
+    ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
+    command went out from the estimate, the row repeats the previous package).
+    """
+
+    def __init__(self) -> None:
+        self._rows: list[tuple[float, float, int, float, bool, bool]] = []
+        self._qd: list[FloatArray] = []
+        self._q: list[FloatArray] = []
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def add(
+        self,
+        state: RobotState,
+        send_s: float,
+        qd_cmd: FloatArray | None,
+        clipped: bool,
+        *,
+        controller_s: float | None = None,
+    ) -> None:
+        """Append a row (``controller_s``: the cycle commanded, default the package's)."""
+        ctrl = state.controller_time_s if controller_s is None else controller_s
+        coasted = controller_s is not None and controller_s != state.controller_time_s
+        self._rows.append((state.host_time_s, ctrl, state.sequence, send_s, clipped, coasted))
+        self._qd.append(np.full(6, np.nan) if qd_cmd is None else qd_cmd)
+        self._q.append(state.q)
+
+    def clear(self) -> None:
+        """Forget every row."""
+        self._rows.clear()
+        self._qd.clear()
+        self._q.clear()
+
+    def arrays(self, start: int = 0) -> dict[str, NDArray[Any]]:
+        """The log from row ``start`` on as arrays."""
+        rows = self._rows[start:]
+        if not rows:
+            z = np.zeros(0)
+            return {
+                "arrival_s": z,
+                "controller_s": z,
+                "sequence": np.zeros(0, np.int64),
+                "send_s": z,
+                "clipped": np.zeros(0, bool),
+                "coasted": np.zeros(0, bool),
+                "qd_cmd": np.zeros((0, 6)),
+                "q": np.zeros((0, 6)),
+            }
+        a = np.asarray([r[0] for r in rows])
+        return {
+            "arrival_s": a,
+            "controller_s": np.asarray([r[1] for r in rows]),
+            "sequence": np.asarray([r[2] for r in rows], dtype=np.int64),
+            "send_s": np.asarray([r[3] for r in rows]),
+            "clipped": np.asarray([r[4] for r in rows], dtype=bool),
+            "coasted": np.asarray([r[5] for r in rows], dtype=bool),
+            "qd_cmd": np.asarray(self._qd[start:]),
+            "q": np.asarray(self._q[start:]),
+        }
+
+    def timing(self, start: int = 0, *, window_s: float = 0.5) -> dict[str, Any]:
+        """Send-time statistics of the loop.
+
+        The ideal send time of the command answering package ``k`` is the earliest the
+        package can arrive: its controller time stamp mapped to the host clock by a
+        lower-envelope clock model (the minimum of arrival minus controller time over a
+        sliding ``window_s``). The send-time error is the actual send time minus that
+        (network, client polling and the executor's own work). ``missed`` counts controller
+        cycles without a handled package (sequence gaps).
+        """
+        from scipy.ndimage import minimum_filter1d
+
+        arr = self.arrays(start)
+        if len(arr["arrival_s"]) < 2:
+            return {"cycles": len(arr["arrival_s"]), "missed": 0}
+        ctrl = arr["controller_s"]
+        period = float(np.median(np.diff(ctrl)))
+        off = np.where(arr["coasted"], np.inf, arr["arrival_s"] - ctrl)
+        size = max(1, round(window_s / period))
+        env = minimum_filter1d(off, size=size, mode="nearest")
+        sent = np.isfinite(arr["send_s"])
+        err = (arr["send_s"] - (ctrl + env))[sent]
+        proc = (arr["send_s"] - arr["arrival_s"])[sent & ~arr["coasted"]]
+        gaps = np.diff(arr["sequence"][~arr["coasted"]])
+        q = [50, 90, 99, 99.9]
+        return {
+            "cycles": len(ctrl),
+            "expected_cycles": int(arr["sequence"][-1] - arr["sequence"][0] + 1),
+            "missed": int(np.sum(np.maximum(gaps - 1, 0))),
+            "commands": int(sent.sum()),
+            "coasted": int(arr["coasted"].sum()),
+            "period_s": period,
+            "send_error_s": {f"p{p:g}": float(np.percentile(err, p)) for p in q}
+            | {"mean": float(err.mean()), "max": float(err.max())},
+            "processing_s": {f"p{p:g}": float(np.percentile(proc, p)) for p in q}
+            | {"max": float(proc.max())},
+        }
+
+
+@dataclass
+class ExecutionResult:
+    """What :meth:`TimedExecutor.execute` did.
+
+    Attributes
+    ----------
+    plan : JointPlan
+        The executed plan (scheduled).
+    actuation_s, actuation_std_s : ndarray (6,)
+        The per-joint shift applied and its predicted single-trial std, s.
+    response_s : float
+        The response delay states were back-dated by, s.
+    first_send_s, last_send_s : float
+        Host times of the first and last command, s.
+    log : dict
+        :meth:`CycleLog.arrays` of the execution.
+    """
+
+    plan: JointPlan
+    actuation_s: FloatArray
+    actuation_std_s: FloatArray
+    response_s: float
+    first_send_s: float
+    last_send_s: float
+    log: dict[str, NDArray[Any]] = field(repr=False)
+
+    @classmethod
+    def from_log(
+        cls,
+        plan: JointPlan,
+        log: dict[str, NDArray[Any]],
+        *,
+        actuation_s: FloatArray,
+        actuation_std_s: FloatArray,
+        response_s: float,
+    ) -> ExecutionResult:
+        """The result of executing ``plan`` whose rows of the cycle log are ``log``
+        (:meth:`CycleLog.arrays`), with the shifts and response delay the loop used (s;
+        the arrays are copied). The first and last send times are read from the log."""
+        sends = log["send_s"][np.isfinite(log["send_s"])]
+        return cls(
+            plan=plan,
+            actuation_s=actuation_s.copy(),
+            actuation_std_s=actuation_std_s.copy(),
+            response_s=response_s,
+            first_send_s=float(sends[0]) if len(sends) else math.nan,
+            last_send_s=float(sends[-1]) if len(sends) else math.nan,
+            log=log,
+        )
+
+    @property
+    def missed_cycles(self) -> int:
+        """Controller cycles without a handled package during the execution."""
+        seq = self.log["sequence"]
+        return int(np.sum(np.maximum(np.diff(seq) - 1, 0))) if len(seq) > 1 else 0
