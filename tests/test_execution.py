@@ -262,7 +262,8 @@ def test_unreachable_deadline_and_out_of_limit_target_fail_before_motion(
     oracle_ur10: SimulatedOracle,
 ) -> None:
     """A deadline too close raises UnreachableError saying by how many ms it misses; a target
-    outside the joint limits a ConfigError; neither sends a command."""
+    outside the joint limits a ConfigError, as is an end time that is not a number; none
+    sends a command."""
     q0 = start_pose("ur10")
     drv = SimDriver("ur10", q0_rad=q0, effects=warm("ur10"), seed=5)
     with TimedExecutor(drv, oracle_ur10) as ex:
@@ -278,6 +279,9 @@ def test_unreachable_deadline_and_out_of_limit_target_fail_before_motion(
             ex.plan_to_meet(bad, ex.now() + 5.0)
         with pytest.raises(ConfigError, match="start time too soon"):
             ex.execute(ex.plan(target), start_time_s=ex.now() + 0.005)
+        # until_s=nan used to return at once having sent nothing, as if it had run.
+        with pytest.raises(ConfigError, match="until_s=nan is not a time"):
+            ex.execute(ex.plan(target), start_time_s=ex.now() + 0.5, until_s=math.nan)
         assert drv.controller.truth == []
 
 

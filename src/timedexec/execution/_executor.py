@@ -533,6 +533,11 @@ class TimedExecutor:
         on_step : callable, optional
             Called with each package after its command left (logging, ground truth).
         """
+        if until_s is not None and not math.isfinite(until_s):
+            raise ConfigError(
+                f"until_s={until_s!r} is not a time; give the host time (s, time.monotonic) "
+                "at which execution ends, or None to run until the plan has settled"
+            )
         p = self.schedule(plan, start_time_s)
         start_row = len(self.log)
         if until_s is None:
