@@ -184,7 +184,7 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
     "report": (["report", "d.csv", "r.h5", "--out", "r", "--trial", "3"], "build_report",
                {"trial": 3}, "report written to r/report.md"),
     "demo": (["demo", "--robot", "kr5", "--trials", "160", "--out", "demo"], "run_demo",
-             {"trials": 160, "seed": 0, "eval_configs": 300},
+             {"trials": 160, "seed": 0, "eval_configs": None},
              "conveyor at 0.5 m/s, physical torch-to-seam lag"),
 }  # fmt: skip
 

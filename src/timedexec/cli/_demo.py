@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         trials=trials,
         seed=args.seed,
-        eval_configs=args.eval_configs if args.eval_configs is not None else 300,
+        eval_configs=args.eval_configs,
         eval_draws=10 if quick else 20,
         progress=True,
     )

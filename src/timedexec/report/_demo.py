@@ -48,7 +48,7 @@ def run_demo(
     seed: int = 0,
     jobs: int | None = None,
     folds: int = 10,
-    eval_configs: int = 300,
+    eval_configs: int | None = None,
     eval_draws: int = 20,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -69,8 +69,11 @@ def run_demo(
         Worker processes (default: up to 2).
     folds : int
         Cross-validation folds of the model training (>= 2).
-    eval_configs, eval_draws : int
-        Held-out configurations (8 trials each) and the draws behind the oracle.
+    eval_configs : int, optional
+        Held-out configurations (8 trials each); default: as many as a held-out sweep of
+        ``trials`` trials holds (its size is the training sweep's).
+    eval_draws : int
+        Draws behind the oracle.
 
     Returns
     -------
@@ -97,7 +100,7 @@ def run_demo(
         )
     if folds < 2:
         raise ConfigError(f"folds={folds}: cross-validation needs at least 2 folds")
-    if eval_configs < 1 or eval_draws < 2:
+    if (eval_configs is not None and eval_configs < 1) or eval_draws < 2:
         raise ConfigError(
             f"eval_configs={eval_configs} must be >= 1 and eval_draws={eval_draws} >= 2"
         )
@@ -157,6 +160,8 @@ def run_demo(
     # The held-out sweep has the training sweep's size: it holds at most `capacity`
     # configurations, and the line says how many are used.
     capacity = held_out_capacity(spec.name, trials)
+    if eval_configs is None:
+        eval_configs = capacity
     used = min(eval_configs, capacity)
     shortfall = (
         f" (of {eval_configs} asked: a held-out sweep of {trials:,} trials holds {capacity})"
