@@ -61,9 +61,10 @@ def test_parallel_jobs_give_the_same_table(recordings):
 
 
 def test_unmeasurable_trials_are_flagged_not_guessed(recordings, tmp_path):
-    """Clipping, a gap in the gyro stream, no motion and a long silence of the state stream
-    during the motion each give NaN delays and a named flag; the other trials are
-    untouched, and a single lost package is not a reason to flag."""
+    """Clipping, a gap in the gyro stream over the motion, no motion and a long silence of
+    the state stream during the motion each give NaN delays and a named flag; the other
+    trials are untouched, and a single lost package is not a reason to flag (a few lost
+    gyro samples are not either: tests/test_extraction_robustness.py)."""
     import shutil
 
     path = tmp_path / "damaged.h5"
@@ -79,7 +80,7 @@ def test_unmeasurable_trials_are_flagged_not_guessed(recordings, tmp_path):
         raw[2] = raw[2, :10].mean(axis=0).astype(np.int16)  # still
         trials["gyro_raw"][1:4] = raw
         counter = trials["gyro_counter"][2]
-        counter[2000:] += 3  # three samples lost
+        counter[1000:] += 800  # 0.1 s lost while the joint moves
         trials["gyro_counter"][2] = counter
         # A 40 ms silence in the stream while the joint starts (one lost package is harmless).
         host = trials["state_host_time_s"][4:6]
@@ -89,9 +90,11 @@ def test_unmeasurable_trials_are_flagged_not_guessed(recordings, tmp_path):
         trials["state_host_time_s"][4:6] = host
     clean = extract_recording(recordings["ur10"], progress=False)
     damaged = extract_recording(path, progress=False)
-    # The sweep-wide facts are the same, so every untouched trial must be bit for bit equal.
+    # The sweep-wide facts are the same: the filter exactly; the clock fit may lose the
+    # damaged trial's arrivals (its counter no longer matches its arrival times, so it is
+    # left out as an outlier), which moves the rate by far less than 1 ppm.
     assert damaged.cutoff_hz == clean.cutoff_hz
-    assert damaged.clock_rate_hz == clean.clock_rate_hz
+    assert damaged.clock_rate_hz == pytest.approx(clean.clock_rate_hz, rel=1e-6)
     with RecordingReader(path) as reader:
         trial = reader.read("trial", rows=rows)
     pos = np.searchsorted(clean.table["trial"], trial)  # the tables are sorted by trial
@@ -101,22 +104,26 @@ def test_unmeasurable_trials_are_flagged_not_guessed(recordings, tmp_path):
     res = {k: damaged.table[k][pos] for k in ("flag", "actuation_delay", "response_delay")}
     assert list(res["flag"]) == ["clipped", "gyro_gap", "no_motion", "package_gap", ""]
     assert np.all(np.isnan(res["actuation_delay"][:4]))
-    assert res["actuation_delay"][4] == clean.table["actuation_delay"][pos[4]]
+    # 1 µs: the clock fit without the damaged trial moves sample times by a few 0.1 µs
+    assert res["actuation_delay"][4] == pytest.approx(clean.table["actuation_delay"][pos[4]], abs=1e-6)
     # The lost package costs the response fit one sample: within 0.1 ms of the clean fit.
     assert abs(res["response_delay"][4] - clean.table["response_delay"][pos[4]]) < 1e-4
     untouched = np.ones(len(clean.table), dtype=bool)
     untouched[pos] = False
-    for name in ("actuation_delay", "flag"):
-        np.testing.assert_array_equal(
-            damaged.table[name][untouched], clean.table[name][untouched], err_msg=name
-        )
+    np.testing.assert_array_equal(damaged.table["flag"][untouched], clean.table["flag"][untouched])
+    np.testing.assert_allclose(  # 1 µs, as above
+        damaged.table["actuation_delay"][untouched],
+        clean.table["actuation_delay"][untouched],
+        rtol=0,
+        atol=1e-6,
+    )
     # The response fit iterates a chunk until every trial's step is below 1 ns, so the
     # damaged trials' extra iterations may move a converged one by less than that.
     np.testing.assert_allclose(
         damaged.table["response_delay"][untouched],
         clean.table["response_delay"][untouched],
         rtol=0,
-        atol=1e-9,
+        atol=1e-6,
     )
 
 

@@ -1,22 +1,40 @@
-"""timedexec.extraction: stationary analysis, filtering and delay extraction -> delay table."""
+"""timedexec.extraction: recording -> delay table.
+
+Stationary analysis, lossy-stream repair, drift-following gyro clock, filtering,
+noise-adaptive onset timing with standard errors and Cramér-Rao bounds, response timing;
+:func:`check_recording` lists every way a file departs from ``docs/recording-format.md``.
+"""
 
 from __future__ import annotations
 
-from timedexec.extraction._extract import (
-    METHODS,
+from timedexec.extraction._check import (
     REQUIRED_FIELDS,
+    REQUIRED_HEADER,
+    REQUIRED_STATICS,
+    check_recording,
+)
+from timedexec.extraction._extract import (
+    MAX_SE_S,
+    METHODS,
     ExtractionResult,
     extract_recording,
     trial_traces,
 )
+from timedexec.extraction._onset import LEPSKI_KAPPA, ONSET_WINDOWS_S
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
+    "LEPSKI_KAPPA",
+    "MAX_SE_S",
     "METHODS",
+    "ONSET_WINDOWS_S",
     "REQUIRED_FIELDS",
+    "REQUIRED_HEADER",
+    "REQUIRED_STATICS",
     "ExtractionResult",
     "StillAnalysis",
     "analyse_still",
+    "check_recording",
     "design_lowpass",
     "extract_recording",
     "trial_traces",

@@ -8,27 +8,37 @@ Definitions (shared with the simulator's ground truth, :mod:`timedexec._signal`)
 * **response delay** = the time shift that best aligns the reported joint position with the
   physical one (the age of the reported state on arrival).
 
-Steps, vectorised across the trials of a chunk:
+Steps, vectorised across the trials of a chunk (``docs/recording-format.md`` states what
+each step assumes of the recording):
 
-1. **Gyro time base.** Counters are unwrapped across the sweep (the host time between
-   trials fixes the number of wraps); the sensor clock is fitted per time window as the
-   lower envelope of the block arrival times (``timedexec.sensors``); the two known constant
-   latencies — the minimum transport latency and the sensor's filter group delay, both in
-   the recording header — are subtracted.
-2. **Rates.** Counts to rad/s, zero-rate from the trial's pre-command samples, projection on
-   the principal axis of the motion, gain calibrated so that the integrated gyro angle of
-   the out pulse equals the reported joint displacement (this absorbs the sensor's ±3 %
-   scale error and the projection).
-3. **Actuation** (method ``fit``): a coarse crossing from the low-pass filtered speed (FIR
-   designed from the still recording's PSD, zero phase), refined by a local cubic
-   least-squares fit of the unfiltered samples around it. Method ``extrema`` (published):
-   the time between the commanded and the measured speed maxima.
-4. **Response** (method ``fit``): Gauss-Newton least-squares shift of the integrated gyro
-   angle onto the reported positions (:func:`timedexec._signal.fit_shift`). ``extrema``:
-   the time between the measured and the reported speed maxima.
-5. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
-   delays: ``no_motion``, ``clipped``, ``gyro_gap``, ``package_gap``, ``no_onset``,
-   ``gain`` (implausible gyro gain), ``response_fit``.
+1. **Contract.** Required fields, statics and header keys, units converted to SI
+   (:mod:`._check`); the sensor's group delay and transport latency must be stated.
+2. **Lossy stream.** Each trial's counter gives every frame's sample position
+   (:func:`timedexec.sensors.relative_counter_rows`): duplicated and backward frames are
+   dropped, lost samples leave gaps on a regular grid (filled by interpolation for the
+   filters, weighted out of the fits, and counted).
+3. **Gyro time base.** Counters are unwrapped across the sweep (the host time between
+   trials fixes the number of wraps); the sensor clock is fitted per session as blended
+   lower envelopes of the block arrivals that follow the oscillator's drift, the window
+   length chosen from the data (:func:`timedexec.sensors.fit_clock_drifting`); the
+   transport latency and the filter group delay are subtracted.
+4. **Rates.** Zero-rate from the pre-command samples of the trial and its neighbours in
+   time (the bias drifts slowly; pooling ~31 trials makes its error negligible), projection
+   on the principal axis of the motion, gain calibrated so that the integrated gyro angle of
+   the out pulse equals the reported joint displacement; per-trial noise σ from the data.
+5. **Actuation** (method ``fit``): a coarse crossing from the low-pass filtered speed (the
+   last sample below the level before the speed passes half the commanded speed), refined
+   by a cubic least-squares fit in a window chosen per trial by Lepski's method, with its
+   Cramér-Rao bound and a standard error (:mod:`._onset`). ``extrema`` (published): the
+   time between the commanded and the measured speed maxima.
+6. **Response** (method ``fit``): the shift of the integrated gyro angle onto the reported
+   positions, fitted on increments between packages (the generalised least squares of a
+   random-walk angle error), with a standard error. ``extrema``: the time between the
+   measured and the reported speed maxima.
+7. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
+   delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
+   needs), ``package_gap``, ``no_motion``, ``no_onset``, ``gain`` (implausible gyro gain),
+   ``response_fit``, ``uncertain`` (standard error above ``max_se_s``).
 """
 
 from __future__ import annotations
@@ -43,54 +53,69 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from timedexec._progress import Progress
-from timedexec._signal import ONSET_FRACTION, fit_shift, interp_rows
+from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
-from timedexec.errors import ConfigError, RecordingError
+from timedexec.errors import ConfigError
+from timedexec.extraction._check import REQUIRED_FIELDS, Contract, read_contract
+from timedexec.extraction._onset import onset_adaptive, response_increments
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 from timedexec.recording import RecordingReader
-from timedexec.sensors import fit_clock_lower_envelope, unwrap_counter
+from timedexec.sensors import (
+    DriftingClockFit,
+    fit_clock_drifting,
+    fit_clock_lower_envelope,
+    relative_counter_rows,
+    unwrap_counter,
+)
 
 __all__ = ["METHODS", "ExtractionResult", "extract_recording"]
 
 METHODS = ("fit", "extrema")
 #: Segments per trial whose lowest block arrival enters the clock fits: at least this many,
-#: more for short sweeps (about _ENVELOPE_POINTS points in all; the hull is O(points)).
+#: more for short sweeps (about _ENVELOPE_POINTS points in all).
 _ENVELOPE_SEGMENTS = 8
 _ENVELOPE_POINTS = 200_000
+#: Trials pooled (centred, same session) for the zero-rate: 31 trials span ~40 s, over which
+#: an MPU-class bias drifts by < 0.01 °/s, while the pooled mean's noise falls 5.6x.
+_BIAS_POOL = 31
+#: Samples at the start of each window that lie before the command (pre_s is >= 0.05 s; the
+#: first 40 ms are used so that a late clock or a slow USB block cannot reach the command).
+_PRE_S = 0.04
+#: A trial is flagged "uncertain" when a delay's standard error exceeds this, s.
+MAX_SE_S = 0.002
+#: Lost samples that make a trial unmeasurable: over 30 % of the onset window, or over 20 %
+#: of the out pulse (the gain and the response integrate it).
+_MAX_MISSING_ONSET = 0.3
+_MAX_MISSING_PULSE = 0.2
 FloatArray = NDArray[np.float64]
-
-REQUIRED_FIELDS = (
-    "trial",
-    "t0_s",
-    "cmd_send_time_s",
-    "cmd_qd_rad_s",
-    "state_host_time_s",
-    "state_q_rad",
-    "state_qd_rad_s",
-    "gyro_raw",
-    "gyro_counter",
-    "gyro_block_host_time_s",
-)
 
 
 @dataclass(frozen=True)
 class _Context:
     """Sweep-wide facts every chunk needs."""
 
-    robot: str
-    period_s: float
-    profile: dict[str, float]
-    lsb_per_dps: float
-    fs_hz: float
-    block: int
-    latency_s: float  # transport latency + group delay, subtracted from fitted sample times
+    contract: Contract
     taps: FloatArray
-    windows: tuple[FloatArray, FloatArray, FloatArray]  # (t_start, n_ref, host time) per window
-    window_session: NDArray[np.int64]  # session of each window
-    clock_period_s: FloatArray  # per window
-    clock_offset: FloatArray  # per window: host time at n_ref
+    clocks: dict[int, DriftingClockFit]  # per session
     n_first: FloatArray  # unwrapped index of each recorded row's first sample
-    vendor: str
+    bias: FloatArray  # (n_rows, 3) pooled zero-rate per row, rad/s (sensor axes)
+    bias_n: FloatArray  # (n_rows,) samples behind each pooled zero-rate
+
+    @property
+    def robot(self) -> str:
+        return self.contract.robot
+
+    @property
+    def period_s(self) -> float:
+        return self.contract.period_s
+
+    @property
+    def profile(self) -> dict[str, float]:
+        return self.contract.profile
+
+    @property
+    def fs_hz(self) -> float:
+        return self.contract.fs_hz
 
 
 @dataclass(frozen=True)
@@ -103,6 +128,7 @@ class ExtractionResult:
     clock_rate_error_ppm: float
     still: StillAnalysis
     n_flagged: int
+    clock: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe summary."""
@@ -110,7 +136,7 @@ class ExtractionResult:
         counts: dict[str, int] = {}
         for f in flags:
             counts[f] = counts.get(f, 0) + 1
-        return {
+        out = {
             "trials": len(self.table),
             "flagged": self.n_flagged,
             "flags": counts,
@@ -121,10 +147,14 @@ class ExtractionResult:
                 np.rad2deg(self.still.noise_density_rad_s_rthz).round(5).tolist()
             ),
         }
-
-
-def _rates(raw: NDArray[Any], lsb_per_dps: float) -> FloatArray:
-    return np.deg2rad(np.asarray(raw, dtype=np.float64) / lsb_per_dps)
+        if self.clock is not None:
+            out["gyro_clock"] = self.clock
+        for name in ("actuation_delay_se", "response_delay_se"):
+            if name in self.table:
+                v = self.table[name]
+                v = v[np.isfinite(v)]
+                out[f"{name}_median_ms"] = float(np.median(v) * 1e3) if v.size else None
+        return out
 
 
 def _unwrap_rows(
@@ -144,47 +174,101 @@ def _unwrap_rows(
     return start_index + np.cumsum(dc + 65536 * wraps).astype(np.int64)
 
 
+def _pool_bias(
+    pre_sum: FloatArray, pre_n: FloatArray, t0: FloatArray, session: NDArray[np.int64]
+) -> tuple[FloatArray, FloatArray]:
+    """Zero-rate per row from the pre-command samples of the row and its neighbours in time
+    (same session); rows far off their neighbours (moving, knocked) keep their own."""
+    bias = pre_sum / np.maximum(pre_n, 1)[:, None]
+    out = bias.copy()
+    out_n = pre_n.astype(np.float64).copy()
+    half = _BIAS_POOL // 2
+    for sess in np.unique(session):
+        rows = np.flatnonzero(session == sess)
+        rows = rows[np.argsort(t0[rows])]
+        if len(rows) < 3:
+            continue
+        b, m = bias[rows], pre_n[rows].astype(np.float64)
+        med = np.median(b, axis=0)
+        dev = np.abs(b - med)
+        mad = np.median(dev, axis=0) + 1e-12
+        good = np.all(dev < 8 * 1.4826 * mad + 1e-9, axis=1) & (m > 0)
+        s = np.where(good[:, None], pre_sum[rows], 0.0)
+        c = np.where(good, m, 0.0)
+        cs = np.vstack([np.zeros((1, 3)), np.cumsum(s, axis=0)])
+        cc = np.r_[0.0, np.cumsum(c)]
+        i = np.arange(len(rows))
+        lo = np.clip(i - half, 0, len(rows))
+        hi = np.clip(i + half + 1, 0, len(rows))
+        n_pool = cc[hi] - cc[lo]
+        pooled = (cs[hi] - cs[lo]) / np.maximum(n_pool, 1)[:, None]
+        use = good & (n_pool > 0)
+        out[rows[use]] = pooled[use]
+        out_n[rows[use]] = n_pool[use]
+    return out, out_n
+
+
 def _context(
-    reader: RecordingReader, *, clock_window_s: float, numtaps: int
-) -> tuple[_Context, StillAnalysis, float, float]:
-    header = reader.header
-    for key in ("profile", "gyro", "controller_period_s", "robot"):
-        if key not in header:
-            raise RecordingError(
-                f"{reader.path}: the recording header lacks {key!r}; it was not written by "
-                "timedexec simulate/calibrate (or by an older version)"
-            )
-    missing = [f for f in REQUIRED_FIELDS if f not in reader.fields]
-    if missing:
-        raise RecordingError(f"{reader.path}: the recording lacks field(s) {', '.join(missing)}")
-    if reader.n_trials == 0:
-        raise ConfigError(f"{reader.path}: the recording holds no trials (an empty sweep)")
-    gyro = header["gyro"]
-    lsb = float(gyro["lsb_per_dps"])
-    fs = float(gyro["nominal_rate_hz"])
-    block = int(gyro["block_samples"])
-    latency = float(gyro.get("transport_latency_s", 0.0)) + float(gyro.get("group_delay_s", 0.0))
+    reader: RecordingReader, *, clock_window_s: float | None, numtaps: int
+) -> tuple[_Context, StillAnalysis, float, float, dict[str, Any]]:
+    con = read_contract(reader)
+    fs, block = con.fs_hz, con.block
+    rate_scale = con.scale["gyro_raw"]
 
     # Still recording: zero-rate and noise PSD; its counter anchors the unwrap.
     still_raw = reader.static("still_gyro_raw")
-    still = analyse_still(_rates(still_raw, lsb), fs)
+    still = analyse_still(np.asarray(still_raw, dtype=np.float64) * rate_scale, fs)
     still_counter = reader.static("still_gyro_counter")
-    still_blocks = reader.static("still_gyro_block_host_time_s")
-    n_still = unwrap_counter(still_counter)
+    still_blocks = reader.static("still_gyro_block_host_time_s").astype(np.float64)
+    still_blocks = still_blocks * con.scale["gyro_block_host_time_s"]
+    s_pos, s_keep = relative_counter_rows(np.asarray(still_counter)[None, :])
+    n_still = int(still_counter[0]) + s_pos[0]
+    s_rows = np.arange(block - 1, len(n_still), block)[: len(still_blocks)]
+    s_ok = s_keep[0, s_rows] & np.isfinite(still_blocks[: len(s_rows)])
     still_fit = fit_clock_lower_envelope(
-        n_still[block - 1 :: block][: len(still_blocks)], still_blocks, nominal_rate_hz=fs
+        n_still[s_rows][s_ok], still_blocks[: len(s_rows)][s_ok], nominal_rate_hz=fs
     )
 
-    # Unwrap every row's first sample, per session (a resumed run is a new gyro stream and
-    # host clock), in time order; the still recording anchors session 0.
-    t0 = reader.read("t0_s")
-    session = reader.read("session") if "session" in reader.fields else np.zeros(len(t0), np.int64)
-    first_counter = np.concatenate(
-        [c["gyro_counter"][:, 0] for c in reader.iter_chunks(4096, names=["gyro_counter"])]
-    ).astype(np.int64)
+    # One pass over the per-trial stream: counters (positions, kept frames) and the
+    # pre-command samples (zero-rate).
+    t0 = reader.read("t0_s").astype(np.float64) * con.scale["t0_s"]
+    n = len(t0)
+    session = reader.read("session") if "session" in reader.fields else np.zeros(n, np.int64)
+    session = np.asarray(session, dtype=np.int64)
     blocks = reader.read("gyro_block_host_time_s").astype(np.float64)
-    first_time = t0 + blocks[:, 0] - (block - 1) / still_fit.rate_hz  # ~ arrival of sample 0
-    n_first = np.empty(len(t0), dtype=np.int64)
+    blocks *= con.scale["gyro_block_host_time_s"]
+    n_blocks = blocks.shape[1]
+    first_counter = np.empty(n, np.int64)
+    pos_block = np.empty((n, n_blocks), np.int64)
+    keep_block = np.empty((n, n_blocks), bool)
+    pre_sum = np.empty((n, 3))
+    pre_n = np.empty(n)
+    m_pre = max(int(_PRE_S * fs), 1)
+    rows_b = np.arange(n_blocks) * block + block - 1
+    start = 0
+    for chunk in reader.iter_chunks(2048, names=["gyro_counter", "gyro_raw"]):
+        c = chunk["gyro_counter"]
+        k = len(c)
+        pos, keep = relative_counter_rows(c)
+        sl = slice(start, start + k)
+        first_counter[sl] = np.asarray(c[:, 0], dtype=np.int64)
+        pos_block[sl] = pos[:, rows_b]
+        keep_block[sl] = keep[:, rows_b]
+        pre = keep[:, :m_pre] & (pos[:, :m_pre] < m_pre)
+        raw = np.asarray(chunk["gyro_raw"][:, :m_pre], dtype=np.float64)
+        pre_sum[sl] = np.einsum("nm,nma->na", pre.astype(np.float64), raw) * rate_scale
+        pre_n[sl] = pre.sum(axis=1)
+        start += k
+    keep_block &= np.isfinite(blocks)
+    bias, bias_n = _pool_bias(pre_sum, pre_n, t0, session)
+
+    # Unwrap every row's first sample, per session (a resumed run is a new gyro stream and
+    # host clock), in time order; the still recording anchors session 0. The arrival of
+    # a row's first kept block dates its first sample.
+    b_first = np.argmax(keep_block, axis=1)
+    r = np.arange(n)
+    first_time = t0 + blocks[r, b_first] - pos_block[r, b_first] / still_fit.rate_hz
+    n_first = np.empty(n, dtype=np.int64)
     for sess in np.unique(session):
         rows = np.flatnonzero(session == sess)
         rows = rows[np.argsort(t0[rows])]
@@ -197,120 +281,130 @@ def _context(
             first_counter[rows], first_time[rows], anchor_n, anchor_t, still_fit.rate_hz
         )
 
-    # Clock fits per session and time window (lower envelope of block arrivals). Only the
-    # lowest arrivals can lie on a lower envelope: relative to the still recording's line,
-    # keep each trial's minimum in each of a few segments (the line's slope error over one
-    # trial is far below the arrival jitter): ~700 points per trial become 8 or more.
-    n_blocks = blocks.shape[1]
-    block_last_all = n_first[:, None] + (np.arange(n_blocks) + 1) * block - 1
-    block_time_all = t0[:, None] + blocks
-    resid = block_time_all - (
-        still_fit.t_ref_s + (block_last_all - still_fit.n_ref) * still_fit.period_s
-    )
-    segments = int(np.clip(_ENVELOPE_POINTS // max(len(t0), 1), _ENVELOPE_SEGMENTS, n_blocks))
+    # Clock points: each trial's lowest block arrival in each of a few segments, relative to
+    # the still recording's line (only the lowest can lie on a lower envelope).
+    block_n = n_first[:, None] + pos_block
+    block_t = t0[:, None] + blocks
+    resid = block_t - (still_fit.t_ref_s + (block_n - still_fit.n_ref) * still_fit.period_s)
+    resid = np.where(keep_block, resid, np.inf)
+    segments = int(np.clip(_ENVELOPE_POINTS // max(n, 1), _ENVELOPE_SEGMENTS, n_blocks))
     edges_b = np.linspace(0, n_blocks, segments + 1).astype(int)
-    keep = np.stack(
-        [
-            lo + np.argmin(resid[:, lo:hi], axis=1)
-            for lo, hi in itertools.pairwise(edges_b)
-        ],
+    pick = np.stack(
+        [lo + np.argmin(resid[:, lo:hi], axis=1) for lo, hi in itertools.pairwise(edges_b)],
         axis=1,
     )
-    block_last = np.take_along_axis(block_last_all, keep, axis=1)
-    block_time = np.take_along_axis(block_time_all, keep, axis=1)
-    edges_list, sess_list = [], []
+    ok = np.isfinite(np.take_along_axis(resid, pick, axis=1))
+    pn = np.take_along_axis(block_n, pick, axis=1)
+    pt = np.take_along_axis(block_t, pick, axis=1)
+    pg = np.broadcast_to(r[:, None], pick.shape)
+    clocks: dict[int, DriftingClockFit] = {}
     for sess in np.unique(session):
-        ts = t0[session == sess]
-        e = np.arange(ts.min(), ts.max() + clock_window_s, clock_window_s)
-        edges_list.append(e)
-        sess_list.append(np.full(len(e), sess))
-    edges = np.concatenate(edges_list)
-    edge_session = np.concatenate(sess_list)
-    win = _window_of(edges, edge_session, t0, session)
-    periods = np.empty(len(edges))
-    offsets = np.empty(len(edges))
-    refs = np.empty(len(edges))
-    for w in range(len(edges)):
-        rows = np.flatnonzero(win == w)
-        if len(rows) == 0:
-            periods[w], offsets[w], refs[w] = (
-                still_fit.period_s,
-                float(still_fit.t_ref_s),
-                still_fit.n_ref,
-            )
-            continue
-        n_pts = block_last[rows].ravel()
-        t_pts = block_time[rows].ravel()
-        if w == 0:
-            n_pts = np.r_[n_still[block - 1 :: block][: len(still_blocks)], n_pts]
-            t_pts = np.r_[still_blocks, t_pts]
-        fit = fit_clock_lower_envelope(n_pts, t_pts, nominal_rate_hz=fs)
-        periods[w], offsets[w], refs[w] = fit.period_s, fit.t_ref_s, fit.n_ref
-    main = session == session.min()
-    overall = fit_clock_lower_envelope(
-        block_last[main].ravel(), block_time[main].ravel(), nominal_rate_hz=fs
-    )
+        sel = (session == sess)[:, None] & ok
+        cn, ct, cg = pn[sel], pt[sel], pg[sel]
+        if sess == session.min():
+            cn = np.r_[n_still[s_rows][s_ok], cn]
+            ct = np.r_[still_blocks[: len(s_rows)][s_ok], ct]
+            cg = np.r_[np.full(int(s_ok.sum()), -1), cg]
+        clocks[int(sess)] = fit_clock_drifting(
+            cn, ct, cg, nominal_rate_hz=fs, window_s=clock_window_s
+        )
+    main = clocks[int(session.min())]
+    rate = float(np.mean(1.0 / main.period_s))
+    clock_info = {str(k): v.to_dict() for k, v in clocks.items()}
 
     # Filter from the PSDs (a few trials' motion against the still noise).
-    sample_rows = np.linspace(0, reader.n_trials - 1, min(32, reader.n_trials)).astype(int)
-    raw = reader.read("gyro_raw", rows=np.unique(sample_rows))
-    motion = np.linalg.norm(_rates(raw, lsb) - still.bias_rad_s, axis=2)
+    sample_rows = np.unique(np.linspace(0, n - 1, min(32, n)).astype(int))
+    raw = reader.read("gyro_raw", rows=sample_rows).astype(np.float64) * rate_scale
+    motion = np.linalg.norm(raw - still.bias_rad_s, axis=2)
     taps, cutoff = design_lowpass(still, motion, fs, numtaps=numtaps)
     ctx = _Context(
-        robot=str(header["robot"]["name"]),
-        period_s=float(header["controller_period_s"]),
-        profile={
-            k: float(header["profile"][k])
-            for k in ("speed_rad_s", "acceleration_rad_s2", "hold_s", "pause_s")
-        },
-        lsb_per_dps=lsb,
-        fs_hz=fs,
-        block=block,
-        latency_s=latency,
-        taps=taps,
-        windows=(edges, refs, offsets),
-        window_session=edge_session,
-        clock_period_s=periods,
-        clock_offset=offsets,
-        n_first=n_first.astype(np.float64),
-        vendor=str(header["robot"].get("vendor", "")),
-    )
-    return ctx, still, cutoff, overall.rate_hz
+        contract=con, taps=taps, clocks=clocks, n_first=n_first.astype(np.float64),
+        bias=bias, bias_n=bias_n,
+    )  # fmt: skip
+    return ctx, still, cutoff, rate, clock_info
 
 
-def _window_of(
-    edges: FloatArray, edge_session: NDArray[np.int64], t0: FloatArray, session: NDArray[np.int64]
+def _block_alignment(
+    n: NDArray[np.int64], t: FloatArray, group: NDArray[np.int64], block: int, fs: float
 ) -> NDArray[np.int64]:
-    """Index of the clock-fit window (same session, last start <= t0) of each row."""
-    out = np.empty(len(t0), dtype=np.int64)
-    for sess in np.unique(session):
-        idx = np.flatnonzero(edge_session == sess)
-        rows = session == sess
-        k = np.clip(np.searchsorted(edges[idx], t0[rows], side="right") - 1, 0, len(idx) - 1)
-        out[rows] = idx[k]
-    return out
+    """Samples from each recorded block's last row to the last sample of the USB transfer
+    that delivered it, per group (trial).
+
+    A recorder groups a window's rows in blocks from the window's first row, but the
+    device's transfers need not start there: the arrival stamped on a recorded block is
+    then that of a later sample, o·dt later (0 <= o < block, constant in a trial). The
+    lower envelope would touch only aligned trials; here o is recovered. Relative to a
+    clock fitted in short fixed windows, each trial's lowest arrival residual is
+    e(t) + o·dt + (small jitter excess), with e smooth; its fractional part in samples does
+    not depend on o, so unwrapping it across trials (in time order) gives e, and the
+    remainder rounds to o. Groups are trials; the still recording (group -1) is aligned
+    as a whole.
+    """
+    if block <= 1 or n.size < 4:
+        return np.zeros_like(n)
+    first = fit_clock_drifting(n, t, group, nominal_rate_hz=fs, window_s=20.0)
+    resid = (t - first.to_host_time(n)) * fs  # samples
+    uniq, g_idx = np.unique(group, return_inverse=True)
+    m = np.full(uniq.size, np.inf)
+    np.minimum.at(m, g_idx, resid)
+    t_first = np.full(uniq.size, np.inf)
+    np.minimum.at(t_first, g_idx, t)
+    order = np.argsort(t_first)
+    phase = np.unwrap(2 * np.pi * (m[order] - np.round(m[order])), period=2 * np.pi) / (2 * np.pi)
+    o_sorted = np.round(m[order] - phase)
+    o_sorted -= np.min(o_sorted)
+    o = np.empty(uniq.size)
+    o[order] = np.clip(o_sorted, 0, block - 1)
+    return o[g_idx].astype(np.int64)
+
+
+def _grid(
+    raw: NDArray[Any], counters: NDArray[Any]
+) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """Gyro samples on each row's regular grid of sample positions 0..g-1.
+
+    Returns the samples (lost ones interpolated from their neighbours), which grid
+    positions were received, and which rows were clean (no loss, no duplicate)."""
+    pos, keep = relative_counter_rows(counters)
+    n, g = pos.shape
+    out = np.asarray(raw, dtype=np.float64)
+    have = np.ones((n, g), dtype=bool)
+    clean = np.all(keep, axis=1) & (pos[:, -1] == g - 1)
+    bad = np.flatnonzero(~clean)
+    if bad.size == 0:
+        return out, have, clean
+    out = out.copy()
+    for i in bad:  # few rows: a scatter and an interpolation each
+        k = keep[i] & (pos[i] < g)
+        p = pos[i][k]
+        have[i] = False
+        have[i, p] = True
+        vals = out[i][k].copy()
+        grid = np.arange(g)
+        for a in range(out.shape[2]):
+            out[i, :, a] = np.interp(grid, p, vals[:, a]) if p.size else 0.0
+    return out, have, clean
 
 
 def _sample_times(
-    ctx: _Context,
-    rows: NDArray[np.int64],
-    t0: FloatArray,
-    counters: NDArray[Any],
-    session: NDArray[np.int64],
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Trial time of every gyro sample (physical instant it describes) and a gap flag."""
-    edges, refs, offsets = ctx.windows
-    w = _window_of(edges, ctx.window_session, t0, session)
-    c = counters.astype(np.int32)
-    steps = np.diff(c, axis=1) % 65536
-    gap = np.any(steps != 1, axis=1)
-    g = c.shape[1]
-    n = np.broadcast_to(np.arange(g, dtype=np.float64), (len(rows), g)).copy()
-    if gap.any():  # only rows with gaps need their indices rebuilt from the counter steps
-        n[gap, 1:] = np.cumsum(steps[gap], axis=1)
-    n += ctx.n_first[rows][:, None]
-    host = offsets[w][:, None] + (n - refs[w][:, None]) * ctx.clock_period_s[w][:, None]
-    return host - ctx.latency_s - t0[:, None], gap
+    ctx: _Context, rows: NDArray[np.int64], t0: FloatArray, g: int, session: NDArray[np.int64]
+) -> FloatArray:
+    """Trial time of every grid position's sample (the physical instant it describes)."""
+    n_idx = ctx.n_first[rows][:, None] + np.arange(g, dtype=np.float64)
+    host = np.empty_like(n_idx)
+    for sess in np.unique(session):
+        m = session == sess
+        host[m] = ctx.clocks[int(sess)].to_host_time(n_idx[m])
+    return host - ctx.contract.latency_s - t0[:, None]
+
+
+def _robust_sigma(y: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
+    """White-noise standard deviation per row from first differences (MAD, robust to a
+    slow trend and to outliers), over the masked samples."""
+    d = np.where(mask[:, 1:] & mask[:, :-1], np.diff(y, axis=1), np.nan)
+    med = np.nanmedian(d, axis=1)
+    mad = np.nanmedian(np.abs(d - med[:, None]), axis=1)
+    return np.asarray(1.4826 * mad / np.sqrt(2.0))
 
 
 def _extract_chunk_inner(
@@ -319,8 +413,10 @@ def _extract_chunk_inner(
     rows: NDArray[np.int64],
     method: str,
     traces: bool = False,
+    max_se_s: float = MAX_SE_S,
 ) -> dict[str, NDArray[Any]]:
     n = len(rows)
+    con = ctx.contract
     prof = ctx.profile
     t0 = chunk["t0_s"]
     t_send = chunk["cmd_send_time_s"]
@@ -333,22 +429,24 @@ def _extract_chunk_inner(
     flag = np.full(n, "", dtype=object)
 
     session = chunk["session"] if "session" in chunk else np.zeros(n, np.int64)
-    t_g, gyro_gap = _sample_times(ctx, rows, t0, chunk["gyro_counter"], session)
     raw = chunk["gyro_raw"]
-    clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2))
-    counts = raw.astype(np.float32)
-    pre = (t_g < (t_send + 0.003)[:, None]).astype(np.float32)
-    bias = np.matmul(pre[:, None, :], counts)[:, 0, :] / np.maximum(pre.sum(axis=1), 1)[:, None]
-    counts -= bias[:, None, :]
+    clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2)) if raw.dtype.kind == "i" else (
+        np.zeros(n, bool)
+    )
+    rates, have, _ = _grid(raw, chunk["gyro_counter"])
+    g = rates.shape[1]
+    t_g = _sample_times(ctx, rows, t0, g, session)
+    rates *= con.scale["gyro_raw"]  # rad/s, sensor axes
+    rates -= ctx.bias[rows][:, None, :]
+    pre = have & (t_g < t_send[:, None])
     # Principal axis of the motion (after the command), batched 3x3 covariances.
-    active = (t_g > t_send[:, None]).astype(np.float32)
-    cov = np.matmul(counts.transpose(0, 2, 1), counts * active[:, :, None])
-    _, vecs = np.linalg.eigh(cov.astype(np.float64))
-    axis = vecs[:, :, -1].astype(np.float32)
-    y = np.matmul(counts, axis[:, :, None])[:, :, 0].astype(np.float64)
-    y *= np.deg2rad(1.0) / ctx.lsb_per_dps  # counts -> rad/s
+    active = ((t_g > t_send[:, None]) & have).astype(np.float64)
+    cov = np.matmul(rates.transpose(0, 2, 1), rates * active[:, :, None])
+    _, vecs = np.linalg.eigh(cov)
+    axis = vecs[:, :, -1]
+    y = np.matmul(rates, axis[:, :, None])[:, :, 0]
     # The sensor's true sample spacing (its clock runs off nominal by up to ~1 %).
-    dt = (t_g[:, -1] - t_g[:, 0]) / (t_g.shape[1] - 1)
+    dt = (t_g[:, -1] - t_g[:, 0]) / (g - 1)
     out_end = t_send + pulse + 0.12
     in_out = (t_g > t_send[:, None]) & (t_g < out_end[:, None])
     sign = np.sign(np.sum(y * in_out, axis=1))
@@ -359,10 +457,9 @@ def _extract_chunk_inner(
     host = chunk["state_host_time_s"]
     q_rep = chunk["state_q_rad"][np.arange(n), :, joint].astype(np.float64)
     qd_rep = chunk["state_qd_rad_s"][np.arange(n), :, joint].astype(np.float64)
-    # Lost or late packages: the response fit takes irregular samples, so a trial is only
-    # unmeasurable when most packages are missing or a long silence (> max(3 periods,
-    # 25 ms)) falls inside the out pulse, where the motion is timed.
-    present = np.isfinite(host)
+    # Lost or late packages: a trial is only unmeasurable when most packages are missing
+    # or a long silence (> max(3 periods, 25 ms)) falls inside the out pulse.
+    present = np.isfinite(host) & np.isfinite(q_rep)
     arrived = np.where(present, host, np.inf)
     order = np.sort(arrived, axis=1)
     gaps = np.diff(order, axis=1)
@@ -373,24 +470,26 @@ def _extract_chunk_inner(
     )
     package_gap = (present.mean(axis=1) < 0.5) | long_gap
 
-    # Filtered speed (zero phase), coarse onset and delay.
-    # Zero phase: the FIR is symmetric (linear phase) and "same" centres its output.
+    # Filtered speed (zero phase: the FIR is symmetric and "same" centres its output).
     filt = signal.oaconvolve(y, ctx.taps[None, :], mode="same", axes=1)
     level = ONSET_FRACTION * speed
-    after = (t_g > t_send[:, None]) & (filt >= level[:, None])
-    found = after.any(axis=1)
-    k_c = np.argmax(after, axis=1)
-    t_coarse = t_g[np.arange(n), k_c]
-    tau_coarse = np.where(found, t_coarse - t_send, np.nan)
+    # Coarse crossing: the last sample below the level before the speed first passes half
+    # the commanded speed (noise cannot fake that), then the next one.
+    after = t_g > t_send[:, None]
+    half_up = after & (filt >= 0.5 * speed[:, None])
+    found = half_up.any(axis=1)
+    k50 = np.where(found, np.argmax(half_up, axis=1), g - 1)
+    below = after & (filt < level[:, None]) & (np.arange(g) < k50[:, None])
+    k_c = np.where(below.any(axis=1), g - 1 - np.argmax(below[:, ::-1], axis=1) + 1, k50)
+    k_c = np.clip(k_c, 0, g - 1)
+    tau_coarse = np.where(found, t_g[np.arange(n), k_c] - t_send, np.nan)
 
     # Gain: integrated gyro angle of the out pulse against the reported displacement.
     pause_mid = t_send + np.nan_to_num(tau_coarse, nan=0.05) + pulse + prof["pause_s"] / 2
-    q_start = q_rep[:, 0]
-    q_mid = (
-        np.array([np.interp(pause_mid[i] + 0.03, host[i], q_rep[i]) for i in range(n)])
-        if n
-        else np.zeros(0)
-    )
+    q_start = np.array([q_rep[i][present[i]][0] if present[i].any() else np.nan
+                        for i in range(n)])  # fmt: skip
+    q_mid = np.array([np.interp(pause_mid[i] + 0.03, host[i][present[i]], q_rep[i][present[i]])
+                      if present[i].sum() > 1 else np.nan for i in range(n)])  # fmt: skip
     disp = (q_mid - q_start) * direction
     in_pulse = (t_g >= (t_send - 0.002)[:, None]) & (t_g <= pause_mid[:, None])
     angle = np.sum(y * in_pulse, axis=1) * dt
@@ -398,12 +497,28 @@ def _extract_chunk_inner(
     y_phys = y / gain[:, None]
     filt_phys = filt / gain[:, None]
     peak = np.max(filt_phys * in_out, axis=1)
+    sigma = _robust_sigma(y_phys, pre)
+    missing_pulse = 1.0 - np.sum(have & in_pulse, axis=1) / np.maximum(in_pulse.sum(axis=1), 1)
 
+    n_cols = {}
     if method == "fit":
-        act = _onset_fit(t_g, y_phys, filt_phys, t_send, level, 1.0 / ctx.fs_hz) - (
-            t_send + level / accel
-        )
-        resp = _response_fit(t_g, y_phys, host, q_rep, direction, ctx.period_s, dt)
+        on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz)
+        act = on["onset"] - (t_send + level / accel)
+        # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
+        sd_bias = sigma / np.sqrt(np.maximum(ctx.bias_n[rows], 1.0))
+        act_se = np.sqrt(on["crb"] ** 2 + on["bias"] ** 2 + (sd_bias / on["slope"]) ** 2)
+        q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
+        resp, resp_se = response_increments(
+            t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
+            np.full(n, 0.6 * ctx.period_s),
+        )  # fmt: skip
+        missing_onset = on["missing"]
+        n_cols = {
+            "actuation_delay_se": act_se,
+            "actuation_delay_crb": on["crb"],
+            "response_delay_se": resp_se,
+            "onset_window_s": np.array([sum(w) for w in _windows()])[on["window"].astype(int)],
+        }
     else:
         t_cmd_peak = t_send + pulse / 2
         kk = np.argmax(np.where(in_out, filt_phys, -np.inf), axis=1)
@@ -417,23 +532,27 @@ def _extract_chunk_inner(
         t_rep = host[np.arange(n), kr]
         act = t_meas - t_cmd_peak
         resp = t_rep - t_meas
+        missing_onset = np.zeros(n)
+        act_se = resp_se = np.zeros(n)
 
     reasons = [
         (pre.sum(axis=1) < 0.01 * ctx.fs_hz, "no_baseline"),  # < 10 ms of zero-rate samples
         (clipped, "clipped"),
-        (gyro_gap, "gyro_gap"),
+        ((missing_onset > _MAX_MISSING_ONSET) | (missing_pulse > _MAX_MISSING_PULSE), "gyro_gap"),
         (package_gap, "package_gap"),
         (~(peak > 0.5 * speed), "no_motion"),
         (~found | ~np.isfinite(act), "no_onset"),
         (~((gain > 0.8) & (gain < 1.25)), "gain"),
         (~np.isfinite(resp) | (resp < -ctx.period_s) | (resp > 0.25), "response_fit"),
+        (~((act_se <= max_se_s) & (resp_se <= max_se_s)), "uncertain"),
     ]
     for mask, reason in reversed(reasons):
         flag[mask] = reason
     bad = flag != ""
     act = np.where(bad, np.nan, act)
     resp = np.where(bad, np.nan, resp)
-    out = {"actuation_delay": act, "response_delay": resp, "flag": flag, "gyro_gain": gain}
+    out = {"actuation_delay": act, "response_delay": resp, "flag": flag, "gyro_gain": gain,
+           "gyro_noise_rad_s": sigma, "gyro_missing": 1.0 - have.mean(axis=1), **n_cols}  # fmt: skip
     if traces:
         out.update(
             gyro_time_s=t_g, gyro_speed_rad_s=y_phys, gyro_filtered_rad_s=filt_phys,
@@ -443,92 +562,10 @@ def _extract_chunk_inner(
     return out
 
 
-ONSET_WINDOW_S = (-0.005, 0.010)  # wider averages more noise; measured bias < 0.03 ms
+def _windows() -> tuple[tuple[float, float], ...]:
+    from timedexec.extraction._onset import ONSET_WINDOWS_S
 
-
-def _onset_fit(
-    t_g: FloatArray,
-    y: FloatArray,
-    filt: FloatArray,
-    t_send: FloatArray,
-    level: FloatArray,
-    dt: float,
-) -> FloatArray:
-    """Crossing of ``level`` refined by a local cubic fit of the unfiltered samples.
-
-    The window :data:`ONSET_WINDOW_S` around the coarse crossing stays clear of the
-    breakaway kink (several ms earlier) and averages ~120 samples."""
-    n, g = y.shape
-    after = (t_g > t_send[:, None]) & (filt >= level[:, None])
-    k = np.argmax(after, axis=1)
-    lo, hi = round(ONSET_WINDOW_S[0] / dt), round(ONSET_WINDOW_S[1] / dt)
-    offs = np.arange(lo, hi + 1)
-    idx = np.clip(k[:, None] + offs, 0, g - 1)
-    yy = np.take_along_axis(y, idx, axis=1)
-    tc = np.take_along_axis(t_g, k[:, None], axis=1)[:, 0]
-    x = np.take_along_axis(t_g, idx, axis=1) - tc[:, None]
-    scale = 0.005
-    xs = x / scale
-    vander = np.stack([np.ones_like(xs), xs, xs**2, xs**3], axis=-1)
-    a = np.einsum("nmi,nmj->nij", vander, vander)
-    b = np.einsum("nmi,nm->ni", vander, yy)
-    coef = np.linalg.solve(a, b[..., None])[..., 0]
-    # Newton iterations for p(x) = level from the coarse crossing.
-    root = np.zeros(n)
-    for _ in range(8):
-        p = coef[:, 0] + coef[:, 1] * root + coef[:, 2] * root**2 + coef[:, 3] * root**3
-        dp = coef[:, 1] + 2 * coef[:, 2] * root + 3 * coef[:, 3] * root**2
-        step = (p - level) / np.where(np.abs(dp) > 1e-9, dp, np.nan)
-        root = np.clip(root - step, lo * dt / scale, hi * dt / scale)
-    return tc + root * scale
-
-
-def _response_fit(
-    t_g: FloatArray,
-    y: FloatArray,
-    host: FloatArray,
-    q_rep: FloatArray,
-    direction: FloatArray,
-    period: float,
-    dt: FloatArray,
-) -> FloatArray:
-    """Least-squares shift of the integrated gyro angle onto the reported positions.
-
-    ``dt`` (n,) is each row's true sample spacing; the angle is integrated with the
-    trapezoid rule so that sample k holds the angle at its own instant."""
-    dt = dt[:, None]
-    angle = (
-        np.concatenate(
-            [np.zeros((len(y), 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1
-        )
-        * dt
-    )  # physical joint angle change along the commanded direction
-    q_rel = (q_rep - q_rep[:, :1]) * direction[:, None]
-    first = t_g[:, 0]
-
-    def f(x: FloatArray) -> FloatArray:
-        return interp_rows(angle, (x - first[:, None]) / dt)
-
-    def df(x: FloatArray) -> FloatArray:
-        return interp_rows(y, (x - first[:, None]) / dt)
-
-    ok = np.isfinite(host) & (host > (first + 0.03)[:, None])
-    # Lost packages carry NaN times: they are weighted out (their y is NaN), but the
-    # template is still evaluated there, so give them a harmless finite time.
-    host = np.where(ok, host, (first + 0.1)[:, None])
-    tau, _, _, _ = fit_shift(
-        host,
-        np.where(ok, q_rel, np.nan),
-        f,
-        df,
-        np.full(len(host), 0.6 * period),
-        iterations=20,
-        max_step_s=0.004,
-        fit_gain=False,
-        fit_offset=True,
-    )
-    # fit_shift models y(t) = f(t - tau): tau is how much older the reported state is.
-    return tau
+    return ONSET_WINDOWS_S
 
 
 def _parabolic_peak(t: FloatArray, y: FloatArray, k: NDArray[np.int64]) -> FloatArray:
@@ -542,17 +579,24 @@ def _parabolic_peak(t: FloatArray, y: FloatArray, k: NDArray[np.int64]) -> Float
 
 
 def _run_rows(
-    path: str, ctx: _Context, rows: NDArray[np.int64], method: str
+    path: str, ctx: _Context, rows: NDArray[np.int64], method: str, max_se_s: float = MAX_SE_S
 ) -> dict[str, NDArray[Any]]:
     with RecordingReader(path) as reader:
-        chunk = _read_chunk(reader, rows)
-    return _extract_chunk(ctx, chunk, rows, method)
+        chunk = _read_chunk(reader, rows, ctx.contract)
+    return _extract_chunk(ctx, chunk, rows, method, max_se_s=max_se_s)
 
 
-def _read_chunk(reader: RecordingReader, rows: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
-    """The fields extraction needs for ``rows`` (``session`` where the recording has it)."""
+def _read_chunk(
+    reader: RecordingReader, rows: NDArray[np.int64], contract: Contract
+) -> dict[str, NDArray[Any]]:
+    """The fields extraction needs for ``rows`` (``session`` where the recording has it),
+    times, angles and speeds converted to SI (gyro rates stay as stored: see _grid)."""
     names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
-    return {name: reader.read(name, rows=rows) for name in names}
+    out = {name: reader.read(name, rows=rows) for name in names}
+    for name, factor in contract.scale.items():
+        if name not in ("gyro_raw", "gyro_counter", "trial") and factor != 1.0:
+            out[name] = out[name].astype(np.float64) * factor
+    return out
 
 
 def _extract_chunk(
@@ -561,12 +605,16 @@ def _extract_chunk(
     rows: NDArray[np.int64],
     method: str,
     traces: bool = False,
+    max_se_s: float = MAX_SE_S,
 ) -> dict[str, NDArray[Any]]:
     """Extract one chunk of trials. Unmeasurable trials carry NaN through the arithmetic
     and are flagged at the end, so invalid-value warnings are expected and silenced.
     ``traces=True`` also returns the signals behind the numbers (for figures)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return _extract_chunk_inner(ctx, chunk, rows, method, traces)
+    import warnings
+
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians of flagged rows
+        return _extract_chunk_inner(ctx, chunk, rows, method, traces, max_se_s)
 
 
 def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
@@ -577,8 +625,8 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
     path = os.fspath(path)
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
     with RecordingReader(path) as reader:
-        ctx, still, cutoff, _ = _context(reader, clock_window_s=120.0, numtaps=161)
-        chunk = _read_chunk(reader, rows)
+        ctx, still, cutoff, _, _ = _context(reader, clock_window_s=None, numtaps=161)
+        chunk = _read_chunk(reader, rows, ctx.contract)
         truth = {
             k: reader.read(f"true_{k}_s", rows=rows)
             for k in ("actuation_delay", "response_delay")
@@ -598,8 +646,9 @@ def extract_recording(
     method: str = "fit",
     jobs: int = 1,
     chunk_trials: int = 512,
-    clock_window_s: float = 120.0,
+    clock_window_s: float | None = None,
     numtaps: int = 161,
+    max_se_s: float = MAX_SE_S,
     progress: bool = True,
 ) -> ExtractionResult:
     """Extract the delay table of a recording.
@@ -614,13 +663,38 @@ def extract_recording(
         Worker processes (joblib; ``joblib.parallel_config`` chooses the backend, e.g. Dask).
     chunk_trials : int
         Trials per vectorised chunk.
-    clock_window_s : float
-        Length of the windows in which the sensor clock is fitted, s.
+    clock_window_s : float, optional
+        Length of the blended windows in which the sensor clock is fitted, s; None (default)
+        chooses it from the data (:func:`timedexec.sensors.fit_clock_drifting`).
     numtaps : int
-        Low-pass FIR length.
+        Low-pass FIR length (coarse crossing and figures only).
+    max_se_s : float
+        Trials whose actuation or response standard error exceeds this are flagged
+        ``uncertain``, s.
     progress : bool
         Progress with ETA on stderr.
+
+    Returns
+    -------
+    ExtractionResult
+        The delay table (columns of ``timedexec.delays`` plus ``flag``,
+        ``actuation_delay_se``, ``actuation_delay_crb``, ``response_delay_se`` (s),
+        ``onset_window_s``, ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
+        and what was learnt of the sensor (clock offset and drift, filter, noise).
+
+    Raises
+    ------
+    RecordingError
+        The file is not a recording extraction can read: every missing field, static,
+        header key and unconvertible unit is named.
     """
+    if clock_window_s is not None and not (
+        isinstance(clock_window_s, (int, float)) and clock_window_s > 0
+    ):
+        raise ConfigError(f"clock_window_s={clock_window_s!r} must be a positive number of "
+                          "seconds, or None to choose it from the data")  # fmt: skip
+    if not (isinstance(max_se_s, (int, float)) and max_se_s > 0):
+        raise ConfigError(f"max_se_s={max_se_s!r} must be a positive number of seconds")
     if method not in METHODS:
         raise ConfigError(
             f"unknown extraction method {method!r}; choose one of {', '.join(METHODS)}"
@@ -629,10 +703,12 @@ def extract_recording(
         raise ConfigError(f"jobs={jobs!r} must be a positive integer, or -1 for every worker")
     path = os.fspath(path)
     with RecordingReader(path) as reader:
-        ctx, still, cutoff, rate = _context(reader, clock_window_s=clock_window_s, numtaps=numtaps)
+        ctx, still, cutoff, rate, clock_info = _context(
+            reader, clock_window_s=clock_window_s, numtaps=numtaps
+        )
         n = reader.n_trials
         trial = reader.read("trial")
-        t0 = reader.read("t0_s")
+        t0 = reader.read("t0_s") * ctx.contract.scale["t0_s"]
         plan_q = reader.static("plan_q_start_rad")
         plan_joint = reader.static("plan_joint")
         plan_dir = reader.static("plan_direction")
@@ -646,7 +722,7 @@ def extract_recording(
     if jobs == 1:
         parts = []
         for rows in chunks:
-            parts.append(_run_rows(path, ctx, rows, method))
+            parts.append(_run_rows(path, ctx, rows, method, max_se_s))
             bar.update(len(rows))
     else:
         from joblib import Parallel, delayed
@@ -654,7 +730,7 @@ def extract_recording(
         parts = []
         for part, rows in zip(
             Parallel(n_jobs=jobs, return_as="generator")(
-                delayed(_run_rows)(path, ctx, rows, method) for rows in chunks
+                delayed(_run_rows)(path, ctx, rows, method, max_se_s) for rows in chunks
             ),
             chunks,
             strict=True,
@@ -676,7 +752,10 @@ def extract_recording(
     for k, v in truth.items():
         cols[f"true_{k}"] = v
     cols["flag"] = res["flag"]
-    cols["gyro_gain"] = res["gyro_gain"]
+    for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
+              "onset_window_s", "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
+        if k in res:
+            cols[k] = res[k]
     order = np.argsort(trial)
     table = DelayTable(
         {k: (v[order] if isinstance(v, np.ndarray) else v) for k, v in cols.items()}, source=path
@@ -689,4 +768,5 @@ def extract_recording(
         clock_rate_error_ppm=(rate / ctx.fs_hz - 1) * 1e6,
         still=still,
         n_flagged=n_flagged,
+        clock=clock_info,
     )

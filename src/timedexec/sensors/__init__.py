@@ -1,9 +1,12 @@
 """timedexec.sensors: the gyro/IMU stream over pyserial (see docs/gyro-protocol.md).
 
 - Frames: :func:`encode_frames`, :class:`FrameParser` (vectorised, resynchronising).
-- Counter: :class:`CounterUnwrapper` (wraps, gaps), :func:`unwrap_counter` (offline).
+- Counter: :class:`CounterUnwrapper` (wraps, gaps), :func:`unwrap_counter` (offline),
+  :func:`relative_counter_rows` (recorded windows of a lossy stream: duplicates, gaps).
 - Clock: :class:`SensorClock` (lower-envelope fit of host_time = a + b·n),
-  :func:`fit_clock_lower_envelope`, :func:`fit_clock_least_squares`.
+  :func:`fit_clock_lower_envelope`, :func:`fit_clock_least_squares`;
+  :func:`fit_clock_drifting` -> :class:`DriftingClockFit` (blended windows that follow
+  oscillator drift, window length chosen from the data).
 - Reader: :func:`open_gyro` -> :class:`GyroReader` (background thread, ring buffer,
   zero-rate calibration), :class:`GyroSamples`, :class:`GyroStats`, :class:`GyroSettings`.
 """
@@ -12,7 +15,9 @@ from __future__ import annotations
 
 from timedexec.sensors._clock import (
     ClockFit,
+    DriftingClockFit,
     SensorClock,
+    fit_clock_drifting,
     fit_clock_least_squares,
     fit_clock_lower_envelope,
 )
@@ -38,7 +43,12 @@ from timedexec.sensors._reader import (
     raw_to_rad_s,
 )
 from timedexec.sensors._simport import SimGyroPort, parse_sim_url
-from timedexec.sensors._unwrap import CounterUnwrapper, UnwrapResult, unwrap_counter
+from timedexec.sensors._unwrap import (
+    CounterUnwrapper,
+    UnwrapResult,
+    relative_counter_rows,
+    unwrap_counter,
+)
 
 __all__ = [
     "CRC8_POLY",
@@ -49,6 +59,7 @@ __all__ = [
     "SYNC",
     "ClockFit",
     "CounterUnwrapper",
+    "DriftingClockFit",
     "FrameParser",
     "GyroReader",
     "GyroSamples",
@@ -61,10 +72,12 @@ __all__ = [
     "ZeroRateCalibration",
     "crc8",
     "encode_frames",
+    "fit_clock_drifting",
     "fit_clock_least_squares",
     "fit_clock_lower_envelope",
     "open_gyro",
     "parse_sim_url",
     "raw_to_rad_s",
+    "relative_counter_rows",
     "unwrap_counter",
 ]

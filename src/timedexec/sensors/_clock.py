@@ -37,7 +37,9 @@ from timedexec.errors import ConfigError, SensorError
 
 __all__ = [
     "ClockFit",
+    "DriftingClockFit",
     "SensorClock",
+    "fit_clock_drifting",
     "fit_clock_least_squares",
     "fit_clock_lower_envelope",
 ]
@@ -512,3 +514,240 @@ class SensorClock:
     def to_host_time(self, n: ArrayLike) -> NDArray[np.float64]:
         """Host time of unwrapped sample index ``n`` under the current fit, s."""
         return self.current.to_host_time(n)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DriftingClockFit:
+    """A sensor clock that drifts: overlapping lower-envelope lines, blended.
+
+    Window ``m`` is centred at ``centres[m]`` (sample index) and spans ``±half_width``
+    samples; neighbouring windows overlap by half. The host time of index n is the
+    average of the two nearest windows' lines weighted by a triangle (1 at a window's
+    centre, 0 at its neighbour's), so the model is continuous and follows slow drift.
+
+    Attributes
+    ----------
+    centres : ndarray, shape (w,)
+        Window centres, sample index.
+    half_width : float
+        Window half width, samples (window length ``2·half_width``).
+    n_ref, t_ref_s, period_s : ndarray, shape (w,)
+        Each window's line ``t = t_ref_s + period_s·(n - n_ref)`` (s, s per sample).
+    nominal_rate_hz : float
+        Nominal sample rate, Hz.
+    spread_s : float
+        Structure left in the per-group minimum residuals (5-95 % range of their running
+        median), s: what decided the window length.
+    outlier_groups : int
+        Groups left out because they lay far below their neighbours.
+    """
+
+    centres: NDArray[np.float64]
+    half_width: float
+    n_ref: NDArray[np.float64]
+    t_ref_s: NDArray[np.float64]
+    period_s: NDArray[np.float64]
+    nominal_rate_hz: float
+    spread_s: float = 0.0
+    outlier_groups: int = 0
+
+    @property
+    def window_s(self) -> float:
+        """Window length, s (nominal)."""
+        return 2.0 * self.half_width / self.nominal_rate_hz
+
+    @property
+    def rate_error_ppm(self) -> NDArray[np.float64]:
+        """Each window's rate relative to nominal, ppm."""
+        return (1.0 / (self.period_s * self.nominal_rate_hz) - 1.0) * 1e6
+
+    @property
+    def drift_ppm(self) -> float:
+        """Range of the windows' rate errors (max - min), ppm."""
+        ppm = self.rate_error_ppm
+        return float(ppm.max() - ppm.min()) if ppm.size else 0.0
+
+    def to_host_time(self, n: ArrayLike) -> NDArray[np.float64]:
+        """Host time of (fractional) sample index ``n`` (any shape), s."""
+        x = np.asarray(n, dtype=np.float64)
+        w = self.centres.shape[0]
+        if w == 1:
+            return self.t_ref_s[0] + (x - self.n_ref[0]) * self.period_s[0]
+        pos = np.clip((x - self.centres[0]) / self.half_width, 0.0, w - 1.0)
+        m = np.minimum(np.floor(pos).astype(np.int64), w - 2)
+        frac = pos - m
+        lo = self.t_ref_s[m] + (x - self.n_ref[m]) * self.period_s[m]
+        hi = self.t_ref_s[m + 1] + (x - self.n_ref[m + 1]) * self.period_s[m + 1]
+        out: NDArray[np.float64] = lo + frac * (hi - lo)
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe summary: window length, mean rate error and drift (ppm)."""
+        ppm = self.rate_error_ppm
+        return {
+            "window_s": self.window_s,
+            "windows": int(self.centres.shape[0]),
+            "rate_error_ppm": float(np.mean(ppm)),
+            "rate_error_ppm_min": float(ppm.min()),
+            "rate_error_ppm_max": float(ppm.max()),
+            "drift_ppm": self.drift_ppm,
+            "residual_structure_s": self.spread_s,
+            "outlier_groups": self.outlier_groups,
+        }
+
+
+def _running_median(x: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+    if x.shape[0] <= k:
+        return np.full_like(x, float(np.median(x)))
+    pad = k // 2
+    xp = np.pad(x, pad, mode="edge")
+    win = np.lib.stride_tricks.sliding_window_view(xp, k)
+    return np.asarray(np.median(win, axis=1), dtype=np.float64)
+
+
+def _running_min(x: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+    if x.shape[0] <= k:
+        return np.full_like(x, float(np.min(x)))
+    pad = k // 2
+    xp = np.pad(x, pad, mode="edge")
+    win = np.lib.stride_tricks.sliding_window_view(xp, k)
+    return np.asarray(np.min(win, axis=1), dtype=np.float64)
+
+
+def _windows_fit(
+    n: NDArray[np.int64], t: NDArray[np.float64], half: float, nominal_rate_hz: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    lo, hi = float(n[0]), float(n[-1])
+    w = max(int(math.ceil((hi - lo) / half)) + 1, 1)
+    if w == 1 or hi - lo <= 2 * half:
+        fit = fit_clock_lower_envelope(n, t, nominal_rate_hz=nominal_rate_hz)
+        return (np.array([0.5 * (lo + hi)]), np.array([float(fit.n_ref)]),
+                np.array([fit.t_ref_s]), np.array([fit.period_s]))  # fmt: skip
+    centres = lo + np.arange(w) * half
+    n_ref = np.empty(w)
+    t_ref = np.empty(w)
+    per = np.empty(w)
+    edges = np.searchsorted(n, np.r_[centres - half, centres + half])
+    for m in range(w):
+        a, b = int(edges[m]), int(edges[w + m])
+        if b - a < 2:  # an empty window (a pause in the sweep): borrow the neighbour's line
+            n_ref[m], t_ref[m], per[m] = np.nan, np.nan, np.nan
+            continue
+        fit = _envelope_from_candidates(
+            n[a:b], t[a:b], float(np.mean(n[a:b])), nominal_rate_hz, b - a, int(n[b - 1] - n[a])
+        )
+        n_ref[m], t_ref[m], per[m] = fit.n_ref, fit.t_ref_s, fit.period_s
+    good = np.flatnonzero(np.isfinite(per))
+    for m in np.flatnonzero(~np.isfinite(per)):
+        j = good[np.argmin(np.abs(good - m))]
+        n_ref[m], t_ref[m], per[m] = n_ref[j], t_ref[j], per[j]
+    return centres, n_ref, t_ref, per
+
+
+def fit_clock_drifting(
+    n: ArrayLike,
+    t: ArrayLike,
+    group: ArrayLike,
+    *,
+    nominal_rate_hz: float = 8000.0,
+    window_s: float | None = None,
+    min_window_s: float = 4.0,
+    max_window_s: float = 240.0,
+    tolerance_s: float = 20e-6,
+) -> DriftingClockFit:
+    """Lower-envelope clock fit that follows slow oscillator drift (temperature).
+
+    The arrivals are split into half-overlapping windows, each fitted with the
+    lower-envelope line (:func:`fit_clock_lower_envelope`), and blended (see
+    :class:`DriftingClockFit`). Unless ``window_s`` is given, the window length is chosen
+    from the data: starting from the whole span (at most ``max_window_s``) it is halved
+    while the per-group minimum residuals (groups are e.g. trials) still show structure —
+    the 5-95 % range of their running minimum over 31 groups above ``tolerance_s`` — and
+    the windows stay at least ``min_window_s`` and 31 groups long (a group's lowest
+    arrival may sit a few samples above the envelope when its recorded blocks do not end
+    where the device's transfers end; one group in 31 touching it is enough). A drift
+    of the rate by D ppm/s bends the time offset by D·1e-6·L²/8 within a window of L s,
+    which is what the residual structure measures. Groups whose minimum lies more than
+    max(10 MAD, 0.5 ms) below their neighbours' (a wrongly indexed stretch) are left out.
+
+    Parameters
+    ----------
+    n : array_like of int, shape (k,)
+        Unwrapped sample indices (any order).
+    t : array_like of float, shape (k,)
+        Host arrival times, s.
+    group : array_like of int, shape (k,)
+        Group of each arrival (a trial); used to judge the residual structure.
+    nominal_rate_hz : float
+        Nominal sample rate, Hz.
+    window_s : float, optional
+        Fixed window length, s (no search).
+    min_window_s, max_window_s : float
+        Bounds of the window search, s (the lower one at least 31 groups' span).
+    tolerance_s : float
+        Residual structure accepted, s (20 µs: a tenth of the 0.2 ms drift target).
+
+    Returns
+    -------
+    DriftingClockFit
+    """
+    n_arr, t_arr = _check_pairs(n, t)
+    g_arr = np.asarray(group).reshape(-1)
+    if g_arr.shape != n_arr.shape:
+        raise ConfigError("group must have one entry per arrival")
+    if n_arr.shape[0] < 2:
+        fit = _nominal_fit(n_arr, t_arr, nominal_rate_hz)
+        return DriftingClockFit(
+            centres=np.array([float(fit.n_ref)]), half_width=1.0,
+            n_ref=np.array([float(fit.n_ref)]), t_ref_s=np.array([fit.t_ref_s]),
+            period_s=np.array([fit.period_s]), nominal_rate_hz=nominal_rate_hz,
+        )  # fmt: skip
+    order = np.lexsort((t_arr, n_arr))
+    n_arr, t_arr, g_arr = n_arr[order], t_arr[order], g_arr[order]
+    uniq, g_idx = np.unique(g_arr, return_inverse=True)
+    n_groups = uniq.shape[0]
+    # Groups in time order (by their first index).
+    g_first = np.full(n_groups, np.iinfo(np.int64).max)
+    np.minimum.at(g_first, g_idx, n_arr)
+    g_rank = np.empty(n_groups, dtype=np.int64)
+    g_rank[np.argsort(g_first)] = np.arange(n_groups)
+
+    def group_minima(model: DriftingClockFit) -> NDArray[np.float64]:
+        resid = t_arr - model.to_host_time(n_arr)
+        m = np.full(n_groups, np.inf)
+        np.minimum.at(m, g_idx, resid)
+        return m[np.argsort(g_rank)]  # in time order
+
+    span_s = float(n_arr[-1] - n_arr[0]) / nominal_rate_hz
+    # A group's lowest arrival may sit a few samples above the envelope (its recorded
+    # blocks need not end where the device's transfers end), so the structure is judged on
+    # the running minimum over group_span groups, and a window spans at least that many.
+    group_span = 31
+    spacing = float(np.median(np.diff(np.sort(g_first)))) / nominal_rate_hz if n_groups > 1 else 0.0
+    min_window_s = max(min_window_s, group_span * spacing)
+    length = window_s if window_s is not None else min(max(span_s, min_window_s), max_window_s)
+    keep = np.ones(n_arr.shape[0], dtype=bool)
+    n_out = 0
+    while True:
+        half = 0.5 * length * nominal_rate_hz
+        centres, n_ref, t_ref, per = _windows_fit(n_arr[keep], t_arr[keep], half, nominal_rate_hz)
+        model = DriftingClockFit(
+            centres=centres, half_width=half, n_ref=n_ref, t_ref_s=t_ref, period_s=per,
+            nominal_rate_hz=nominal_rate_hz, outlier_groups=n_out,
+        )  # fmt: skip
+        mins = group_minima(model)
+        centre = _running_median(mins, 7)
+        mad = float(np.median(np.abs(mins - centre))) + 1e-9
+        low = mins < centre - max(10.0 * mad, 5e-4)
+        smooth = _running_min(np.where(low, np.inf, mins), group_span)
+        if low.any() and n_out == 0:
+            bad_groups = np.argsort(g_rank)[low]
+            keep &= ~np.isin(g_idx, bad_groups)
+            n_out = int(low.sum())
+            continue
+        ok = smooth[~low] if (~low).any() else smooth
+        spread = float(np.percentile(ok, 95) - np.percentile(ok, 5)) if ok.size > 2 else 0.0
+        model = DriftingClockFit(**{**model.__dict__, "spread_s": spread})
+        if window_s is not None or spread <= tolerance_s or length / 2 < min_window_s:
+            return model
+        length /= 2

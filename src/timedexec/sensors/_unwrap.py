@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
 
-__all__ = ["CounterUnwrapper", "UnwrapResult", "unwrap_counter"]
+__all__ = ["CounterUnwrapper", "UnwrapResult", "relative_counter_rows", "unwrap_counter"]
 
 _WRAP = 65536
 _EMPTY = np.zeros(0, dtype=np.int64)
@@ -296,3 +296,52 @@ class CounterUnwrapper:
             np.asarray(gap_missing, dtype=np.int64),
             discontinuity,
         )
+
+
+def relative_counter_rows(
+    counter: ArrayLike,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Sample positions of recorded counter rows relative to each row's first sample.
+
+    A row is one trial's recorded window, in arrival order, as a lossy USB stream delivers
+    it: blocks may be lost (the counter jumps ahead), delivered twice (the counter repeats)
+    or out of order (it steps back). Each frame's position is its counter minus the
+    row's first counter, modulo 65536 and taken in -32768..32767 (a window is far shorter
+    than a wrap). A frame is kept when its position is ahead of every frame before it
+    (duplicates and backward steps are dropped) and it is not a lone corrupted counter (one
+    frame off the sequence whose neighbours agree with each other).
+
+    Parameters
+    ----------
+    counter : array_like of int, shape (n, g)
+        Recorded uint16 counters, one row per trial window.
+
+    Returns
+    -------
+    position : ndarray of int64, shape (n, g)
+        Sample position of each frame relative to the row's first frame (samples).
+    keep : ndarray of bool, shape (n, g)
+        Frames to use; positions of kept frames increase strictly along each row, and
+        position jumps larger than one are gaps (samples lost).
+    """
+    c = np.asarray(counter, dtype=np.int64)
+    if c.ndim != 2:
+        raise ConfigError(f"counter must have shape (n, g), got {c.shape}")
+    pos = (c - c[:, :1] + _WRAP // 2) % _WRAP - _WRAP // 2
+    if c.shape[1] < 2:
+        return pos, np.ones(c.shape, dtype=bool)
+    steps = np.diff(pos, axis=1)
+    clean = np.all(steps == 1, axis=1)
+    keep = np.ones(c.shape, dtype=bool)
+    bad = np.flatnonzero(~clean)
+    if bad.size:
+        p = pos[bad]
+        lone = np.zeros(p.shape, dtype=bool)
+        if p.shape[1] > 2:
+            lone[:, 1:-1] = (p[:, 2:] - p[:, :-2] == 2) & (p[:, 1:-1] - p[:, :-2] != 1)
+        q = np.where(lone, np.iinfo(np.int64).min, p)
+        prev_max = np.maximum.accumulate(q, axis=1)
+        ahead = np.ones(p.shape, dtype=bool)
+        ahead[:, 1:] = q[:, 1:] > prev_max[:, :-1]
+        keep[bad] = ahead & ~lone & (p >= 0)
+    return pos, keep
