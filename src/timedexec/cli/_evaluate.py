@@ -40,7 +40,17 @@ def add_parser(sub: Any) -> None:
             "bounds.\n\n"
             "Output: a table; the JSON result (--json) is {robot, strategies: {none: "
             "{timing_rms_ms, seam_error_cm, ...}, ...}, coverage_95, ...}.\n\n"
-            "example:\n  timedexec evaluate --robot kr5 --json kr5-eval.json"
+            "--task conveyor: the welding case itself (docs/welding.md). A straight belt at "
+            "--speed carries a part; the torch (orientation held) follows a --seam on it "
+            "through the inverse kinematics, every joint moving, streamed through the "
+            "executor on the simulator; the physical torch tip is measured against the seam "
+            "over the cruise for each strategy, each shifting the command streams by the "
+            "tracking delay (the lag a moving arm keeps; onset-delay shifts are shown below "
+            "them). JSON: {robot, task: conveyor, seam, speed_m_s, strategies: {none|constant|"
+            "median|model|oracle: {torch_mean_mm, torch_rms_mm, torch_max_mm, along_*, "
+            "across_*}}, onset_strategies, ...}.\n\n"
+            "examples:\n  timedexec evaluate --robot kr5 --json kr5-eval.json\n"
+            "  timedexec evaluate --task conveyor --robot kr5 --seam curved --json weld.json"
         ),
     )
     add_robot(p, required=True)
@@ -76,6 +86,31 @@ def add_parser(sub: Any) -> None:
         metavar="N",
         help="verify the seam error by running the physics on N configurations (0: skip)",
     )
+    p.add_argument(
+        "--task",
+        choices=("onset", "conveyor"),
+        default="onset",
+        help="onset: held-out onset timing (the paper's comparison); conveyor: the physical "
+        "torch error of a weld on a straight belt",
+    )
+    p.add_argument(
+        "--seam",
+        choices=("straight", "curved"),
+        default="straight",
+        help="--task conveyor: the seam's shape (across the belt)",
+    )
+    p.add_argument(
+        "--runs",
+        type=int_arg(1),
+        default=4,
+        help="--task conveyor: publisher phases per work point (stratified), per strategy",
+    )
+    p.add_argument(
+        "--cells",
+        type=int_arg(1),
+        default=2,
+        help="--task conveyor: work points (the built-in one, then moved by up to 5 cm)",
+    )
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -85,6 +120,22 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.evaluation import evaluate
 
     check_files(args, "evaluate", inputs={"--model": args.model})
+    if args.task == "conveyor":
+        from timedexec.welding import evaluate_conveyor
+
+        weld = evaluate_conveyor(
+            args.robot,
+            args.model,
+            seam=args.seam,
+            speed_m_s=args.speed,
+            cells=args.cells,
+            seeds=args.runs,
+            oracle_draws=args.runs,
+            seed=args.seed,
+            progress=not args.quiet,
+        )
+        emit(args, weld.to_dict(), weld.table())
+        return 0
     result = evaluate(
         args.robot,
         args.model,

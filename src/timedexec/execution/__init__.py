@@ -3,13 +3,24 @@
 :class:`TimedExecutor` wraps any :class:`~timedexec.drivers.RobotDriver` and a delay model:
 jerk-limited Ruckig plans, per-joint command streams shifted by the predicted actuation
 delay, states back-dated by the predicted response delay, timing bounds from the model's
-uncertainty, and :meth:`TimedExecutor.plan_to_meet` for deadlines.
+uncertainty, and :meth:`TimedExecutor.plan_to_meet` for deadlines. Tasks: conveyor welding
+on a straight belt (:func:`track_conveyor_seam`, with the tracking delays of
+:class:`TrackingDelays`), the carousel seam (:func:`track_seam`) and interception.
 """
 
 from __future__ import annotations
 
 from timedexec.errors import StaleStateError, UnreachableError
 from timedexec.execution._bounds import TimingBounds, delay_cdf, delay_quantile
+from timedexec.execution._conveyor import (
+    SEAM_KINDS,
+    Conveyor,
+    Seam,
+    SeamPlan,
+    WeldCell,
+    default_cell,
+    plan_seam,
+)
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
@@ -26,6 +37,7 @@ from timedexec.execution._model import (
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
 from timedexec.execution._state import StalenessLimits, StateEstimate
 from timedexec.execution._tasks import (
+    SEAM_POSITION_GAIN_1_S,
     InterceptResult,
     SeamResult,
     compare_seam_tracking,
@@ -35,9 +47,20 @@ from timedexec.execution._tasks import (
     track_seam,
 )
 from timedexec.execution._timing import MeetPlan
+from timedexec.execution._tracking import TrackingDelays, fit_joint_lags, measure_tracking_delays
+from timedexec.execution._welding import (
+    ConveyorRun,
+    TorchErrors,
+    prepare_shifted,
+    track_conveyor_seam,
+)
 
 __all__ = [
     "BUNDLED_MODELS",
+    "SEAM_KINDS",
+    "SEAM_POSITION_GAIN_1_S",
+    "Conveyor",
+    "ConveyorRun",
     "CycleLog",
     "DelayPredictions",
     "DelayPredictor",
@@ -47,25 +70,36 @@ __all__ = [
     "InterceptResult",
     "JointPlan",
     "MeetPlan",
+    "Seam",
+    "SeamPlan",
     "SeamResult",
     "StaleStateError",
     "StalenessLimits",
     "StateEstimate",
     "TimedExecutor",
     "TimingBounds",
+    "TorchErrors",
+    "TrackingDelays",
     "UnreachableError",
+    "WeldCell",
     "bundled_model_dir",
     "check_model_robot",
     "check_target",
     "compare_seam_tracking",
+    "default_cell",
     "delay_cdf",
     "delay_quantile",
+    "fit_joint_lags",
     "intercept",
     "load_delay_model",
+    "measure_tracking_delays",
     "model_period_s",
     "plan_motion",
+    "plan_seam",
     "predict_delays",
+    "prepare_shifted",
     "solve_position_ik",
     "tool_radius_m",
+    "track_conveyor_seam",
     "track_seam",
 ]

@@ -108,7 +108,9 @@ class TimedExecutor:
     compensate : bool
         False streams the plan without any shift (the "none" strategy).
     stop_deceleration_rad_s2 : float, optional
-        Deceleration of a fault stop (default: the spec's largest acceleration limit).
+        Deceleration of a fault stop, rad/s² (default: the spec's smallest joint
+        acceleration limit, which every joint and every driver accepts: a driver that checks
+        per joint, as the RSI driver does, refuses a stop above a joint's own limit).
     coast : bool
         Experimental. While streaming, send each cycle's command on the controller's clock
         even when its package is late: if no package has arrived half a period after the earliest time
@@ -231,7 +233,7 @@ class TimedExecutor:
     def _decel(self) -> float:
         if self._stop_decel is not None:
             return float(self._stop_decel)
-        return float(max(self.spec.qdd_max_rad_s2))
+        return float(min(self.spec.qdd_max_rad_s2))
 
     # ------------------------------------------------------------------ predictions
     def predict(self, q_rad: ArrayLike, directions: ArrayLike | None = None) -> DelayPredictions:

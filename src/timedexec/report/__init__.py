@@ -10,6 +10,7 @@ from timedexec.report._figures import (
     fig_psd,
     fig_seam,
     fig_trial,
+    fig_welding,
 )
 from timedexec.report._report import (
     build_report,
@@ -27,6 +28,7 @@ __all__ = [
     "fig_psd",
     "fig_seam",
     "fig_trial",
+    "fig_welding",
     "published_table_markdown",
     "run_demo",
 ]

@@ -5,7 +5,8 @@
 * Fig. 6 — a model's delay against the joint 2 and joint 3 angles with its ±2σ band;
 * Figs. 7 and 9 — actuation and response delay histograms;
 * Figs. 8 and 10 — per-joint boxplots of both delays;
-* the conveyor (seam-tracking) run with and without compensation.
+* the conveyor (seam-tracking) run with and without compensation;
+* the welder's figure: a weld on a straight belt, torch over the seam for each strategy.
 """
 
 from __future__ import annotations
@@ -25,7 +26,15 @@ from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
 from timedexec.sim import pulse_profile
 
-__all__ = ["fig_boxplots", "fig_histograms", "fig_model", "fig_psd", "fig_seam", "fig_trial"]
+__all__ = [
+    "fig_boxplots",
+    "fig_histograms",
+    "fig_model",
+    "fig_psd",
+    "fig_seam",
+    "fig_trial",
+    "fig_welding",
+]
 
 _DELAY_LABEL = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
 
@@ -280,4 +289,68 @@ def fig_seam(result: dict[str, Any], path: str | os.PathLike[str]) -> Path:
         f"{result['robot']}: following a seam at {result['speed_m_s']:g} m/s (positive: late)"
     )
     ax.legend(fontsize=8)
+    return _save(fig, Path(path))
+
+
+#: Colours of the welding strategies (fixed, so figures of different runs compare).
+_WELD_COLORS = {
+    "none": "tab:red",
+    "constant": "tab:orange",
+    "median": "tab:olive",
+    "model": "tab:green",
+    "oracle": "tab:blue",
+    "model + feedback": "tab:purple",
+}
+
+
+def fig_welding(data: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """The welder's figure: the torch over the seam on a straight conveyor, per strategy.
+
+    ``data`` is :meth:`timedexec.welding.ConveyorEvaluation.figure_data` (or its JSON): one
+    run per strategy. Left: top view *on the part* (the belt's motion removed, so the seam
+    stands still): the seam and each strategy's torch tip, in mm from the seam start.
+    Right: the torch's error across the seam (top) and along it (bottom) over time, mm;
+    the shaded span is the cruise window the tables average over. Physical torch (the
+    simulator's joint angles), not what the robot reports.
+    """
+    fig, axes = subplots(1, 2, figsize=(12, 4.8))
+    top, right = axes
+    right.axis("off")
+    grid = right.get_gridspec()
+    sub = grid[0, 1].subgridspec(2, 1, hspace=0.08)
+    ax_across = fig.add_subplot(sub[0])
+    ax_along = fig.add_subplot(sub[1], sharex=ax_across)
+    runs = data["runs"]
+    speed = float(data["speed_m_s"])
+    seam_drawn = False
+    for name, run in runs.items():
+        t = np.asarray(run["times_s"], dtype=float)
+        if not len(t):
+            continue
+        shift = np.outer(t, [0.0, speed])  # belt along +y of the part view
+        torch = np.asarray(run["torch_xy_m"]) - shift
+        seam = np.asarray(run["seam_xy_m"]) - shift
+        origin = seam[0]
+        color = _WELD_COLORS.get(name)
+        if not seam_drawn:
+            top.plot(*((seam - origin) * 1e3).T, color="k", lw=3, alpha=0.35, label="seam")
+            seam_drawn = True
+        top.plot(*((torch - origin) * 1e3).T, color=color, lw=1.2, label=name)
+        ax_across.plot(t * 1e3, run["across_mm"], color=color, lw=1.2, label=name)
+        ax_along.plot(t * 1e3, run["along_mm"], color=color, lw=1.2)
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xlabel("on the part, across the belt (mm)")
+    top.set_ylabel("on the part, along the belt (mm)")
+    top.set_title(f"{data['robot']}: {data['seam']} seam, belt {speed:g} m/s (top view on the part)")
+    top.legend(fontsize=8)
+    settle, cruise = float(data.get("settle_s", np.nan)), float(data.get("cruise_s", np.nan))
+    for ax in (ax_across, ax_along):
+        ax.axhline(0.0, color="k", lw=0.8)
+        if np.isfinite(settle) and np.isfinite(cruise):
+            ax.axvspan(settle * 1e3, (settle + cruise) * 1e3, color="0.9", zorder=0)
+    ax_across.set_ylabel("across the seam (mm)")
+    ax_along.set_ylabel("along the seam (mm)")
+    ax_along.set_xlabel("time after meeting the seam (ms)")
+    ax_across.legend(fontsize=7, ncol=3)
+    ax_across.tick_params(labelbottom=False)
     return _save(fig, Path(path))

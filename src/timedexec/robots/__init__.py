@@ -3,7 +3,8 @@
 A :class:`RobotSpec` (``_spec``) holds a robot's standard Denavit-Hartenberg kinematics, its
 inertial data, its joint limits and its controller period; the built-in robots (UR10,
 UR10e, KR 5 sixx) are data in ``_catalog`` (:func:`get_robot`); the kinematics and
-rigid-body quantities are plain vectorised functions in ``_dynamics``.
+rigid-body quantities are plain vectorised functions in ``_dynamics``; the pose of a tool on
+the flange, its Jacobian and the inverse kinematics in ``_ik``.
 
 Conventions
 -----------
@@ -27,6 +28,7 @@ from timedexec.robots._dynamics import (
     joint_axis_in_tool,
     joint_inertia,
 )
+from timedexec.robots._ik import rotation_error, solve_ik, tool_jacobian, tool_pose
 from timedexec.robots._spec import N_JOINTS, ROBOT_NAMES, RobotSpec, check_configuration
 
 __all__ = [
@@ -40,4 +42,8 @@ __all__ = [
     "gravity_torque_coefficients",
     "joint_axis_in_tool",
     "joint_inertia",
+    "rotation_error",
+    "solve_ik",
+    "tool_jacobian",
+    "tool_pose",
 ]

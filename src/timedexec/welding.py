@@ -1,0 +1,578 @@
+"""Conveyor welding on the simulator: the physical torch error of each compensation strategy.
+
+The task (:func:`timedexec.execution.track_conveyor_seam`): a straight belt at
+``speed_m_s`` carries a part; the torch, orientation held, meets a seam on it (straight or
+curved, across the belt), welds along it at 0.05 m/s relative to the part, every joint
+moving, streamed through the :class:`~timedexec.execution.TimedExecutor` on ``sim://``. The
+error is the torch tip from the simulator's *physical* joint angles minus the seam point at
+the same instant, over the cruise (from ``settle_s`` after the meeting, ``cruise_s`` long):
+mean, RMS and max of the distance, and along / across the seam.
+
+What each strategy shifts joint ``j``'s command stream by — the **tracking delay**, the
+lag a moving arm keeps (:mod:`timedexec.execution._tracking`):
+
+``none``      0 (no compensation);
+``constant``  one latency for all joints: the median of every joint's measured tracking
+              delay over the calibration runs (MoveIt Servo's single latency);
+``median``    per joint, the median over the calibration runs;
+``model``     the learned onset-delay model at the plan's start configuration and
+              directions, minus a per-joint correction (onset - tracking) from the
+              calibration runs (:class:`~timedexec.execution.TrackingDelays`);
+``oracle``    the true mean tracking delay of each joint *on this very path*: the shift that
+              best aligns the physical joint with its command (least squares over the
+              cruise), averaged over ``oracle_draws`` runs with fresh publisher phases (none
+              of them an evaluated run). It knows the path, the pose and the physics, but not
+              the evaluated run's phase: the best any per-joint constant shift can do.
+
+Calibration runs are uncompensated welds of the same seam at other work points (the cell's
+work point moved by up to 5 cm), measured from the *reported* positions back-dated by the
+model's response delay (what a real cell gives; phase-free, see the tracking module).
+Evaluated: ``cells`` work points x ``seeds`` publisher phases per strategy, the phases
+stratified over their range (:func:`phase_seeds`; the oracle's draws too).
+
+``onset_strategies`` (optional) runs the same welds with the *onset* delays (what
+:func:`timedexec.evaluation.evaluate` compares: overall and per-joint medians of simulated
+calibration trials, the model's prediction, and :class:`SimulatedOracle`'s conditional mean):
+the torch then leads the seam. ``feedback`` adds ``model + feedback``: the tracking shift
+plus the executor's Smith-predictor position correction.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from timedexec._progress import Progress
+from timedexec.effects import EffectSet, default_effects
+from timedexec.errors import ConfigError
+from timedexec.evaluation import STRATEGIES, SimulatedOracle
+from timedexec.execution import (
+    SEAM_KINDS,
+    SEAM_POSITION_GAIN_1_S,
+    ConveyorRun,
+    DelayPredictor,
+    Seam,
+    SeamPlan,
+    TimedExecutor,
+    TrackingDelays,
+    WeldCell,
+    check_model_robot,
+    default_cell,
+    fit_joint_lags,
+    load_delay_model,
+    measure_tracking_delays,
+    plan_seam,
+    track_conveyor_seam,
+)
+from timedexec.recording import SweepPlan
+from timedexec.robots import get_robot
+from timedexec.sim import simulate_delays
+
+__all__ = [
+    "ConveyorEvaluation",
+    "conveyor_cells",
+    "evaluate_conveyor",
+    "phase_seeds",
+    "physical_tracking_delays",
+    "run_weld",
+    "weld_on_twin",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Seed offsets so that evaluated runs, oracle draws and calibration never share a phase.
+_ORACLE_SEED = 5_000
+_CAL_SEED = 9_000
+#: Warm robot time for the onset oracle and calibration trials (4 h into a sweep), s.
+_WARM_S = 4 * 3600.0
+
+
+def warm(robot: str) -> EffectSet:
+    """The robot's default effects, warmed up (no cold-start friction)."""
+    return default_effects(robot).without("thermal_drift")
+
+
+def phase_seeds(robot: str, n: int, start: int) -> list[int]:
+    """``n`` simulator seeds whose state publishers' phases stratify their range.
+
+    The publisher's phase (sampling to sending, drawn per seed, drifting over 47 s) moves
+    time between the actuation and the response delay and dominates a single run's torch
+    error; one seed per ``1/n`` of its range (the first from ``start`` on that falls in each
+    bin) estimates the mean over phases with far less variance than ``n`` random seeds
+    (stratified sampling).
+    """
+    from timedexec.sim import ControllerSim
+
+    picked: dict[int, int] = {}
+    s = int(start)
+    while len(picked) < n:
+        ctrl = ControllerSim(robot, seed=s)
+        lo, hi = ctrl.settings.timing.packing_phase_s
+        frac = (ctrl.packing_phase_s(0.0) - lo) / (hi - lo) if hi > lo else 0.0
+        picked.setdefault(min(int(frac * n), n - 1), s)
+        s += 1
+    return [picked[k] for k in sorted(picked)]
+
+
+def conveyor_cells(
+    robot: str, n: int, seed: int, *, speed_m_s: float = 0.5, spread_m: float = 0.05
+) -> list[WeldCell]:
+    """``n`` weld cells: the built-in one (first) and work points moved by up to
+    ``spread_m`` (m) in x and y, seeded."""
+    base = default_cell(robot, speed_m_s=speed_m_s)
+    rng = np.random.default_rng([seed, 0xCE11])
+    cells = [base]
+    while len(cells) < n:
+        dx, dy = rng.uniform(-spread_m, spread_m, 2)
+        p = np.asarray(base.work_point_m) + np.array([dx, dy, 0.0])
+        cells.append(
+            WeldCell(
+                robot=base.robot,
+                work_point_m=(float(p[0]), float(p[1]), float(p[2])),
+                torch_rotation=base.torch_rotation,
+                tool_m=base.tool_m,
+                seed_q_rad=base.seed_q_rad,
+                conveyor=base.conveyor,
+            )
+        )
+    return cells
+
+
+def run_weld(
+    seam_plan: SeamPlan,
+    model: Any,
+    *,
+    seed: int,
+    shift_s: Any = None,
+    compensate: bool = True,
+    position_gain_1_s: float = 0.0,
+    effects: EffectSet | None = None,
+    settle_s: float = 0.15,
+    cruise_s: float = 0.6,
+) -> ConveyorRun:
+    """One weld on ``sim://`` (virtual time), starting at rest at the approach's start.
+
+    ``seed`` sets the controller's publisher phase and the network jitter; ``shift_s``
+    (6,), s, the command shifts (None: the model's onset prediction).
+    """
+    from timedexec.drivers import SimDriver
+
+    cell = seam_plan.cell
+    drv = SimDriver(
+        cell.robot,
+        q0_rad=seam_plan.plan.q_start_rad,
+        effects=effects if effects is not None else warm(cell.robot),
+        seed=seed,
+    )
+    with TimedExecutor(
+        drv, model, compensate=compensate, position_gain_1_s=position_gain_1_s
+    ) as ex:
+        return track_conveyor_seam(
+            ex, cell, seam_plan.seam, seam_plan=seam_plan, shift_s=shift_s,
+            settle_s=settle_s, cruise_s=cruise_s,
+        )  # fmt: skip
+
+
+def physical_tracking_delays(run: ConveyorRun) -> FloatArray:
+    """Per joint, the shift that would have aligned the *physical* joint with its command
+    over the run's cruise (the truth behind :func:`measure_tracking_delays`), s (6,)."""
+    t = run.truth_s - run.sync_time_s
+    keep = (t >= run.settle_s) & (t <= run.settle_s + run.cruise_s)
+    return np.asarray(fit_joint_lags(run.plan, run.truth_s[keep], run.truth_q[keep]) + run.shifts_s)
+
+
+@dataclass
+class ConveyorEvaluation:
+    """Result of :func:`evaluate_conveyor` (see :meth:`to_dict`)."""
+
+    robot: str
+    seam: str
+    speed_m_s: float
+    strategies: dict[str, dict[str, float]]
+    onset_strategies: dict[str, dict[str, float]] = field(default_factory=dict)
+    details: dict[str, Any] = field(default_factory=dict)
+    examples: dict[str, ConveyorRun] = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"robot", "task": "conveyor", "seam", "speed_m_s", "strategies": {name:
+        {"torch_mean_mm", "torch_rms_mm", "torch_max_mm", "along_*", "across_*", ...}},
+        "onset_strategies": {...}, ...details}`` (distances over the cruise, physical
+        torch against the seam)."""
+        return {
+            "robot": self.robot,
+            "task": "conveyor",
+            "seam": self.seam,
+            "speed_m_s": self.speed_m_s,
+            "strategies": self.strategies,
+            "onset_strategies": self.onset_strategies,
+            **self.details,
+        }
+
+    def ratio(self, strategy: str) -> float:
+        """How many times smaller ``strategy``'s mean torch distance is than with none."""
+        return float(
+            self.strategies["none"]["torch_mean_mm"] / self.strategies[strategy]["torch_mean_mm"]
+        )
+
+    def figure_data(self) -> dict[str, Any]:
+        """JSON-safe time series of one run per strategy (the first cell and seed) for
+        :func:`timedexec.report.fig_welding`: ``runs: {name: {times_s, torch_xy_m,
+        seam_xy_m, along_mm, across_mm}}``."""
+        runs = {}
+        for name, run in self.examples.items():
+            err = run.errors(window=False)
+            q = run.truth_q
+            t = run.truth_s - run.sync_time_s
+            keep = (t >= 0) & (t <= run.seam_plan.weld_s)
+            torch = run.seam_plan.torch_m(q[keep])
+            point, _, _ = run.seam_plan.target(t[keep])
+            runs[name] = {
+                "times_s": t[keep].round(5).tolist(),
+                "torch_xy_m": torch[:, :2].round(6).tolist(),
+                "seam_xy_m": point[:, :2].round(6).tolist(),
+                "along_mm": (err.along_m * 1e3).round(4).tolist(),
+                "across_mm": (err.across_m * 1e3).round(4).tolist(),
+            }
+        first = next(iter(self.examples.values()), None)
+        return {
+            "robot": self.robot,
+            "seam": self.seam,
+            "speed_m_s": self.speed_m_s,
+            "settle_s": first.settle_s if first else math.nan,
+            "cruise_s": first.cruise_s if first else math.nan,
+            "runs": runs,
+        }
+
+    def table(self) -> str:
+        """Human-readable table (mm)."""
+        d = self.details
+        lines = [
+            f"{self.robot}: conveyor at {self.speed_m_s:g} m/s, {self.seam} seam welded at "
+            f"{d.get('weld_speed_m_s', math.nan):g} m/s; physical torch over "
+            f"{d.get('cruise_s', math.nan):g} s of cruise, {d.get('n_runs', 0)} runs per "
+            "strategy",
+            f"{'strategy':<18} {'mean':>7} {'RMS':>7} {'max':>7} {'along':>7} {'across':>7} "
+            f"{'vs none':>8}   (mm; along/across: mean, signed)",
+        ]
+
+        def row(name: str, s: dict[str, float]) -> str:
+            base = self.strategies["none"]["torch_mean_mm"]
+            return (
+                f"{name:<18} {s['torch_mean_mm']:>7.2f} {s['torch_rms_mm']:>7.2f} "
+                f"{s['torch_max_mm']:>7.2f} {s['along_mean_mm']:>+7.2f} "
+                f"{s['across_mean_mm']:>+7.2f} {base / s['torch_mean_mm']:>7.1f}x"
+            )
+
+        lines += [row(name, s) for name, s in self.strategies.items()]
+        if self.onset_strategies:
+            lines.append("shifted by the onset (actuation) delay instead:")
+            lines += [row(f"  {name}", s) for name, s in self.onset_strategies.items()]
+        shifts = d.get("shift_ms", {})
+        if shifts:
+            lines.append("command shifts (ms, joints 1-6, first cell):")
+            for name, v in shifts.items():
+                lines.append(f"  {name:<16} " + " ".join(f"{x:6.1f}" for x in v))
+        lines += [f"note: {text}" for text in d.get("notes", [])]
+        return "\n".join(lines)
+
+
+def _pool(runs: list[ConveyorRun]) -> dict[str, float]:
+    """Statistics over the cruise samples of every run (and per-run spread)."""
+    errs = [r.errors() for r in runs]
+    d = np.concatenate([e.distance_m for e in errs])
+    along = np.concatenate([e.along_m for e in errs])
+    across = np.concatenate([e.across_m for e in errs])
+    vertical = np.concatenate([e.vertical_m for e in errs])
+    per_run = np.array([float(np.mean(e.distance_m)) for e in errs]) * 1e3
+
+    def rms(x: FloatArray) -> float:
+        return float(np.sqrt(np.mean(x**2))) * 1e3
+
+    return {
+        "torch_mean_mm": float(np.mean(d)) * 1e3,
+        "torch_rms_mm": rms(d),
+        "torch_max_mm": float(np.max(d)) * 1e3,
+        "along_mean_mm": float(np.mean(along)) * 1e3,
+        "along_rms_mm": rms(along),
+        "along_max_mm": float(np.max(np.abs(along))) * 1e3,
+        "across_mean_mm": float(np.mean(across)) * 1e3,
+        "across_rms_mm": rms(across),
+        "across_max_mm": float(np.max(np.abs(across))) * 1e3,
+        "vertical_rms_mm": rms(vertical),
+        "run_mean_mm_min": float(np.min(per_run)),
+        "run_mean_mm_max": float(np.max(per_run)),
+        "missed_cycles": int(sum(r.execution.missed_cycles for r in runs)),
+        "runs": len(runs),
+    }
+
+
+def _onset_medians(
+    robot: str, n: int, seed: int, effects: EffectSet
+) -> tuple[float, FloatArray, float]:
+    """Overall and per-joint medians of simulated onset delays (a calibration sample of
+    ``n`` configurations x joints 1/2/3/5 x both directions), and the response median."""
+    spec = get_robot(robot)
+    plan = SweepPlan.generate(spec, 80 * n, seed=seed)
+    first = plan.repeat == 0
+    q, j, d = plan.q_start_rad[first], plan.joint[first], plan.direction[first]
+    tab = simulate_delays(spec, q, j, d, np.full(len(j), _WARM_S), effects=effects, seed=seed)
+    act = np.asarray(tab["actuation_delay"], dtype=float)
+    overall = float(np.median(act))
+    per_joint = np.full(6, overall)
+    for k in np.unique(j):
+        per_joint[k - 1] = float(np.median(act[j == k]))
+    return overall, per_joint, float(np.median(tab["response_delay"]))
+
+
+def evaluate_conveyor(
+    robot: str,
+    model: DelayPredictor | str | os.PathLike[str] | None = None,
+    *,
+    seam: str = "straight",
+    speed_m_s: float = 0.5,
+    cells: int = 2,
+    seeds: int = 3,
+    oracle_draws: int = 4,
+    calibration_runs: int = 3,
+    seed: int = 20_261,
+    settle_s: float = 0.15,
+    cruise_s: float = 0.6,
+    onset: bool = True,
+    feedback: bool = True,
+    progress: bool = False,
+) -> ConveyorEvaluation:
+    """Physical torch error of the compensation strategies on the simulated conveyor weld.
+
+    Parameters
+    ----------
+    robot : {"ur10", "ur10e", "kr5"}
+    model : delay model, bundle path or None
+        Default: the bundled ``<robot>-sim``.
+    seam : {"straight", "curved"}
+    speed_m_s : float
+        Belt speed, m/s.
+    cells, seeds : int
+        Work points (the built-in cell first) and publisher phases per work point: each
+        strategy runs ``cells x seeds`` welds.
+    oracle_draws : int
+        Runs per work point behind the oracle's mean tracking delay (>= 1).
+    calibration_runs : int
+        Uncompensated welds at other work points behind constant, median and the model's
+        correction (>= 1).
+    seed : int
+        Seeds the work points and every run's phase.
+    settle_s, cruise_s : float
+        The error window after the meeting, s.
+    onset : bool
+        Also run the strategies with onset-delay shifts (``onset_strategies``).
+    feedback : bool
+        Also run ``model + feedback`` (tracking shift and the Smith-predictor position
+        correction at :data:`~timedexec.execution.SEAM_POSITION_GAIN_1_S`).
+
+    Raises
+    ------
+    ConfigError
+        Bad counts, an unknown seam, a model for another robot.
+    """
+    spec = get_robot(robot)
+    if seam not in SEAM_KINDS:
+        raise ConfigError(f"seam={seam!r}; choose one of {', '.join(SEAM_KINDS)}")
+    for name, value, low in (
+        ("cells", cells, 1), ("seeds", seeds, 1), ("oracle_draws", oracle_draws, 1),
+        ("calibration_runs", calibration_runs, 1),
+    ):  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
+    if not (math.isfinite(speed_m_s) and speed_m_s > 0):
+        raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
+    predictor = load_delay_model(f"{spec.name}-sim" if model is None else model)
+    check_model_robot(predictor, spec.name, spec.controller_period_s)
+    effects = warm(spec.name)
+    the_seam = Seam(kind=seam)  # type: ignore[arg-type]
+    t_begin = time.monotonic()
+    weld_s = settle_s + cruise_s + 0.05
+    n_onset = 4 if onset else 0
+    total = calibration_runs + cells * (
+        oracle_draws + seeds * (len(STRATEGIES) + n_onset + int(feedback))
+    )
+    bar = Progress(total, f"conveyor {spec.name}", enabled=progress)
+
+    def plan_for(cell: WeldCell) -> SeamPlan:
+        return plan_seam(cell, the_seam, weld_s=weld_s)
+
+    def weld(sp: SeamPlan, k: int, **kw: Any) -> ConveyorRun:
+        run = run_weld(sp, kw.pop("model", predictor), seed=k, effects=effects,
+                       settle_s=settle_s, cruise_s=cruise_s, **kw)  # fmt: skip
+        bar.update(1)
+        return run
+
+    # Calibration: uncompensated welds at other work points, measured as a real cell would.
+    cal_cells = conveyor_cells(spec.name, calibration_runs + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
+    onsets, tracks = [], []
+    for i, cell in enumerate(cal_cells):
+        run = weld(plan_for(cell), seed + _CAL_SEED + i, compensate=False)
+        onsets.append(np.asarray(run.plan.meta["predicted_actuation_s"]))
+        tracks.append(measure_tracking_delays(run))
+    tracks_arr = np.asarray(tracks)
+    constant = float(np.median(tracks_arr))
+    median = np.median(tracks_arr, axis=0)
+    tracking_model = TrackingDelays.calibrate(predictor, onsets, tracks)
+    if onset:
+        on_all, on_joint, _ = _onset_medians(spec.name, 40, seed + _CAL_SEED, effects)
+        onset_oracle = SimulatedOracle(spec.name, draws=20, t_start_s=_WARM_S, effects=effects, seed=seed + 77)  # fmt: skip
+
+    results: dict[str, list[ConveyorRun]] = {}
+    examples: dict[str, ConveyorRun] = {}
+    shift_log: dict[str, list[float]] = {}
+
+    def add(name: str, run: ConveyorRun, first: bool) -> None:
+        results.setdefault(name, []).append(run)
+        if first:
+            examples[name] = run
+            shift_log[name] = (run.shifts_s * 1e3).round(2).tolist()
+
+    oracle_shifts = []
+    for c, cell in enumerate(conveyor_cells(spec.name, cells, seed, speed_m_s=speed_m_s)):
+        sp = plan_for(cell)
+        draws = [
+            physical_tracking_delays(weld(sp, k, compensate=False))
+            for k in phase_seeds(spec.name, oracle_draws, seed + _ORACLE_SEED + 1000 * c)
+        ]
+        oracle = np.mean(draws, axis=0)
+        oracle_shifts.append(oracle)
+        for s, k in enumerate(phase_seeds(spec.name, seeds, seed + 1000 * c)):
+            first = c == 0 and s == 0
+            add("none", weld(sp, k, compensate=False), first)
+            add("constant", weld(sp, k, shift_s=np.full(6, constant)), first)
+            add("median", weld(sp, k, shift_s=median), first)
+            add("model", weld(sp, k, model=tracking_model), first)
+            add("oracle", weld(sp, k, shift_s=oracle), first)
+            if feedback:
+                add("model + feedback", weld(sp, k, model=tracking_model,
+                                             position_gain_1_s=SEAM_POSITION_GAIN_1_S), first)  # fmt: skip
+            if onset:
+                add("onset constant", weld(sp, k, shift_s=np.full(6, on_all)), first)
+                add("onset median", weld(sp, k, shift_s=on_joint), first)
+                add("onset model", weld(sp, k), first)
+                add("onset oracle", weld(sp, k, model=onset_oracle), first)
+    bar.close()
+    pooled = {name: _pool(runs) for name, runs in results.items()}
+    strategies = {name: pooled[name] for name in STRATEGIES}
+    if feedback:
+        strategies["model + feedback"] = pooled["model + feedback"]
+    onset_rows = {n.removeprefix("onset "): pooled[n] for n in pooled if n.startswith("onset ")}
+    details: dict[str, Any] = {
+        "weld_speed_m_s": the_seam.weld_speed_m_s,
+        "settle_s": settle_s,
+        "cruise_s": cruise_s,
+        "cells": cells,
+        "seeds_per_cell": seeds,
+        "n_runs": cells * seeds,
+        "oracle_draws": oracle_draws,
+        "calibration_runs": calibration_runs,
+        "seed": seed,
+        "tracking_ms": {
+            "constant": constant * 1e3,
+            "median": (median * 1e3).round(3).tolist(),
+            "model_correction": (np.asarray(tracking_model.correction_s) * 1e3).round(3).tolist(),
+            "oracle": (np.mean(oracle_shifts, axis=0) * 1e3).round(3).tolist(),
+            "calibration_measured": (tracks_arr * 1e3).round(3).tolist(),
+        },
+        "shift_ms": shift_log,
+        "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
+        "notes": [],
+    }
+    details["elapsed_s"] = time.monotonic() - t_begin
+    return ConveyorEvaluation(
+        robot=spec.name,
+        seam=seam,
+        speed_m_s=float(speed_m_s),
+        strategies=strategies,
+        onset_strategies=onset_rows,
+        details=details,
+        examples=examples,
+    )
+
+
+def weld_on_twin(
+    seam_plan: SeamPlan,
+    model: Any,
+    shifts_s: dict[str, Any],
+    *,
+    seed: int = 1,
+    host: str = "127.0.0.61",
+    rsi_port: int | None = None,
+    stale_periods: float = 25.0,
+    settle_s: float = 0.15,
+    cruise_s: float = 0.6,
+    truth_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, ConveyorRun]:
+    """The same welds through a real client against a protocol twin, with its ground truth.
+
+    UR robots: a :class:`~timedexec.twins.URTwin` (own process, real time) on ``host`` and
+    the real ``ur_rtde`` client (:class:`~timedexec.drivers.URDriver`); the KR 5: an
+    :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
+    :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
+    weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s, or None for no
+    compensation), one twin for all, the robot brought back to the approach's start between
+    welds. The torch truth: the reported angles are the twin's physical angles at each
+    package's sampling instant, and the twin publishes the host time of its controller time
+    0 (:meth:`ConveyorRun.with_truth`).
+
+    ``stale_periods`` is generous (25 periods) because the executor, ur_rtde's receive
+    thread and the twin share a loaded two-core machine; a stale fault stops the weld.
+    """
+    cell = seam_plan.cell
+    spec = cell.spec
+    effects = warm(spec.name)
+    q0 = seam_plan.plan.q_start_rad
+    out: dict[str, ConveyorRun] = {}
+    model = load_delay_model(model)  # once: a GP's first query takes seconds
+    check_model_robot(model, spec.name, spec.controller_period_s)
+    model.predict_many(np.array([1]), np.array([1]), q0.reshape(1, 6))
+    # A fault stop's deceleration must suit every joint (the RSI driver checks each joint).
+    decel = float(min(spec.qdd_max_rad_s2))
+    if spec.vendor == "universal_robots":
+        from timedexec.drivers import URDriver
+        from timedexec.twins import URTwin
+
+        truth = None if truth_dir is None else os.path.join(truth_dir, "ur-truth.jsonl")
+        with URTwin(
+            spec.name, host, seed=seed, effects=effects, q0_rad=q0, truth_path=truth
+        ) as twin:
+            for name, shift in shifts_s.items():
+                with TimedExecutor(URDriver(host, robot=spec.name), model,
+                                   compensate=shift is not None, stale_periods=stale_periods,
+                                   stop_deceleration_rad_s2=decel) as ex:  # fmt: skip
+                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+                    back = ex.plan(q0)
+                    ex.execute(back, start_time_s=ex.now() + ex.lead_time_s(back) + 0.05)
+                out[name] = run.with_truth(twin.t0_monotonic_s)
+        return out
+    from timedexec.drivers import KukaRSIDriver
+    from timedexec.twins import RSITwin
+
+    with KukaRSIDriver(rsi_port or 0, robot=spec.name) as drv:
+        truth = None if truth_dir is None else os.path.join(truth_dir, "rsi-truth.jsonl")
+        with RSITwin(drv.port, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
+                     timeout_packets=2000) as twin:  # fmt: skip
+            for name, shift in shifts_s.items():
+                ex = TimedExecutor(drv, model, compensate=shift is not None,
+                                   stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
+                ex.connect()
+                run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                          shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+                back = ex.plan(q0)
+                ex.execute(back, start_time_s=ex.now() + ex.lead_time_s(back) + 0.05)
+                last: Any = ex.last_state
+                # Driver controller time counts from its first IPOC; the twin's from its start.
+                offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s
+                out[name] = run.with_truth(twin.t0_host_s + offset)
+    return out
