@@ -86,3 +86,101 @@ def test_sigkill_at_random_moments_then_resume_records_each_trial_once(tmp_path)
     assert all(f == "" for f in table["flag"])
     err = np.abs(table["actuation_delay"] - table["true_actuation_delay"])
     assert err.max() < 1e-3  # same 1 ms bound as a live run; sessions are fitted separately
+
+
+# ------------------------------------------------------------------ Ctrl-C during a sweep
+
+
+def start_interruptible(cmd: list[str]) -> subprocess.Popen:
+    """Start ``cmd`` with Ctrl-C (SIGINT) handled as in a terminal: a shell without job
+    control starts background jobs, and so this test runner, with SIGINT ignored, which the
+    child would inherit (Python then installs no KeyboardInterrupt handler)."""
+    return subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
+def interrupt_when(cmd: list[str], out, ready) -> subprocess.CompletedProcess:
+    """Run ``cmd``, send it SIGINT (Ctrl-C) once ``ready(n_trials)`` holds for ``out``."""
+    proc = start_interruptible(cmd)
+    deadline = time.monotonic() + 120
+    n = 0
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            with RecordingReader(out) as r:
+                n = r.n_trials
+        except Exception:  # not created yet
+            n = 0
+        if ready(n):
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    ended_early = proc.poll() is not None
+    stdout, stderr = proc.communicate(timeout=120)
+    assert not ended_early, f"the sweep ended before it was interrupted: {stdout} {stderr}"
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
+
+
+def resume_line(command: str, out, options: str) -> str:
+    """The one line a sweep stopped by Ctrl-C prints."""
+    return (
+        f"timedexec {command}: interrupted; {out} keeps every finished trial; resume with: "
+        f"timedexec {command} {options} --out {out} --quiet --resume\n"
+    )
+
+
+def test_ctrl_c_during_simulate_exits_130_with_the_resume_command(tmp_path):
+    """Ctrl-C once `simulate` has recorded its first block: exit 130, nothing on stdout, one
+    line on stderr with the exact command that resumes; that command completes the sweep."""
+    out = tmp_path / "sim.h5"
+    options = "--robot ur10 --trials 3000 --seed 4"
+    cmd = [sys.executable, "-m", "timedexec.cli", "simulate", *options.split(),
+           "--out", str(out), "--quiet"]  # fmt: skip
+    run = interrupt_when(cmd, out, lambda n: n > 0)
+    assert run.returncode == 130, run.stderr
+    assert run.stdout == ""
+    assert run.stderr == resume_line("simulate", out, options)
+    with RecordingReader(out) as r:
+        assert 0 < r.n_trials < 3000
+    resume = run.stderr.split("resume with: ")[1].split()[2:]
+    assert main(["simulate", *resume]) == 0
+    with RecordingReader(out) as r:
+        np.testing.assert_array_equal(np.sort(r.read("trial")), np.arange(3000))
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_calibrate_exits_130_with_the_resume_command(tmp_path):
+    """Ctrl-C once `calibrate` has recorded a trial: exit 130, one line on stderr with the
+    exact command that resumes; that command records every remaining trial once. Slow: two
+    runs of the simulated robot (about 10 s each on the development VM)."""
+    out = tmp_path / "cal.h5"
+    run = interrupt_when(calibrate_cmd(out, trials=8), out, lambda n: n > 0)
+    assert run.returncode == 130, run.stderr
+    assert run.stdout == ""
+    assert run.stderr == resume_line("calibrate", out, "--robot-url sim://ur10 --trials 8 --seed 3")
+    resume = run.stderr.split("resume with: ")[1].split()[2:]
+    assert main(["calibrate", *resume]) == 0
+    with RecordingReader(out) as r:
+        np.testing.assert_array_equal(np.sort(r.read("trial")), np.arange(8))
+        assert set(r.read("session").tolist()) == {0, 1}
+
+
+def test_ctrl_c_before_anything_is_recorded_says_interrupted(tmp_path, monkeypatch, capsys):
+    """Ctrl-C before the recording exists (here: in the pre-flight): exit 130 and the one
+    line "interrupted", without a resume command (there is nothing to resume)."""
+    import timedexec.calibration
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(timedexec.calibration, "run_calibration", interrupted)
+    out = tmp_path / "never.h5"
+    code = main(["calibrate", "--robot-url", "sim://ur10", "--trials", "4", "--out", str(out),
+                 "--quiet"])  # fmt: skip
+    assert code == 130
+    assert capsys.readouterr().err == "timedexec calibrate: interrupted\n"
+    assert not out.exists()

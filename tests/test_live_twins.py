@@ -227,7 +227,7 @@ _LAGGING_GYRO_RUN = textwrap.dedent(
     from timedexec.drivers import open_driver
     from timedexec.extraction import extract_recording
     from timedexec.sensors import GyroSamples
-    from timedexec.sim import SweepPlan
+    from timedexec.recording import SweepPlan
 
     DELAY_S = 0.03
     FIELDS = ("counter_unwrapped", "host_time_s", "rate_rad_s", "raw", "arrival_s")

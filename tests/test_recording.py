@@ -432,6 +432,108 @@ def test_failed_append_leaves_no_trace(
         assert_rows_match(r.read, r.read("trial"))
 
 
+FAILING_HDF5_WRITE = r"""
+import errno, os, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import test_recording as T
+from timedexec.errors import RecordingError
+from timedexec.recording import RecordingWriter
+
+path, nth, code = sys.argv[2], int(sys.argv[3]), getattr(errno, sys.argv[4])
+real_pwrite, calls = os.pwrite, [0]
+
+def pwrite(fd, data, offset):
+    # HDF5's writes of a recording go through os.pwrite (the journal's through os.write)
+    calls[0] += 1
+    if calls[0] >= nth:
+        raise OSError(code, os.strerror(code))
+    return real_pwrite(fd, data, offset)
+
+os.pwrite = pwrite
+done = []
+try:
+    with RecordingWriter(path, header=T.HEADER, fields=T.FIELDS, checkpoint_bytes=T.CKPT,
+                         trials_per_chunk=8) as w:
+        w.write_static("plan", T.PLAN, unit="rad")
+        for start in range(0, 400, 10):
+            batch = list(range(start, start + 10))
+            try:
+                w.append(T.make_batch(batch))
+            except RecordingError as exc:
+                if "checkpoint" in str(exc):  # recorded, then the checkpoint failed
+                    done += batch
+                raise
+            done += batch
+except RecordingError as exc:
+    print("error", exc)
+print("done", *done, flush=True)
+"""
+
+
+@pytest.mark.parametrize("nth", [1, 20, 200])  # creating the file, first and later checkpoints
+@pytest.mark.parametrize("code", ["EIO", "ENOSPC"])
+def test_failing_hdf5_writes_end_cleanly_and_resume(tmp_path: Path, nth: int, code: str) -> None:
+    """HDF5 writes of the store failing from the nth on (an I/O error or a full disk, while
+    creating the file or in any of the checkpoints): a RecordingError, no crash when the
+    interpreter exits (it used to segfault: HDF5 cannot close a file whose write failed),
+    nothing on stderr; the recording holds every recorded batch and resumes to the end."""
+    path = tmp_path / "r.h5"
+    run = subprocess.run(
+        [sys.executable, "-c", FAILING_HDF5_WRITE, TESTS_DIR, str(path), str(nth), code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stderr == ""
+    lines = run.stdout.splitlines()
+    assert lines[0].startswith("error "), run.stdout  # every nth fails before the sweep ends
+    assert os.strerror(getattr(__import__("errno"), code)) in lines[0]
+    done = {int(t) for t in lines[-1].split()[1:]}
+    if not path.exists():  # the very first write failed: nothing was committed
+        assert done == set()
+        return
+    with RecordingReader(path) as r:
+        assert set(r.read("trial").tolist()) == done
+    side = {p.name.removeprefix(path.name) for p in tmp_path.iterdir()} - {""}
+    assert side <= {".journal", ".shadow"}, side  # no partial file, the lock released
+    finish_and_check(path, done, n_plan=400)
+
+
+def test_ctrl_c_during_a_checkpoint_is_held_until_it_is_done(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C (SIGINT) while a checkpoint has HDF5 writing is held until the checkpoint is
+    committed, then raised: a KeyboardInterrupt inside HDF5's write callbacks would abort
+    HDF5 half-way. Plain h5py then sees every trial and the writer goes on."""
+    path = tmp_path / "r.h5"
+    real_pwrite = os.pwrite
+    sent: list[int] = []
+
+    def pwrite(fd: int, data: bytes, offset: int) -> int:
+        """The first HDF5 write of the checkpoint: Ctrl-C arrives."""
+        if not sent:
+            sent.append(1)
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_pwrite(fd, data, offset)
+
+    with RecordingWriter(path, header=HEADER, fields=FIELDS) as w:
+        w.append(make_batch(range(10)))
+        monkeypatch.setattr(os, "pwrite", pwrite)
+        with pytest.raises(KeyboardInterrupt):
+            w.checkpoint()
+        monkeypatch.setattr(os, "pwrite", real_pwrite)
+        assert sent
+        with h5py.File(path, "r") as f:
+            assert f["trials/trial"].shape == (10,)
+        w.append(make_batch(range(10, 12)))
+    with RecordingReader(path) as r:
+        np.testing.assert_array_equal(np.sort(r.read("trial")), np.arange(12))
+        assert_rows_match(r.read, r.read("trial"))
+
+
 # --------------------------------------------------------------------------- bad input
 
 

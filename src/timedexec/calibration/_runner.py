@@ -7,6 +7,11 @@ the start pose), the later segments on later package arrivals; record every pack
 bytes and parsed) and the gyro stream until the window ends; append the trial to the
 recording. A still recording (for the PSD and the zero-rate) opens the sweep.
 
+Before anything is written, a pre-flight (:mod:`timedexec.calibration._preflight`) checks
+that the gyro streams at its rate and turns with the robot, so that a wrong port or a gyro
+that is not on the flange ends the run at once with a message, not with a sweep of
+flagged trials or an empty recording.
+
 Resumable: each trial is appended atomically, so a run killed at any moment loses at most
 the trial in flight; ``resume=True`` skips the recorded trials. Each run of the command is a
 *session* (its own host clock origin and gyro stream); the per-trial ``session`` field lets
@@ -18,18 +23,19 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._progress import Progress
 from timedexec._signal import ONSET_FRACTION
-from timedexec.drivers import RobotDriver, RobotState
-from timedexec.errors import ConfigError, DriverTimeout, RecordingError
+from timedexec.calibration._preflight import PreflightReport, check_motion, check_stream
+from timedexec.calibration._session import GyroSource, Session, gyro_name
+from timedexec.drivers import RobotDriver
+from timedexec.errors import ConfigError, RecordingError, SensorError
 from timedexec.recording import (
     Field,
     RecordingReader,
@@ -39,29 +45,40 @@ from timedexec.recording import (
     trial_fields,
     trial_layout,
 )
-from timedexec.sensors import GyroSamples
 
-__all__ = ["CalibrationResult", "GyroSource", "run_calibration"]
+__all__ = ["CalibrationResult", "run_calibration"]
 
 FloatArray = NDArray[np.float64]
 #: Raw bytes kept per state package (RTDE and RSI packages are a few hundred bytes).
 RAW_BYTES = 1024
-
-
-class GyroSource(Protocol):
-    """What the runner needs of a gyro: samples that have arrived, with raw counts."""
-
-    def read(self, n: int | None = None, *, timeout_s: float | None = 1.0) -> GyroSamples: ...
+#: Robot time the runner waits for gyro samples that are late before calling it a fault, s
+#: (USB and the reader deliver within tens of milliseconds).
+GYRO_STALL_S = 2.0
 
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """What :func:`run_calibration` did."""
+    """What :func:`run_calibration` did.
+
+    Attributes
+    ----------
+    path : Path
+        The recording.
+    n_planned : int
+        Trials in the plan.
+    n_recorded_now : int
+        Trials this run recorded.
+    session : int
+        This run's session number (0 for the first run, +1 per resume).
+    preflight : PreflightReport or None
+        What the pre-flight measured (None if it did not run).
+    """
 
     path: Path
     n_planned: int
     n_recorded_now: int
     session: int
+    preflight: PreflightReport | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe summary."""
@@ -70,6 +87,7 @@ class CalibrationResult:
             "planned": self.n_planned,
             "recorded_now": self.n_recorded_now,
             "session": self.session,
+            "preflight": None if self.preflight is None else self.preflight.to_dict(),
         }
 
 
@@ -112,74 +130,15 @@ def _live_fields(settings: SweepProtocol, truth: bool) -> list[Field]:
     ]
 
 
-class _Session:
-    """One run: the driver, the gyro buffer and the host clock origin."""
-
-    def __init__(
-        self, driver: RobotDriver, gyro: GyroSource, settings: SweepProtocol, origin_s: float
-    ) -> None:
-        self.driver = driver
-        self.gyro = gyro
-        self.settings = settings
-        self.origin_s = origin_s
-        self.buffer: deque[GyroSamples] = deque()
-        self.last: RobotState | None = None
-
-    def clock(self) -> float:
-        return float(getattr(self.driver, "clock", time.monotonic)())
-
-    def state(self, timeout_s: float = 0.5) -> RobotState:
-        st = self.driver.read_state(timeout_s=timeout_s)
-        self.last = st
-        got = self.gyro.read(timeout_s=0.0)
-        if len(got):
-            self.buffer.append(got)
-            horizon = st.host_time_s - 5.0
-            while self.buffer and len(self.buffer[0]) and self.buffer[0].arrival_s[-1] < horizon:
-                self.buffer.popleft()
-        return st
-
-    def samples(self) -> GyroSamples:
-        return GyroSamples.concatenate(list(self.buffer))
-
-    def wait_still(
-        self, *, min_s: float, speed_eps: float = 2e-3, packages: int = 10
-    ) -> RobotState:
-        start = self.state()
-        quiet = 0
-        while True:
-            st = self.state()
-            quiet = quiet + 1 if np.abs(st.qd).max() < speed_eps else 0
-            if quiet >= packages and st.host_time_s - start.host_time_s >= min_s:
-                return st
-            if st.host_time_s - start.host_time_s > 30.0:
-                raise DriverTimeout(
-                    "the robot did not come to rest within 30 s; check it is not moving"
-                )
-
-    def move_to(self, q_target: FloatArray, *, tol_rad: float = 5e-4) -> None:
-        """Drive to ``q_target`` with speed commands (works on every driver)."""
-        spec = self.settings.spec
-        vmax = 0.5 * np.asarray(spec.qd_max_rad_s)
-        st = self.state()
-        t_start = st.host_time_s
-        while True:
-            err = q_target - st.q
-            if np.abs(err).max() < tol_rad and np.abs(st.qd).max() < 0.01:
-                break
-            qd = np.clip(3.0 * err, -vmax, vmax)
-            qd = np.where(np.abs(err) < tol_rad, 0.0, qd)
-            self.driver.speedj(qd, 4.0, 0.0)
-            st = self.state()
-            if st.host_time_s - t_start > 60.0:
-                raise DriverTimeout(
-                    f"moving to the start configuration took over 60 s (error "
-                    f"{np.abs(err).max():.4f} rad); check the robot is enabled and free to move"
-                )
-        self.driver.speedj(np.zeros(6), 4.0, 0.0)
+def _gyro_stalled(sess: Session, what: str) -> SensorError:
+    return SensorError(
+        f"gyro {gyro_name(sess.gyro)} stopped delivering samples ({what}; nothing for "
+        f"{GYRO_STALL_S:.0f} s); check the sensor and its USB connection, then resume: the "
+        "recording keeps every finished trial"
+    )
 
 
-def _stillrecording(sess: _Session, duration_s: float) -> dict[str, NDArray[Any]]:
+def _stillrecording(sess: Session, duration_s: float) -> dict[str, NDArray[Any]]:
     st = sess.state()
     t_end = st.host_time_s + duration_s + 0.1
     while st.host_time_s < t_end:
@@ -187,6 +146,8 @@ def _stillrecording(sess: _Session, duration_s: float) -> dict[str, NDArray[Any]
     s = sess.samples()
     block = sess.settings.gyro.block_samples
     n = len(s) - len(s) % block
+    if n == 0:
+        raise _gyro_stalled(sess, "the still recording")
     raw = s.raw[:n]
     arrival = s.arrival_s[block - 1 : n : block] - sess.origin_s
     return {
@@ -197,48 +158,26 @@ def _stillrecording(sess: _Session, duration_s: float) -> dict[str, NDArray[Any]
 
 
 def _trial(
-    sess: _Session, plan: SweepPlan, i: int, session: int, truth: bool
+    sess: Session, plan: SweepPlan, i: int, session: int, truth: bool
 ) -> dict[str, NDArray[Any]]:
     settings = sess.settings
     prof = settings.profile
     lay = trial_layout(settings)
-    period = settings.controller_period_s
     joint = int(plan.joint[i])
     direction = float(plan.direction[i])
     qd = np.zeros(6)
     qd[joint - 1] = direction * prof.speed_rad_s
     a = prof.acceleration_rad_s2
-    ramp = prof.speed_rad_s / a
-    # Trigger: the arrival of a package; the command leaves on that arrival.
-    trigger = sess.state()
-    t0 = trigger.host_time_s
-    sess.driver.speedj(qd, a, 0.0)
-    t_send = float(getattr(sess.driver, "last_send_s", sess.clock()))
-    if not math.isfinite(t_send) or t_send < t0:
-        t_send = sess.clock()
-    # Later segments on later arrivals: decelerate, pause, back, decelerate.
-    pulse = prof.pulse_s
-    segments = [
-        (t_send + ramp + prof.hold_s, np.zeros(6)),
-        (t_send + pulse + prof.pause_s, -qd),
-        (t_send + 2 * pulse + prof.pause_s - ramp, np.zeros(6)),
-    ]
-    packages = [trigger]
-    while True:
-        st = sess.state()
-        if segments and st.host_time_s >= segments[0][0] - 0.5 * period:
-            sess.driver.speedj(segments.pop(0)[1], a, 0.0)
-        if st.host_time_s >= t0 + prof.record_s:
-            break
-        packages.append(st)
-    while segments:  # a slow stream: finish the motion anyway
-        sess.driver.speedj(segments.pop(0)[1], a, 0.0)
+    pulse = sess.pulse(joint, direction)
+    t0, t_send, packages, trigger = pulse.t0, pulse.t_send, pulse.packages, pulse.trigger
     # Gyro: wait until the window has arrived, then take G samples from its start.
     t_need = t0 + prof.record_s + 0.01
     st = sess.last or trigger
     while st.host_time_s < t_need:
         st = sess.state()
     samples = sess.samples()
+    if not len(samples):
+        raise _gyro_stalled(sess, f"trial {i}")
     start = int(np.searchsorted(samples.host_time_s, t0 - prof.pre_s))
     first = (
         int(samples.counter_unwrapped[start])
@@ -246,7 +185,9 @@ def _trial(
         else int(samples.counter_unwrapped[-1]) + 1
     )
     while len(samples) - start < lay.n_gyro:
-        sess.state()  # may drop the oldest buffered chunks: find the window's start again
+        st = sess.state()  # may drop the oldest buffered chunks: find the window's start again
+        if st.host_time_s > t_need + GYRO_STALL_S:
+            raise _gyro_stalled(sess, f"trial {i}")
         samples = sess.samples()
         start = int(np.searchsorted(samples.counter_unwrapped, first))
     sel = slice(start, start + lay.n_gyro)
@@ -290,8 +231,54 @@ def _trial(
         level = ONSET_FRACTION * prof.speed_rad_s
         out["true_onset_s"] = np.array([onset - t0])
         out["true_actuation_delay_s"] = np.array([onset - (t_send + level / a)])
-        out["true_response_delay_s"] = np.array([drv.true_response_delay_s(t0, t0 + prof.record_s)])
+        # the mean age of the packages this trial records (the first n_packages of the
+        # window; the window itself may hold one more, which the recording drops)
+        last = packages[: lay.n_packages][-1].host_time_s
+        out["true_response_delay_s"] = np.array([drv.true_response_delay_s(t0, last)])
     return out
+
+
+@dataclass(frozen=True)
+class _Recorded:
+    """What an earlier run recorded (nothing for a new recording)."""
+
+    done: NDArray[np.int64]
+    session: int
+    last_t0_s: float
+    has_still: bool
+
+
+def _recorded_so_far(out: Path, resume: bool, plan: SweepPlan) -> _Recorded:
+    """Read what ``out`` holds, without writing, so the pre-flight runs before any write.
+
+    Raises
+    ------
+    RecordingError
+        ``out`` exists and ``resume`` is False, or it holds another plan.
+    """
+    nothing = _Recorded(np.zeros(0, np.int64), 0, -math.inf, False)
+    if not out.exists():
+        return nothing
+    if not resume:
+        raise RecordingError(
+            f"recording {out} already exists; refusing to overwrite it. To continue an "
+            "interrupted sweep use --resume (resume=True); to start over delete it"
+        )
+    with RecordingReader(out) as r:
+        if r.header.get("plan") != plan.meta():
+            raise RecordingError(
+                f"{out} holds another plan ({r.header.get('plan')}); resume with the same "
+                "--trials/--seed or --plan"
+            )
+        has_still = r.has_static("still_gyro_raw")
+        if not r.n_trials:
+            return _Recorded(nothing.done, 0, -math.inf, has_still)
+        return _Recorded(
+            np.unique(r.read("trial")),
+            int(r.read("session").max()) + 1,
+            float(r.read("t0_s").max()),
+            has_still,
+        )
 
 
 def run_calibration(
@@ -304,6 +291,7 @@ def run_calibration(
     resume: bool = False,
     progress: bool = True,
     source: str = "",
+    preflight: bool = True,
 ) -> CalibrationResult:
     """Run (or resume) a calibration sweep and record it.
 
@@ -326,6 +314,27 @@ def run_calibration(
         Progress with ETA on stderr.
     source : str
         Where the data came from (the robot URL), for the header.
+    preflight : bool, default True
+        Check the gyro stream and that the gyro turns with the robot before anything is
+        written (see :mod:`timedexec.calibration._preflight`); the robot makes the first
+        trial's motion once more.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    ConfigError
+        The pre-flight found the gyro silent, sending something else, at the wrong rate,
+        or not turning with the robot (the message names it and what it saw); nothing was
+        written.
+    DriverError
+        The robot did not move in the pre-flight, or stopped answering.
+    SensorError
+        The gyro stopped delivering samples during the sweep (resume afterwards).
+    RecordingError
+        The recording cannot be written (disk full: resume when there is room) or resumed.
     """
     settings = protocol
     if plan.robot != settings.robot:
@@ -341,6 +350,23 @@ def run_calibration(
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }
     out = Path(out)
+    before = _recorded_so_far(out, resume, plan)
+    todo = np.setdiff1d(np.arange(len(plan)), before.done)
+    now = float(getattr(driver, "clock", time.monotonic)())
+    origin = now if not math.isfinite(before.last_t0_s) else now - (before.last_t0_s + 10.0)
+    sess = Session(driver, gyro, settings, origin)
+    if len(todo) or not before.has_still:
+        sess.catch_up()  # no motion planned on packages that waited in a queue
+    report = None
+    if preflight and (len(todo) or not before.has_still):
+        report = check_stream(sess)
+        if len(todo):
+            first = int(todo[0])
+            sess.move_to(plan.q_start_rad[first])
+            sess.wait_still(min_s=0.2)
+            report = check_motion(
+                sess, report, int(plan.joint[first]), float(plan.direction[first])
+            )
     with RecordingWriter(
         out, header=header, fields=_live_fields(settings, truth), resume=resume
     ) as w:
@@ -352,17 +378,7 @@ def run_calibration(
         for name, arr in plan.to_arrays().items():
             if not w.has_static(name):
                 w.write_static(name, arr)
-        done = w.completed_trials
-        session = 0
-        last_t0 = -math.inf
-        if len(done):
-            with RecordingReader(out) as r:
-                session = int(r.read("session").max()) + 1
-                last_t0 = float(r.read("t0_s").max())
-        todo = np.setdiff1d(np.arange(len(plan)), done)
-        now = float(getattr(driver, "clock", time.monotonic)())
-        origin = now if not math.isfinite(last_t0) else now - (last_t0 + 10.0)
-        sess = _Session(driver, gyro, settings, origin)
+        todo = np.setdiff1d(np.arange(len(plan)), w.completed_trials)
         if not w.has_static("still_gyro_raw"):
             if len(todo):
                 sess.move_to(plan.q_start_rad[todo[0]])
@@ -370,14 +386,16 @@ def run_calibration(
             for name, arr in _stillrecording(sess, settings.still_s).items():
                 w.write_static(name, arr)
         bar = Progress(len(todo), f"calibrate {settings.robot}", enabled=progress)
-        current = None
-        for i in todo:
-            if current is None or not np.allclose(plan.q_start_rad[i], current):
-                sess.move_to(plan.q_start_rad[i])
-                current = plan.q_start_rad[i]
-            sess.wait_still(min_s=settings.trial_gap_s)
-            w.append(_trial(sess, plan, int(i), session, truth))
-            bar.update()
-        bar.close()
+        try:
+            current = None
+            for i in todo:
+                if current is None or not np.allclose(plan.q_start_rad[i], current):
+                    sess.move_to(plan.q_start_rad[i])
+                    current = plan.q_start_rad[i]
+                sess.wait_still(min_s=settings.trial_gap_s)
+                w.append(_trial(sess, plan, int(i), before.session, truth))
+                bar.update()
+        finally:
+            bar.close()
         driver.stop()
-    return CalibrationResult(out, len(plan), len(todo), session)
+    return CalibrationResult(out, len(plan), len(todo), before.session, report)

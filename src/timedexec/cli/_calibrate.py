@@ -13,10 +13,12 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
+    shell_command,
+    sweep_stopped,
 )
 from timedexec.errors import ConfigError
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "resume_command", "run"]
 
 
 def add_parser(sub: Any) -> None:
@@ -86,27 +88,13 @@ def run(args: argparse.Namespace) -> int:
         if args.trials < 1:
             raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
         plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
+    if scheme != "sim" and not args.imu:
+        raise ConfigError("--imu is required for real robots: give the gyro's serial port")
     options = {"seed": args.seed} if scheme == "sim" else {}
-    driver = open_driver(args.robot_url, **options)
-    with driver:
-        if scheme == "sim" and not args.imu:
-            gyro: Any = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
-            result = run_calibration(
-                driver,
-                gyro,
-                plan,
-                args.out,
-                protocol=settings.protocol,
-                resume=args.resume,
-                progress=not args.quiet,
-                source=args.robot_url,
-            )
-        else:
-            if not args.imu:
-                raise ConfigError("--imu is required for real robots: give the gyro's serial port")
-            from timedexec.sensors import open_gyro
-
-            with open_gyro(args.imu) as gyro:
+    try:
+        with open_driver(args.robot_url, **options) as driver:
+            if scheme == "sim" and not args.imu:
+                gyro: Any = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
                 result = run_calibration(
                     driver,
                     gyro,
@@ -117,6 +105,22 @@ def run(args: argparse.Namespace) -> int:
                     progress=not args.quiet,
                     source=args.robot_url,
                 )
+            else:
+                from timedexec.sensors import open_gyro
+
+                with open_gyro(args.imu) as gyro:
+                    result = run_calibration(
+                        driver,
+                        gyro,
+                        plan,
+                        args.out,
+                        protocol=settings.protocol,
+                        resume=args.resume,
+                        progress=not args.quiet,
+                        source=args.robot_url,
+                    )
+    except (KeyboardInterrupt, OSError) as exc:
+        return sweep_stopped("calibrate", exc, args.out, resume_command(args))
     info = result.summary()
     emit(
         args,
@@ -124,6 +128,25 @@ def run(args: argparse.Namespace) -> int:
         f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}",
     )
     return 0
+
+
+def resume_command(args: argparse.Namespace) -> str:
+    """The command that continues this run: the same options and ``--resume``."""
+    return shell_command(
+        "calibrate",
+        [
+            ("--robot-url", args.robot_url),
+            ("--imu", args.imu),
+            ("--robot", args.robot),
+            ("--trials", args.trials),
+            ("--seed", args.seed),
+            ("--plan", args.plan),
+            ("--out", args.out),
+            ("--json", args.json),
+            ("--quiet", args.quiet),
+            ("--resume", True),
+        ],
+    )
 
 
 def _read_plan(path: str, robot: Any) -> Any:

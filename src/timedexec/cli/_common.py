@@ -9,18 +9,22 @@ command reads the same options the same way and a closed stdout is recognised in
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import json
 import math
 import os
+import shlex
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, RecordingError, TimedExecError
 from timedexec.robots import ROBOT_NAMES
 
 __all__ = [
+    "EXIT_INTERRUPTED",
     "JSON_CONVENTION",
     "MAX_SEED",
     "Formatter",
@@ -41,6 +45,8 @@ __all__ = [
     "note",
     "out",
     "robot_name",
+    "shell_command",
+    "sweep_stopped",
     "used_jobs",
     "warn",
 ]
@@ -360,3 +366,108 @@ def warn(command: str, message: str) -> None:
 def note(command: str, message: str) -> None:
     """A status line on stderr, prefixed with the command."""
     print(f"timedexec {command}: note: {message}", file=sys.stderr)
+
+
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it); the same
+#: number as ``timedexec.cli._main.EXIT_INTERRUPTED``, which imports this module.
+EXIT_INTERRUPTED = 130
+
+#: errno of a write that failed for want of room or because the storage failed: a sweep
+#: that stops on one of these is continued with ``--resume`` once the cause is fixed.
+_STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS})
+
+
+def shell_command(command: str, options: Sequence[tuple[str, Any]]) -> str:
+    """``timedexec COMMAND OPTION VALUE ...``, quoted for a POSIX shell.
+
+    Parameters
+    ----------
+    command : str
+        The subcommand (``"simulate"``).
+    options : sequence of (str, value)
+        Options in order: ``None`` and ``False`` are left out, ``True`` is a bare flag,
+        anything else is ``--option VALUE`` (a value starting with ``-`` as
+        ``--option=VALUE``, so that it cannot be taken for an option).
+    """
+    words = ["timedexec", command]
+    for flag, value in options:
+        if value is None or value is False:
+            continue
+        if value is True:
+            words.append(flag)
+        elif str(value).startswith("-"):
+            words.append(shlex.quote(f"{flag}={value}"))
+        else:
+            words += [flag, shlex.quote(str(value))]
+    return " ".join(words)
+
+
+def _storage_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a failed write of a file (see above), or came from one.
+
+    Only a :class:`~timedexec.errors.RecordingError` or a plain ``OSError`` counts: a gyro
+    or robot that fails (``SensorError``, ``DriverError``, a lost connection) may also
+    carry ``EIO`` (a USB adapter pulled out), and stays a fault (exit 3).
+    """
+    if isinstance(exc, (ConnectionError, TimeoutError, BlockingIOError)) or (
+        isinstance(exc, TimedExecError) and not isinstance(exc, RecordingError)
+    ):
+        return False
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, OSError) and cur.errno in _STORAGE_ERRNOS:
+            return True
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
+def sweep_stopped(command: str, exc: BaseException, recording: str, resume: str) -> int:
+    """End a resumable sweep that Ctrl-C or a failed write stopped, saying how to resume.
+
+    Ctrl-C: one line on stderr, ``interrupted; ... resume with: RESUME`` (when the
+    recording exists; else just ``interrupted``), and the exit code of an interrupt. A write
+    that failed for want of room or because the storage failed (disk full, quota, I/O
+    error), when the recording exists: a :class:`~timedexec.errors.RecordingError` whose
+    one-line message ends with the resume command (exit 2). Anything else is raised as it
+    is.
+
+    Parameters
+    ----------
+    command : str
+        The subcommand, for the message prefix.
+    exc : BaseException
+        What stopped the sweep.
+    recording : str
+        The recording (``--out``).
+    resume : str
+        The command that continues the sweep (:func:`shell_command` with ``--resume``).
+
+    Returns
+    -------
+    int
+        130 after Ctrl-C.
+
+    Raises
+    ------
+    RecordingError
+        After a failed write, with the resume command; otherwise ``exc`` itself.
+    """
+    exists = os.path.exists(recording)
+    if isinstance(exc, KeyboardInterrupt):
+        text = (
+            f"interrupted; {recording} keeps every finished trial; resume with: {resume}"
+            if exists
+            else "interrupted"
+        )
+        with contextlib.suppress(OSError, ValueError):
+            print(f"timedexec {command}: {text}", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    if exists and _storage_error(exc):
+        message = str(exc) if isinstance(exc, RecordingError) else f"{recording}: {exc}"
+        message = message.rstrip(". ")
+        # the store's messages end "... then resume": complete them with the command
+        joint = " with" if message.lower().endswith("resume") else "; once fixed, resume with"
+        raise RecordingError(f"{message}{joint}: {resume}") from exc
+    raise exc

@@ -15,11 +15,13 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
+    shell_command,
+    sweep_stopped,
     used_jobs,
 )
 from timedexec.errors import ConfigError
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "resume_command", "run"]
 
 
 def add_parser(sub: Any) -> None:
@@ -78,18 +80,22 @@ def run(args: argparse.Namespace) -> int:
     )
     spec = get_robot(args.robot, period_s=args.period)
     effects = parse_effects(args.effects, spec.name)
-    result = simulate_sweep(
-        spec,
-        args.trials,
-        args.out,
-        seed=args.seed,
-        effects=effects,
-        settings=default_settings(spec),
-        truth_path=args.truth,
-        resume=args.resume,
-        jobs=used_jobs("simulate", args.jobs),
-        progress=not args.quiet,
-    )
+    jobs = used_jobs("simulate", args.jobs)
+    try:
+        result = simulate_sweep(
+            spec,
+            args.trials,
+            args.out,
+            seed=args.seed,
+            effects=effects,
+            settings=default_settings(spec),
+            truth_path=args.truth,
+            resume=args.resume,
+            jobs=jobs,
+            progress=not args.quiet,
+        )
+    except (KeyboardInterrupt, OSError) as exc:
+        return sweep_stopped("simulate", exc, args.out, resume_command(args))
     info = result.summary()
     text = (
         f"recorded {info['trials']:,} trials of {spec.name} to {info['recording']} "
@@ -99,3 +105,23 @@ def run(args: argparse.Namespace) -> int:
         text += f"; ground truth in {info['truth']}"
     emit(args, info, text)
     return 0
+
+
+def resume_command(args: argparse.Namespace) -> str:
+    """The command that continues this run: the same options and ``--resume``."""
+    return shell_command(
+        "simulate",
+        [
+            ("--robot", args.robot),
+            ("--trials", args.trials),
+            ("--seed", args.seed),
+            ("--effects", None if args.effects == "default" else args.effects),
+            ("--period", args.period),
+            ("--jobs", None if args.jobs == 1 else args.jobs),
+            ("--out", args.out),
+            ("--truth", args.truth),
+            ("--json", args.json),
+            ("--quiet", args.quiet),
+            ("--resume", True),
+        ],
+    )

@@ -5,15 +5,29 @@ Layout (``docs/recording-format.md``): root attributes (``format``, ``format_ver
 ``journal_seq``, ``compression``, ``trials_per_chunk``, ``sessions``), one dataset per
 per-trial field under ``/trials`` (chunked, byte shuffle + compression) and once-only
 arrays under ``/static``. Objects are created with library-version bounds ``v108``.
+
+Files the writer changes (a new recording, ``P.partial`` during a checkpoint) are opened by
+:func:`writable_h5`, through a file object that cannot leave HDF5 with a half-closed file:
+HDF5 2.0 cannot recover from a write that fails while it closes a file (a full disk, an I/O
+error). ``H5Fclose`` then fails half-way, the file's id stays valid, and the next close of
+it -- at the latest when Python frees the object at exit -- crashes the interpreter
+(segmentation fault in ``H5D__flush_all_cb``). Such a file is always discarded, so after
+its first failed write every further write of it is dropped, and the close completes.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import json
 import os
 import re
-from collections.abc import Mapping, Sequence
-from typing import Any, NamedTuple
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import h5py
 from numpy.typing import NDArray
@@ -23,17 +37,23 @@ from timedexec.errors import ConfigError, RecordingError
 from timedexec.recording._fields import Field
 from timedexec.recording._protocol import FORMAT_NAME, FORMAT_VERSION
 
+if TYPE_CHECKING:
+    from _typeshed import ReadableBuffer, WriteableBuffer
+
 __all__ = [
     "LIBVER",
     "READ_CACHE_BYTES",
     "WRITE_CACHE_BYTES",
     "Compression",
     "Meta",
+    "WritableH5",
     "create_recording_file",
     "create_static",
     "open_h5",
     "parse_compression",
     "read_meta",
+    "sigint_deferred",
+    "writable_h5",
     "write_progress",
 ]
 
@@ -120,6 +140,211 @@ def open_h5(path: str, mode: str, **kwargs: Any) -> h5py.File:
             "a copy, a download or a full disk. Restore it from its source or record the "
             "sweep again"
         ) from exc
+
+
+class _GuardedFile(io.RawIOBase):
+    """The file behind a :func:`writable_h5` HDF5 file: positional I/O on one descriptor.
+
+    A failed write is never raised into HDF5: HDF5 cannot recover from one, neither while it
+    closes the file nor while it closes a dataset (which flushes its chunk cache), and
+    Python closes datasets whenever their last reference goes. The first failure is kept in
+    :attr:`error` and every later write (and truncation) is dropped and reported done; the
+    writer asks :meth:`WritableH5.check` after each step and abandons the file, which it
+    deletes. HDF5 thus always finishes its work, on a file nobody will read.
+    """
+
+    def __init__(self, path: str, *, create: bool) -> None:
+        super().__init__()
+        flags = os.O_RDWR | (os.O_CREAT | os.O_TRUNC if create else 0)
+        self.fd = os.open(path, flags, 0o644)
+        self.pos = 0
+        self.error: OSError | None = None
+        try:
+            _lock(self.fd)
+        except OSError:
+            os.close(self.fd)
+            raise
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        if whence == os.SEEK_SET:
+            self.pos = offset
+        elif whence == os.SEEK_CUR:
+            self.pos += offset
+        else:
+            self.pos = os.fstat(self.fd).st_size + offset
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+    def readinto(self, buffer: WriteableBuffer) -> int:
+        view = memoryview(buffer).cast("B")
+        got = 0
+        while got < len(view):
+            data = os.pread(self.fd, len(view) - got, self.pos + got)
+            if not data:
+                break
+            view[got : got + len(data)] = data
+            got += len(data)
+        self.pos += got
+        return got
+
+    def write(self, buffer: ReadableBuffer) -> int:
+        view = memoryview(buffer).cast("B")
+        if self.error is None:
+            try:
+                done = 0
+                while done < len(view):
+                    done += os.pwrite(self.fd, view[done:], self.pos + done)
+            except OSError as exc:
+                self.error = exc
+        self.pos += len(view)
+        return len(view)
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self.pos if size is None else size
+        if self.error is None:
+            try:
+                os.ftruncate(self.fd, size)
+            except OSError as exc:
+                self.error = exc
+        return size
+
+    def flush(self) -> None:
+        """Nothing to flush: every write went to the descriptor (fsync comes later)."""
+
+    def close(self) -> None:
+        if not self.closed:
+            os.close(self.fd)
+        super().close()
+
+
+def _lock(fd: int) -> None:
+    """Lock a file being written as HDF5's own driver does: exclusive, without waiting.
+
+    A reader still holding this (older) version of the recording open has it locked shared
+    through HDF5, so the writer gets ``BlockingIOError`` and copies ``P`` instead. A file
+    system without locks is accepted (HDF5's ``BEST_EFFORT``), and
+    ``HDF5_USE_FILE_LOCKING=FALSE`` turns locking off here as it does in HDF5.
+    """
+    if sys.platform == "win32" or os.environ.get("HDF5_USE_FILE_LOCKING", "").upper() == "FALSE":
+        return
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise
+    except OSError as exc:
+        if exc.errno not in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL):
+            raise
+
+
+@contextlib.contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) until the block ends, then raise the KeyboardInterrupt.
+
+    A KeyboardInterrupt raised inside one of :class:`_GuardedFile`'s methods (Python code
+    that HDF5 calls) would abort an HDF5 operation half-way, and one raised between the
+    steps of a checkpoint would throw away finished work; a checkpoint is short next to a
+    person's reaction time. Only the main thread receives KeyboardInterrupt, and only it
+    may change the handler, so elsewhere this does nothing; a handler the program installed
+    itself is left alone (and so is a nested block).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is not signal.default_int_handler:  # a handler of the caller's: leave it
+        yield
+        return
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held:
+        raise KeyboardInterrupt
+
+
+class WritableH5:
+    """An HDF5 file open for writing through :func:`writable_h5`.
+
+    Attributes
+    ----------
+    file : h5py.File
+        The open file.
+    """
+
+    def __init__(self, file: h5py.File, raw: _GuardedFile) -> None:
+        self.file = file
+        self._raw = raw
+
+    def check(self) -> None:
+        """Raise the first write of the file that failed (disk full, I/O error), if any."""
+        if self._raw.error is not None:
+            raise self._raw.error
+
+
+@contextlib.contextmanager
+def writable_h5(path: str, mode: str, **kwargs: Any) -> Iterator[WritableH5]:
+    """Open the HDF5 file ``path`` for writing; close it on leaving, whatever happened.
+
+    Call :meth:`WritableH5.check` after each step: a failed write shows there (and at the
+    latest when the block ends), never inside HDF5.
+
+    Parameters
+    ----------
+    path : str
+        A file the writer owns and deletes if anything fails (``P.partial``).
+    mode : {'w', 'r+'}
+        Create (truncate) or update.
+    **kwargs
+        Passed to :class:`h5py.File` (``libver``, ``rdcc_nbytes``).
+
+    Yields
+    ------
+    WritableH5
+        The open file and its check.
+
+    Raises
+    ------
+    OSError
+        The first write that failed (disk full, I/O error), even one while closing; or
+        ``BlockingIOError`` when opening: the file is locked (a reader has it open). The
+        HDF5 file is closed in every case, so nothing is left for the interpreter's exit;
+        the caller deletes the file.
+    """
+    with sigint_deferred():
+        raw = _GuardedFile(path, create=mode == "w")
+        try:
+            f = h5py.File(raw, mode, **kwargs)
+        except BaseException:
+            raw.close()
+            raise
+        try:
+            try:
+                yield WritableH5(f, raw)
+            except BaseException:
+                if raw.error is None:  # abandoned: what HDF5 writes while closing is dropped
+                    raw.error = OSError(errno.ECANCELED, "abandoned")
+                raise
+            finally:
+                f.close()
+        finally:
+            raw.close()
+        if raw.error is not None:
+            raise raw.error
 
 
 def read_meta(f: h5py.File, path: str) -> Meta:
@@ -242,7 +467,8 @@ def create_recording_file(
     sessions : sequence of mapping
         The ``sessions`` attribute (the creating session).
     """
-    with h5py.File(path, "w", libver=LIBVER) as f:
+    with writable_h5(path, "w", libver=LIBVER) as h5:
+        f = h5.file
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["package_version"] = __version__
@@ -269,3 +495,4 @@ def create_recording_file(
             )
             ds.attrs["unit"] = fld.unit
             ds.attrs["doc"] = fld.doc
+        h5.check()

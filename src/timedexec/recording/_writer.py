@@ -15,6 +15,15 @@ closed and fsync'ed file (full description and guarantees in ``docs/recording-fo
   fsyncs it, then swaps it in: hard link ``P`` -> ``P.old``, ``os.replace(P.partial, P)``,
   ``os.replace(P.old, P.shadow)``, and starts an empty journal. Each checkpoint costs
   O(data since the previous checkpoint), not O(file).
+
+Failed writes (a full disk, an I/O error) end in a :class:`RecordingError` and nothing
+worse: a journal record that fails is cut off again; HDF5 writes a file only through
+:func:`~timedexec.recording._h5.writable_h5`, which never lets a failed write abort HDF5
+half-way (HDF5 cannot close such a file, and the interpreter crashed at exit); a failed
+checkpoint deletes ``P.partial`` and keeps ``P`` and the journal. Leaving the writer's
+``with`` block on such an error keeps the journal as it is (no checkpoint on a disk that
+just failed), so resuming recovers every appended batch. Ctrl-C during a checkpoint is
+held until the checkpoint is done.
 """
 
 from __future__ import annotations
@@ -49,11 +58,14 @@ from timedexec.recording._h5 import (
     WRITE_CACHE_BYTES,
     Compression,
     Meta,
+    WritableH5,
     create_recording_file,
     create_static,
     open_h5,
     parse_compression,
     read_meta,
+    sigint_deferred,
+    writable_h5,
     write_progress,
 )
 from timedexec.recording._journal import (
@@ -217,8 +229,13 @@ class RecordingWriter:
                 assert header_json is not None
                 assert norm_fields is not None
                 self._create(header_json, norm_fields, comp, trials_per_chunk)
-        except BaseException:
+        except BaseException as exc:
             self._release()
+            if isinstance(exc, OSError) and not isinstance(exc, RecordingError):
+                raise RecordingError(
+                    f"cannot open recording {self._path} for writing ({exc}); nothing "
+                    "recorded so far is lost: fix the cause (disk space?) and resume"
+                ) from exc
             raise
         self._closed = False
 
@@ -542,8 +559,10 @@ class RecordingWriter:
             the field, the expected and the given shape), or a trial index is negative,
             repeated in the batch or already recorded.
         RecordingError
-            The journal cannot be written (disk full, I/O error); nothing of the batch is
-            recorded then.
+            The journal cannot be written (disk full, I/O error): nothing of the batch is
+            recorded, and the writer stays usable. Or the batch was recorded and the
+            checkpoint that followed failed (the message says "checkpoint"): the journal
+            keeps every batch; close the writer and resume.
         """
         self._check_usable()
         if not isinstance(batch, Mapping):
@@ -612,8 +631,29 @@ class RecordingWriter:
     def __enter__(self) -> RecordingWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
+    ) -> None:
+        """Close; after a failed write (disk full, I/O error) keep the journal as it is.
+
+        On a disk that just failed a write, a checkpoint (a second copy of the file) would
+        fail too or fill the disk for others: the recording and its journal stay as they
+        are, every appended batch is in them and resuming folds them. When another exception
+        leaves the block (Ctrl-C, a bad batch) the writer closes as usual; if closing fails
+        as well, that exception still leaves, with a note.
+        """
+        if exc is None:
+            self.close()
+            return
+        if isinstance(exc, OSError) and self._records and self._broken is None:
+            self._broken = repr(exc)  # close() then only releases the files
+        try:
+            self.close()
+        except OSError as err:
+            exc.add_note(
+                f"closing {self._path} failed too ({err}); {self._side(JOURNAL)} keeps every "
+                "appended batch: resume"
+            )
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else f"{self._rows} trials"
@@ -663,83 +703,93 @@ class RecordingWriter:
     # ------------------------------------------------------------------ checkpoint
 
     def _fold(self) -> None:
-        """Bring P up to date with the journal by swapping in an updated copy."""
+        """Bring P up to date with the journal by swapping in an updated copy.
+
+        Ctrl-C is held until the checkpoint is complete (or has failed): a checkpoint takes
+        about a second per 64 MiB of journal, and an interrupted one would only be redone.
+        """
         if not self._records:
             return
         partial = self._side(PARTIAL)
-        try:
-            w = self._open_partial()
+        with sigint_deferred():
             try:
-                self._catch_up(w)
-                fault("fold.caught_up")
-                self._apply_journal(w)
-                self._set_progress_attrs(w)
-                fault("fold.applied")
-            finally:
-                w.close()
-            self._sync_file(partial)
-            fault("fold.synced")
-            old = self._side(OLD)
-            unlink(old)
-            try:
-                os.link(self._path, old)  # keep the current P: it becomes the next shadow
-                linked = True
-            except OSError:  # no hard links on this file system: copy P at the next fold
-                linked = False
-            fault("fold.linked")
-            os.replace(partial, self._path)  # the commit point of the checkpoint
-            self._sync_dir()
-            self._p_seq, self._p_rows = self._seq, self._rows
-            fault("fold.replaced")
-            if linked:
-                os.replace(old, self._side(SHADOW))
-                self._sync_dir()
-            fault("fold.shadowed")
-            self._new_journal()
-        except BaseException as exc:  # P is intact; the journal keeps every batch
-            with contextlib.suppress(OSError):
-                unlink(partial)
-            self._broken = repr(exc)
-            if isinstance(exc, RecordingError) or not isinstance(exc, OSError):
-                raise
-            raise RecordingError(
-                f"checkpoint of {self._path} failed ({exc}); every appended batch is kept in "
-                f"{self._side(JOURNAL)}. Fix the cause (disk space?) and resume"
-            ) from exc
-
-    def _open_partial(self) -> h5py.File:
-        """P.partial opened for writing: the shadow if usable, else a fresh copy of P."""
-        partial, shadow = self._side(PARTIAL), self._side(SHADOW)
-        unlink(partial)
-        if os.path.exists(shadow):
-            if os.path.samefile(shadow, self._path):
-                unlink(shadow)
-            else:
-                os.replace(shadow, partial)
-                fault("fold.partial_opened")
+                self._write_partial(partial)
+                self._sync_file(partial)
+                fault("fold.synced")
+                old = self._side(OLD)
+                unlink(old)
                 try:
-                    w = h5py.File(partial, "r+", libver=LIBVER, rdcc_nbytes=WRITE_CACHE_BYTES)
-                except OSError:  # e.g. a reader still has this old version open (lock)
-                    w = None
-                if w is not None:
-                    ok = False
-                    with contextlib.suppress(RecordingError, KeyError, ValueError):
-                        m = read_meta(w, partial)
-                        ok = (
-                            m.recording_id == self._id
-                            and m.seq <= self._p_seq
-                            and m.rows <= self._p_rows
-                        )
-                    if ok:
-                        return w
-                    w.close()
+                    os.link(self._path, old)  # keep the current P: it becomes the next shadow
+                    linked = True
+                except OSError:  # no hard links on this file system: copy P at the next fold
+                    linked = False
+                fault("fold.linked")
+                os.replace(partial, self._path)  # the commit point of the checkpoint
+                self._sync_dir()
+                self._p_seq, self._p_rows = self._seq, self._rows
+                fault("fold.replaced")
+                if linked:
+                    os.replace(old, self._side(SHADOW))
+                    self._sync_dir()
+                fault("fold.shadowed")
+                self._new_journal()
+            except BaseException as exc:  # P is intact; the journal keeps every batch
+                with contextlib.suppress(OSError):
+                    unlink(partial)
+                self._broken = repr(exc)
+                if isinstance(exc, RecordingError) or not isinstance(exc, OSError):
+                    raise
+                raise RecordingError(
+                    f"checkpoint of {self._path} failed ({exc}); every appended batch is kept "
+                    f"in {self._side(JOURNAL)}. Fix the cause (disk space?) and resume"
+                ) from exc
+
+    def _write_partial(self, partial: str) -> None:
+        """Write P.partial: the next P, from the shadow if usable, else from a copy of P."""
+        if self._take_shadow(partial):
+            try:
+                self._update_partial(partial)
+                return
+            except BlockingIOError:  # a reader still has this old version open (lock)
                 unlink(partial)
+        unlink(partial)
         shutil.copyfile(self._path, partial)
         fault("fold.copied")
-        return h5py.File(partial, "r+", libver=LIBVER, rdcc_nbytes=WRITE_CACHE_BYTES)
+        self._update_partial(partial)
 
-    def _catch_up(self, w: h5py.File) -> None:
+    def _take_shadow(self, partial: str) -> bool:
+        """Rename the shadow to P.partial if it is an older version of P; else drop it."""
+        shadow = self._side(SHADOW)
+        if not os.path.exists(shadow):
+            return False
+        if os.path.samefile(shadow, self._path):
+            unlink(shadow)
+            return False
+        unlink(partial)
+        os.replace(shadow, partial)
+        fault("fold.partial_opened")
+        ok = False
+        with contextlib.suppress(RecordingError, KeyError, ValueError):
+            with open_h5(partial, "r") as f:  # read only: nothing to go wrong on closing
+                m = read_meta(f, partial)
+            ok = m.recording_id == self._id and m.seq <= self._p_seq and m.rows <= self._p_rows
+        if not ok:
+            unlink(partial)
+        return ok
+
+    def _update_partial(self, partial: str) -> None:
+        """Bring P.partial (an older version of P) up to P plus the journal, and close it."""
+        with writable_h5(partial, "r+", libver=LIBVER, rdcc_nbytes=WRITE_CACHE_BYTES) as h5:
+            self._catch_up(h5)
+            fault("fold.caught_up")
+            self._apply_journal(h5)
+            self._set_progress_attrs(h5.file)
+            h5.check()
+            fault("fold.applied")
+
+    def _catch_up(self, h5: WritableH5) -> None:
         """Copy what P has and the shadow lacks: whole compressed chunks, no recompression."""
+        w = h5.file
         n_w = int(w["trials/trial"].shape[0])
         missing_statics = [s for s in self._p_statics() if s not in w["static"]]
         if n_w == self._p_rows and not missing_statics:
@@ -753,14 +803,16 @@ class RecordingWriter:
                 for c in range(n_w // tpc, -(-self._p_rows // tpc)):
                     mask, data = s_ds.id.read_direct_chunk((c * tpc, *zeros))
                     w_ds.id.write_direct_chunk((c * tpc, *zeros), data, mask)
+                    h5.check()
             for name in missing_statics:
                 src.copy(src["static"][name], w["static"], name=name)
+                h5.check()
 
     def _p_statics(self) -> list[str]:
         pending = {r.static["name"] for r in self._records if r.static is not None}
         return [s for s in self._statics if s not in pending]
 
-    def _apply_journal(self, w: h5py.File) -> None:
+    def _apply_journal(self, w: WritableH5) -> None:
         recs = [r for r in self._records if r.seq > self._p_seq]
         with open(self._side(JOURNAL), "rb", buffering=0) as jf:
             group: list[Record] = []
@@ -778,7 +830,7 @@ class RecordingWriter:
                     group, group_bytes = [], 0
             self._write_rows(w, jf, group)
 
-    def _write_rows(self, w: h5py.File, jf: io.FileIO, group: list[Record]) -> None:
+    def _write_rows(self, h5: WritableH5, jf: io.FileIO, group: list[Record]) -> None:
         if not group:
             return
         start = group[0].row_start
@@ -788,11 +840,13 @@ class RecordingWriter:
             for rec in group:
                 lo = rec.row_start - start
                 read_into(jf, self._layout.field_offset(rec, i), arr[lo : lo + rec.n_rows])
-            ds = w["trials"][fld.name]
+            ds = h5.file["trials"][fld.name]
             ds.resize(end, axis=0)
             ds[start:end] = arr
+            h5.check()
 
-    def _apply_static(self, w: h5py.File, jf: io.FileIO, rec: Record) -> None:
+    def _apply_static(self, h5: WritableH5, jf: io.FileIO, rec: Record) -> None:
+        w = h5.file
         meta = rec.static
         assert meta is not None
         if meta["name"] in w["static"]:
@@ -808,6 +862,7 @@ class RecordingWriter:
             meta["doc"],
             self._comp,
         )
+        h5.check()
 
     def _set_progress_attrs(self, f: h5py.File) -> None:
         write_progress(f, self._seq, self._sessions)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -182,19 +183,34 @@ def simulate_sweep(
                 for rows in blocks
             )
         n_new = 0
-        for batch in results:
-            keep = ~done_mask[batch["trial"]]
-            if not keep.all():
-                batch = {k: v[keep] for k, v in batch.items()}
-            writer.append(batch)
-            n_new += len(batch["trial"])
-            bar.update(len(batch["trial"]))
-        bar.close()
+        try:
+            for batch in results:
+                keep = ~done_mask[batch["trial"]]
+                if not keep.all():
+                    batch = {k: v[keep] for k, v in batch.items()}
+                writer.append(batch)
+                n_new += len(batch["trial"])
+                bar.update(len(batch["trial"]))
+        finally:
+            bar.close()
+            _stop_workers(results)
     written_truth = None
     if truth_path is not None:
         with RecordingReader(out) as reader:
             written_truth = truth_table(reader).to_csv(truth_path)
     return SweepResult(out, len(plan), n_new, out.stat().st_size, written_truth)
+
+
+def _stop_workers(results: Any) -> None:
+    """Close the block generator: when the sweep stops early (a full disk, Ctrl-C), the
+    worker processes are told to stop now, and joblib's warning that blocks computed
+    ahead went unused (expected then) does not follow the error message."""
+    close = getattr(results, "close", None)
+    if close is None:
+        return
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r".*tasks have been successfully executed")
+        close()
 
 
 def truth_table(reader: RecordingReader) -> DelayTable:

@@ -43,6 +43,10 @@ __all__ = [
 ]
 
 _HEADER = struct.Struct(">HB")
+#: RTDE protocol versions a UR controller accepts (PolyScope 3.x and 5.x: 1 and 2). Any
+#: other request is answered "not accepted" (0), as the controller does; the client may then
+#: ask for another. The twin speaks version 2's framing (what ``ur_rtde`` asks for).
+RTDE_PROTOCOL_VERSIONS = (1, 2)
 #: Bytes of an RTDE package header (uint16 total size, uint8 package type).
 RTDE_HEADER_SIZE = _HEADER.size
 
@@ -365,7 +369,14 @@ class _RTDEConnection:
     def _handle(self, kind: int, payload: bytes, arrival_s: float) -> None:
         server = self.server
         if kind == RTDEPackageType.REQUEST_PROTOCOL_VERSION:
-            self.reply(kind, b"\x01")
+            version = struct.unpack(">H", payload)[0] if len(payload) == 2 else None
+            accepted = version in RTDE_PROTOCOL_VERSIONS
+            if not accepted:
+                server.log(
+                    f"RTDE connection {self.conn_id}: protocol version "
+                    f"{version if version is not None else payload!r} not accepted"
+                )
+            self.reply(kind, b"\x01" if accepted else b"\x00")
         elif kind == RTDEPackageType.GET_URCONTROL_VERSION:
             self.reply(kind, struct.pack(">4I", *server.version))
         elif kind == RTDEPackageType.CONTROL_PACKAGE_SETUP_OUTPUTS:

@@ -32,16 +32,18 @@ from typing import Any
 import numpy as np
 
 from timedexec._realtime import try_realtime
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
 from timedexec.twins._urscript import (
     _PROGRAM_START_DELAY_S,
+    DASHBOARD_MAX_LINE_BYTES,
     _as_record,
     _ControlScript,
     _dashboard_reply,
     _field,
+    _LineReader,
+    _ScriptReader,
     _SimLike,
-    _split_program,
 )
 
 __all__ = [
@@ -232,6 +234,8 @@ class _TwinServer:
         self.rt_priority = rt_priority
         self.version = UR_CONTROLLER_VERSIONS[robot]
         self._log = log or (lambda msg: print(f"[ur-twin {host}] {msg}", file=sys.stderr))
+        self._abuse_logged_s = -math.inf
+        self._abuse_suppressed = 0
         self._seed = seed
         if sim_factory is None:
             self.sim = _default_sim_factory(
@@ -280,6 +284,19 @@ class _TwinServer:
 
     def log(self, message: str) -> None:
         self._log(message)
+
+    def log_abuse(self, message: str) -> None:
+        """Log a connection closed for breaking an input limit, at most once a second (a
+        client that reconnects and offends again in a loop must not flood the log)."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._abuse_logged_s < 1.0:
+                self._abuse_suppressed += 1
+                return
+            suppressed, self._abuse_suppressed = self._abuse_suppressed, 0
+            self._abuse_logged_s = now
+        more = f" ({suppressed} more such connections closed meanwhile)" if suppressed else ""
+        self._log(message + more)
 
     # -- sockets -------------------------------------------------------------------------
     def bind(self) -> None:
@@ -414,40 +431,37 @@ class _TwinServer:
         )
 
     def _dashboard_loop(self, client: socket.socket) -> None:
+        reader = _LineReader(DASHBOARD_MAX_LINE_BYTES, "dashboard")
         try:
             client.sendall(b"Connected: Universal Robots Dashboard Server\n")
-            buf = b""
             while not self.stop_event.is_set():
-                chunk = client.recv(4096)
+                chunk = client.recv(65536)
                 if not chunk:
                     return
-                buf += chunk
-                while b"\n" in buf:
-                    raw, buf = buf.split(b"\n", 1)
-                    answer = self._dashboard_reply(raw.decode("utf-8", errors="replace"))
+                for line in reader.feed(chunk):
+                    answer = self._dashboard_reply(line)
                     if answer is None:
                         client.sendall(b"Disconnected\n")
                         return
                     client.sendall(answer.encode() + b"\n")
+        except ProtocolError as exc:  # a line over the limit: this client only
+            self.log_abuse(str(exc))
         except OSError:
             return
         finally:
             self._forget(client)
 
     def _script_loop(self, client: socket.socket) -> None:
-        text = ""
+        reader = _ScriptReader()
         try:
             while not self.stop_event.is_set():
                 chunk = client.recv(65536)
                 if not chunk:
                     return
-                text += chunk.decode("utf-8", errors="replace")
-                while True:
-                    program, rest = _split_program(text)
-                    if program is None:
-                        break
-                    text = rest
+                for program in reader.feed(chunk):
                     self._program_uploaded(program)
+        except ProtocolError as exc:  # a line or program over the limits: this client only
+            self.log_abuse(str(exc))
         except OSError:
             return
         finally:

@@ -3,12 +3,19 @@ uploads on port 30003 and the dashboard server's replies.
 
 The ``ur_rtde`` control interface uploads a URScript program and then drives it through
 RTDE registers. The twin does not interpret the script text; it recognises a complete
-upload (:func:`_split_program`) and emulates the script's main loop
+upload (:class:`_ScriptReader`) and emulates the script's main loop
 (:class:`_ControlScript`): command id in ``input_int_register_0`` (24 with upper-range
 registers), arguments in the double registers, acknowledgement in
 ``output_int_register_0`` (1 ready, 2 done), ``IS_STEADY`` in ``output_int_register_1``,
 async progress in ``output_int_register_2``. Registers are sampled once per controller
 cycle, not queued.
+
+Input from the script and dashboard ports is read line by line with per-connection limits
+(:class:`_LineReader`): a line longer than the limit, or a program larger than its limit,
+is a :class:`~timedexec.errors.ProtocolError` and the server closes that connection. Each
+byte is looked at once, so a client that sends megabytes without a newline costs the twin
+no more CPU than one that sends the same bytes as lines (the unbounded buffer it replaced
+rescanned everything on every read and starved the RTDE stream of the other clients).
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._rtde import RTDE_INPUT_TYPES
 
 _CMD_NO_CMD = 0
@@ -49,6 +56,15 @@ _RUNTIME_PLAYING = 2
 _PROGRAM_STOP_DECELERATION_RAD_S2 = 4.0
 #: Delay from the end of a script upload to ``runtime_state == PLAYING``, s.
 _PROGRAM_START_DELAY_S = 0.02
+
+#: Longest line the dashboard server takes, bytes. Its commands are short (``load
+#: /programs/x.urp``, ``popup <text>``, ``addToLog <message>``): 64 KiB is generous.
+DASHBOARD_MAX_LINE_BYTES = 64 * 2**10
+#: Longest line of an uploaded script, bytes (URScript lines are short).
+SCRIPT_MAX_LINE_BYTES = 64 * 2**10
+#: Largest program the script port collects, characters (``ur_rtde`` 1.6.5 uploads a
+#: control script of 38,543: a hundred times that is room for any real program).
+SCRIPT_MAX_PROGRAM_BYTES = 4 * 2**20
 
 
 class _SimLike(Protocol):
@@ -102,18 +118,98 @@ def _as_record(event: Any) -> dict[str, Any]:
     return dict(vars(event))
 
 
-def _split_program(text: str) -> tuple[str | None, str]:
-    """Split off the first complete top-level ``def``/``sec`` ... ``end`` block."""
-    lines = text.split("\n")
-    start = None
-    for i, line in enumerate(lines):
-        if start is None:
-            if line.startswith(("def ", "sec ")):
-                start = i
-            continue
-        if line.rstrip() == "end" and i < len(lines) - 1:
-            return "\n".join(lines[start : i + 1]), "\n".join(lines[i + 1 :])
-    return None, text
+class _LineReader:
+    """Complete lines of a byte stream, each byte looked at once, lines of bounded length.
+
+    Parameters
+    ----------
+    max_line_bytes : int
+        Longest line accepted (without its newline).
+    what : str
+        Names the stream in the error message.
+    """
+
+    def __init__(self, max_line_bytes: int, what: str) -> None:
+        self.max_line_bytes = max_line_bytes
+        self.what = what
+        self._partial = bytearray()
+
+    def feed(self, data: bytes) -> list[str]:
+        """The lines that ``data`` completes (decoded as UTF-8, bad bytes replaced).
+
+        Raises
+        ------
+        ProtocolError
+            A line is longer than ``max_line_bytes``.
+        """
+        lines: list[str] = []
+        start = 0
+        while (end := data.find(b"\n", start)) >= 0:
+            if self._partial:
+                self._partial += data[start:end]
+                raw = bytes(self._partial)
+                self._partial.clear()
+            else:
+                raw = data[start:end]
+            self._check(len(raw))
+            lines.append(raw.decode("utf-8", errors="replace"))
+            start = end + 1
+        self._partial += data[start:]
+        self._check(len(self._partial))
+        return lines
+
+    def _check(self, n: int) -> None:
+        if n > self.max_line_bytes:
+            raise ProtocolError(
+                f"{self.what}: a line of more than {self.max_line_bytes} bytes; closing the "
+                "connection"
+            )
+
+
+class _ScriptReader:
+    """Programs uploaded to the script port: complete top-level ``def``/``sec`` ... ``end``
+    blocks, in order; text outside them is ignored (as the controller's interpreter does).
+
+    Indented ``end`` lines close inner blocks; the top-level ``end`` completes the program
+    once its newline has arrived.
+    """
+
+    def __init__(
+        self,
+        *,
+        max_line_bytes: int = SCRIPT_MAX_LINE_BYTES,
+        max_program_bytes: int = SCRIPT_MAX_PROGRAM_BYTES,
+    ) -> None:
+        self._lines = _LineReader(max_line_bytes, "script port")
+        self.max_program_bytes = max_program_bytes
+        self._program: list[str] | None = None
+        self._program_bytes = 0
+
+    def feed(self, data: bytes) -> list[str]:
+        """The programs that ``data`` completes.
+
+        Raises
+        ------
+        ProtocolError
+            A line or a program longer than the limits.
+        """
+        programs = []
+        for line in self._lines.feed(data):
+            if self._program is None:
+                if line.startswith(("def ", "sec ")):
+                    self._program, self._program_bytes = [line], len(line) + 1
+                continue
+            self._program.append(line)
+            self._program_bytes += len(line) + 1
+            if self._program_bytes > self.max_program_bytes:
+                raise ProtocolError(
+                    f"script port: a program of more than {self.max_program_bytes} bytes "
+                    "without its closing 'end'; closing the connection"
+                )
+            if line.rstrip() == "end":
+                programs.append("\n".join(self._program))
+                self._program = None
+        return programs
 
 
 def _input_defaults() -> dict[str, Any]:
