@@ -97,6 +97,7 @@ CV = {"actuation_delay": {"median": {"1": 3.0, "combined": 3.1, "average": 3.0}}
 EVALUATION = {"robot": "ur10", "strategies": {"none": {"timing_rms_ms": 20.0}},
               "coverage_95": 0.95}  # fmt: skip
 DISCREPANCY = {"added_effects": ["gravity_load"], "unexplained": []}
+FLEET = {"summary": {"robots": 1, "ok": 1, "failed": []}, "robots": []}
 _JOINT = {"median_ms": 20.0, "p2_5_ms": 15.0, "p97_5_ms": 25.0}
 DEMO = {
     "summary": {"joints": {"1": {"actuation_delay": _JOINT, "response_delay": _JOINT}},
@@ -142,9 +143,13 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
         "timedexec.drivers.open_driver": Call(FakeDriver()),
         "timedexec.calibration.run_calibration": Call(SimpleNamespace(summary=lambda: CAL_SUMMARY)),
         "timedexec.extraction.extract_recording": Call(extraction),
+        "timedexec.extraction.check_recording": Call([]),
         "timedexec.learning.train_delay_models": Call(training),
         "timedexec.evaluation.evaluate": Call(evaluation),
         "timedexec.discrepancy.analyse_discrepancy": Call(discrepancy),
+        "timedexec.fleet.run_fleet": Call(
+            SimpleNamespace(failed=(), document=FLEET, summary_text=lambda: "fleet of 1 robots")
+        ),
         "timedexec.report.build_report": Call(Path("r") / "report.md"),
         "timedexec.report.run_demo": Call(DEMO),
     }
@@ -153,6 +158,7 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
     monkeypatch.setattr("timedexec.delays.DelayTable", FakeTable)
     monkeypatch.setattr(signal, "signal", Call())  # `serve` must not take over SIGTERM here
     (tmp_path / "d.csv").write_text("trial\n", encoding="utf-8")
+    (tmp_path / "m.csv").write_text("name,robot,source\na,ur10,a.h5\n", encoding="utf-8")
     return {target.rpartition(".")[2]: call for target, call in calls.items()}
 
 
@@ -168,6 +174,8 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
                    "--out", "c.h5", "--quiet"], "run_calibration",
                   {"resume": False, "progress": False, "source": "sim://ur10"},
                   "recorded 2 trials (2 planned) to c.h5"),
+    "check": (["check", "r.h5"], "check_recording", {"deep": True},
+              "r.h5: a valid timedexec recording"),
     "extract": (["extract", "r.h5", "--out", "d2.csv", "--method", "extrema", "--quiet"],
                 "extract_recording", {"method": "extrema", "jobs": 1, "progress": False},
                 "extracted 12 trials (0 flagged) with method extrema to d2.csv"),
@@ -181,6 +189,8 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
     "discrepancy": (["discrepancy", "d.csv", "--start", "base", "--report", "rep", "--quiet"],
                     "analyse_discrepancy", {"start": "base", "robot": None, "alpha": 0.01},
                     "discrepancy of ur10: gravity_load added"),
+    "fleet": (["fleet", "m.csv", "--out", "fleet", "--scheduler", "", "--quiet"], "run_fleet",
+              {"scheduler": None, "jobs": 1, "progress": False}, "fleet of 1 robots"),
     "report": (["report", "d.csv", "r.h5", "--out", "r", "--trial", "3"], "build_report",
                {"trial": 3}, "report written to r/report.md"),
     "demo": (["demo", "--robot", "kr5", "--trials", "160", "--out", "demo"], "run_demo",
@@ -192,10 +202,12 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
 JSON_KEYS = {
     "simulate": "recording_bytes",
     "calibrate": "recorded_now",
+    "check": "valid",
     "extract": "filter_cutoff_hz",
     "train": "actuation_delay",
     "evaluate": "strategies",
     "discrepancy": "added_effects",
+    "fleet": "robots",
     "demo": "conveyor",
 }
 
@@ -212,7 +224,7 @@ def listed_commands(text: str) -> list[str]:
 
 
 def test_every_command_in_help_has_its_own_help(capsys: pytest.CaptureFixture[str]) -> None:
-    """`timedexec --help` lists the nine commands in workflow order, and each of them
+    """`timedexec --help` lists the commands in workflow order, and each of them
     answers `--help` with its own usage and exit code 0."""
     names = listed_commands(help_text(capsys))
     assert names == list(COMMANDS)

@@ -56,9 +56,10 @@ MAX_SEED = 2**32 - 1
 
 #: The ``--json`` convention, as the top-level ``--help`` and the README state it.
 JSON_CONVENTION = (
-    "--json [PATH] (simulate, calibrate, extract, train, evaluate, discrepancy, demo): the\n"
-    "  command's machine-readable result. Bare --json (or --json -) prints the JSON on stdout\n"
-    "  instead of the text; --json PATH writes it to PATH and prints the text as usual.\n"
+    "--json [PATH] (simulate, calibrate, check, extract, train, evaluate, discrepancy, fleet,\n"
+    "  demo): the command's machine-readable result. Bare --json (or --json -) prints the\n"
+    "  JSON on stdout instead of the text; --json PATH writes it to PATH and prints the text\n"
+    "  as usual.\n"
     "  Put a bare --json after the positional arguments, or write --json=-."
 )
 
@@ -368,8 +369,7 @@ def note(command: str, message: str) -> None:
     print(f"timedexec {command}: note: {message}", file=sys.stderr)
 
 
-#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it); the same
-#: number as ``timedexec.cli._main.EXIT_INTERRUPTED``, which imports this module.
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
 
 #: errno of a write that failed for want of room or because the storage failed: a sweep

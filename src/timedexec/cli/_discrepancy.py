@@ -18,6 +18,7 @@ from timedexec.cli._common import (
     float_arg,
     warn,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
 from timedexec.effects import EFFECT_NAMES
 
 __all__ = ["add_parser", "run"]
@@ -40,6 +41,9 @@ def add_parser(sub: Any) -> None:
             "Output: a summary on stdout; the JSON result (--json) is the full result "
             "(added_effects, gap_before_ms, gap_after_ms, noise_floor_ms, steps, unexplained, "
             "...); with --report DIR a markdown report with PNG figures.\n\n"
+            "With --scheduler (or $TIMEDEXEC_SCHEDULER) a recording is extracted on a Dask "
+            "cluster's workers and the analysis runs there as one task; the result is the "
+            "same.\n\n"
             "example:\n  timedexec simulate --robot ur10 --trials 4000 --out ur10.h5 "
             "--truth ur10-truth.csv\n"
             "  timedexec discrepancy ur10-truth.csv --start base --json out.json --report report"
@@ -63,6 +67,7 @@ def add_parser(sub: Any) -> None:
         help="significance level of the tests (0 < alpha <= 1)",
     )
     add_seed(p, help="seed of the cross-validation folds")
+    add_scheduler(p, what="the extraction of a recording and the analysis")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -80,15 +85,19 @@ def run(args: argparse.Namespace) -> int:
         folders={} if report is None else {"--report": report},
         what={"--report (report.md)": "the new discrepancy report"},
     )
-    result = analyse_discrepancy(
-        args.measured,
-        robot=args.robot,
-        start=args.start,
-        period_s=args.period,
-        alpha=args.alpha,
-        seed=args.seed,
-        progress=not args.quiet,
-    )
+    options = {
+        "robot": args.robot,
+        "start": args.start,
+        "period_s": args.period,
+        "alpha": args.alpha,
+        "seed": args.seed,
+    }
+    with cluster(args, "discrepancy") as client:
+        if client is None:
+            result = analyse_discrepancy(args.measured, **options, progress=not args.quiet)
+        else:
+            measured = _measured_on_cluster(args, client)
+            result = submit(client, analyse_discrepancy, measured, **options, progress=False)
     text = result.summary_text()
     if args.report:
         md = result.write_report(args.report)
@@ -97,3 +106,26 @@ def run(args: argparse.Namespace) -> int:
         warn("discrepancy", w)
     emit(args, result.to_dict(), text)
     return 0
+
+
+def _measured_on_cluster(args: argparse.Namespace, client: Any) -> Any:
+    """MEASURED for a cluster run: a recording is extracted on the workers (every chunk a
+    task); a delay table is read here and sent with the analysis."""
+    from timedexec.delays import DelayTable
+    from timedexec.errors import RecordingError
+    from timedexec.extraction import extract_recording
+
+    try:
+        with open(args.measured, "rb") as fh:
+            magic = fh.read(8)
+    except FileNotFoundError:
+        raise RecordingError(
+            f"measured data {args.measured} does not exist (give a delay table CSV or a recording)"
+        ) from None
+    except OSError as exc:
+        raise RecordingError(f"cannot read {args.measured}: {exc.strerror or exc}") from exc
+    if magic == b"\x89HDF\r\n\x1a\n":
+        return extract_recording(
+            worker_path(args.measured, client), jobs=-1, progress=not args.quiet
+        ).table
+    return DelayTable.read_csv(args.measured)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from typing import Any
 
 from timedexec.cli._common import (
@@ -17,6 +18,7 @@ from timedexec.cli._common import (
     int_arg,
     warn,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
 
 __all__ = ["add_parser", "run"]
 
@@ -111,6 +113,7 @@ def add_parser(sub: Any) -> None:
         default=2,
         help="--task conveyor: work points (the built-in one, then moved by up to 5 cm)",
     )
+    add_scheduler(p, what="the evaluation (as one task)")
     add_quiet(p)
     p.set_defaults(func=run)
 
@@ -120,32 +123,41 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.evaluation import evaluate
 
     check_files(args, "evaluate", inputs={"--model": args.model})
-    if args.task == "conveyor":
-        from timedexec.welding import evaluate_conveyor
+    with cluster(args, "evaluate") as client:
+        model = args.model
+        if client is not None and model is not None and os.path.exists(model):
+            model = worker_path(model, client)  # a folder; a shipped model's name stays
+        progress = not args.quiet and client is None
+        if args.task == "conveyor":
+            from timedexec.welding import evaluate_conveyor
 
-        weld = evaluate_conveyor(
+            weld = submit(
+                client,
+                evaluate_conveyor,
+                args.robot,
+                model,
+                seam=args.seam,
+                speed_m_s=args.speed,
+                cells=args.cells,
+                seeds=args.runs,
+                oracle_draws=args.runs,
+                seed=args.seed,
+                progress=progress,
+            )
+            emit(args, weld.to_dict(), weld.table())
+            return 0
+        result = submit(
+            client,
+            evaluate,
             args.robot,
-            args.model,
-            seam=args.seam,
-            speed_m_s=args.speed,
-            cells=args.cells,
-            seeds=args.runs,
-            oracle_draws=args.runs,
+            model,
+            n_configs=args.configs,
             seed=args.seed,
-            progress=not args.quiet,
+            draws=args.draws,
+            speed_m_s=args.speed,
+            physics_configs=args.physics,
+            progress=progress,
         )
-        emit(args, weld.to_dict(), weld.table())
-        return 0
-    result = evaluate(
-        args.robot,
-        args.model,
-        n_configs=args.configs,
-        seed=args.seed,
-        draws=args.draws,
-        speed_m_s=args.speed,
-        physics_configs=args.physics,
-        progress=not args.quiet,
-    )
     info = result.to_dict()
     for text in info.get("notes", []):
         warn("evaluate", text)

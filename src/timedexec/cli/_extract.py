@@ -12,8 +12,9 @@ from timedexec.cli._common import (
     add_quiet,
     check_files,
     emit,
-    used_jobs,
+    float_arg,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs, worker_path
 
 __all__ = ["add_parser", "run"]
 
@@ -26,18 +27,41 @@ def add_parser(sub: Any) -> None:
         help="extract actuation and response delays from a recording (delay table CSV)",
         description=(
             "Extract the actuation and response delay of every trial of a recording made by "
-            "`timedexec simulate` or `timedexec calibrate`: gyro clock fit, zero-rate, PSD-"
-            "designed low-pass filter, then per trial the onset (sub-sample local fit, "
-            "default) or the published extrema method. Trials that cannot be measured keep "
-            "their row with NaN delays and a reason in the `flag` column.\n\n"
+            "`timedexec simulate`, `timedexec calibrate` or any recorder that follows "
+            "docs/recording-format.md (`timedexec check` validates one): lossy-stream "
+            "repair, gyro clock fit that follows the oscillator's drift, zero-rate, then per "
+            "trial the onset (noise-adaptive local fit with a standard error, default) or "
+            "the published extrema method. Trials that cannot be measured keep their row "
+            "with NaN delays and a reason in the `flag` column.\n\n"
             "Output: the delay table (CSV; docs: timedexec.delays).\n\n"
-            "example:\n  timedexec extract ur10.h5 --out ur10-delays.csv --jobs 2"
+            "With --scheduler (or $TIMEDEXEC_SCHEDULER) the trial chunks are extracted on a "
+            "Dask cluster's workers (the recording must be at the same path on every "
+            "worker); the table is the same.\n\n"
+            "examples:\n  timedexec extract ur10.h5 --out ur10-delays.csv --jobs 2\n"
+            "  timedexec extract /shared/ur10.h5 --out ur10-delays.csv --scheduler tcp://10.0.0.5:8786"
         ),
     )
     p.add_argument("recording", help="recording (HDF5)")
     p.add_argument("--out", required=True, help="delay table to write (CSV)")
     p.add_argument("--method", default="fit", choices=("fit", "extrema"), help="extraction method")
+    p.add_argument(
+        "--clock-window",
+        type=float_arg(0.0, low_open=True, unit="s"),
+        default=None,
+        metavar="SECONDS",
+        help="length of the windows in which the gyro's clock is fitted (blended, to follow "
+        "the oscillator's drift); if not given, chosen from the data",
+    )
+    p.add_argument(
+        "--max-se",
+        type=float_arg(0.0, low_open=True, unit="ms"),
+        default=None,
+        metavar="MS",
+        help="flag a trial 'uncertain' when the standard error of its actuation or response "
+        "delay exceeds this, ms; if not given, 2 ms (timedexec.extraction.MAX_SE_S)",
+    )
     add_jobs(p)
+    add_scheduler(p, what="the extraction")
     add_quiet(p)
     add_json(
         p,
@@ -51,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``extract``; return the exit code."""
     import numpy as np
 
-    from timedexec.extraction import extract_recording
+    from timedexec.extraction import MAX_SE_S, extract_recording
 
     check_files(
         args,
@@ -60,12 +84,15 @@ def run(args: argparse.Namespace) -> int:
         outputs={"--out": args.out},
         what={"--out": "the delay table (CSV)"},
     )
-    result = extract_recording(
-        args.recording,
-        method=args.method,
-        jobs=used_jobs("extract", args.jobs),
-        progress=not args.quiet,
-    )
+    with cluster(args, "extract") as client:
+        result = extract_recording(
+            worker_path(args.recording, client),
+            method=args.method,
+            jobs=cluster_jobs("extract", args, client),
+            clock_window_s=args.clock_window,
+            max_se_s=MAX_SE_S if args.max_se is None else args.max_se * 1e-3,
+            progress=not args.quiet,
+        )
     result.table.to_csv(args.out)
     info = {**result.summary(), "out": args.out, "method": args.method}
     table = result.table
@@ -74,12 +101,17 @@ def run(args: argparse.Namespace) -> int:
         f"{args.method} to {args.out}; filter cutoff {info['filter_cutoff_hz']:.0f} Hz, gyro "
         f"clock {info['gyro_rate_error_ppm']:+.0f} ppm off nominal"
     )
-    if "true_actuation_delay" in table:
+    for name in ("actuation_delay", "response_delay"):
+        # Ground truth where the recording has it (a simulator's; another recorder may
+        # state one delay, or leave it NaN): scored over the measured trials that have it.
+        if f"true_{name}" not in table:
+            continue
         ok = np.array([not f for f in table["flag"]], dtype=bool)
-        for name in ("actuation_delay", "response_delay"):
-            err = (table[name] - table[f"true_{name}"])[ok]
-            rmse = float(np.sqrt(np.mean(err**2)) * 1e3) if ok.any() else float("nan")
+        err = (table[name] - table[f"true_{name}"])[ok]
+        err = err[np.isfinite(err)]
+        if err.size:
+            rmse = float(np.sqrt(np.mean(err**2)) * 1e3)
             info[f"{name}_rmse_ms"] = rmse
-            text += f"\n{name} error against the simulator's ground truth: RMSE {rmse:.3f} ms"
+            text += f"\n{name} error against the recording's ground truth: RMSE {rmse:.3f} ms"
     emit(args, info, text)
     return 0

@@ -18,16 +18,23 @@ from collections.abc import Sequence
 from timedexec._version import __version__
 from timedexec.cli import (
     _calibrate,
+    _check,
     _demo,
     _discrepancy,
     _evaluate,
     _extract,
+    _fleet,
     _report,
     _serve,
     _simulate,
     _train,
 )
-from timedexec.cli._common import JSON_CONVENTION, StdoutClosed, check_json_path
+from timedexec.cli._common import (
+    EXIT_INTERRUPTED,
+    JSON_CONVENTION,
+    StdoutClosed,
+    check_json_path,
+)
 from timedexec.errors import (
     ConfigError,
     DriverError,
@@ -45,10 +52,12 @@ COMMANDS = (
     _simulate,
     _serve,
     _calibrate,
+    _check,
     _extract,
     _train,
     _evaluate,
     _discrepancy,
+    _fleet,
     _report,
     _demo,
 )
@@ -57,7 +66,6 @@ EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
 EXIT_STDOUT_CLOSED = 141  # 128 + SIGPIPE, as `yes | head` reports for `yes`
 
 #: Error classes -> exit code; the first row that matches wins. Faults come first:

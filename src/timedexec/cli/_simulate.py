@@ -17,8 +17,8 @@ from timedexec.cli._common import (
     emit,
     shell_command,
     sweep_stopped,
-    used_jobs,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
 from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "resume_command", "run"]
@@ -55,6 +55,7 @@ def add_parser(sub: Any) -> None:
     )
     add_period(p)
     add_jobs(p, help="worker processes (output does not depend on it)")
+    add_scheduler(p, what="the simulation blocks (the recording is written here)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run")
     add_quiet(p)
     add_json(p, "the summary (trials, recording, recording_bytes, truth, ...)")
@@ -80,20 +81,20 @@ def run(args: argparse.Namespace) -> int:
     )
     spec = get_robot(args.robot, period_s=args.period)
     effects = parse_effects(args.effects, spec.name)
-    jobs = used_jobs("simulate", args.jobs)
     try:
-        result = simulate_sweep(
-            spec,
-            args.trials,
-            args.out,
-            seed=args.seed,
-            effects=effects,
-            settings=default_settings(spec),
-            truth_path=args.truth,
-            resume=args.resume,
-            jobs=jobs,
-            progress=not args.quiet,
-        )
+        with cluster(args, "simulate") as client:
+            result = simulate_sweep(
+                spec,
+                args.trials,
+                args.out,
+                seed=args.seed,
+                effects=effects,
+                settings=default_settings(spec),
+                truth_path=args.truth,
+                resume=args.resume,
+                jobs=cluster_jobs("simulate", args, client),
+                progress=not args.quiet,
+            )
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("simulate", exc, args.out, resume_command(args))
     info = result.summary()
@@ -118,6 +119,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--effects", None if args.effects == "default" else args.effects),
             ("--period", args.period),
             ("--jobs", None if args.jobs == 1 else args.jobs),
+            ("--scheduler", args.scheduler),
             ("--out", args.out),
             ("--truth", args.truth),
             ("--json", args.json),

@@ -27,8 +27,8 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
-    used_jobs,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
 from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "run"]
@@ -51,6 +51,8 @@ def add_parser(sub: Any) -> None:
             "scatter). Then every method is trained on all data into a model bundle in --out "
             "(manifest.json + arrays.npz, no pickle), with cv.json and cv-table.txt. The JSON "
             "result (--json) is the CV scores, the document of cv.json.\n\n"
+            "With --scheduler (or $TIMEDEXEC_SCHEDULER) every fit runs as a task on a Dask "
+            "cluster; the scores and the bundle are the same.\n\n"
             "example:\n  timedexec train ur10-delays.csv --out models/my-ur10 --jobs 2 "
             "--json cv.json"
         ),
@@ -65,6 +67,7 @@ def add_parser(sub: Any) -> None:
     )
     add_json(p, "the CV scores ({delay: {method: {column: ms}}}; needs --folds >= 2)")
     add_jobs(p, help="worker processes (joblib; -1: all)")
+    add_scheduler(p, what="the cross-validation and training fits")
     add_period(
         p,
         help="controller period the table was measured at, s (default: the robot's; kr5: "
@@ -110,25 +113,27 @@ def run(args: argparse.Namespace) -> int:
     )
     table = DelayTable.read_csv(path)
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    jobs = used_jobs("train", args.jobs)
-    if not args.quiet:
-        print(
-            f"training {', '.join(methods)} on {len(table):,} trials of {path} "
-            f"({args.folds}-fold CV, {jobs} job(s))",
-            file=sys.stderr,
+    with cluster(args, "train") as client:
+        jobs = cluster_jobs("train", args, client)
+        if not args.quiet:
+            workers = "every worker of the cluster" if client is not None else f"{jobs} job(s)"
+            print(
+                f"training {', '.join(methods)} on {len(table):,} trials of {path} "
+                f"({args.folds}-fold CV, {workers})",
+                file=sys.stderr,
+            )
+        result = train_delay_models(
+            table,
+            methods=methods,
+            folds=args.folds,
+            jobs=jobs,
+            random_state=args.seed,
+            progress=not args.quiet,
+            period_s=args.period,
+            source=str(path),
+            source_sha256=digest,
+            time_input=args.time_input,
         )
-    result = train_delay_models(
-        table,
-        methods=methods,
-        folds=args.folds,
-        jobs=jobs,
-        random_state=args.seed,
-        progress=not args.quiet,
-        period_s=args.period,
-        source=str(path),
-        source_sha256=digest,
-        time_input=args.time_input,
-    )
     model = result.model
     model.save(out)
     bundle_bytes = int(model.manifest["arrays"]["bytes"])
