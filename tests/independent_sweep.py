@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
 from timedexec.recording import Field, RecordingWriter
@@ -153,12 +153,12 @@ class _Clock:
         integral = self.off * s + c * (t / self.T + (np.exp(-3 * t / self.T) - 1) / 3)
         return self.f0 * s + self.f0 * 1e-6 * integral
 
-    def time_of(self, k: FloatArray) -> FloatArray:
+    def time_of(self, k: ArrayLike) -> FloatArray:
         """Host sweep time at which sample index k is taken (Newton on the phase)."""
-        k = np.asarray(k, dtype=np.float64)
-        t = self.t_origin + k / self.f0
+        kf = np.asarray(k, dtype=np.float64)
+        t = self.t_origin + kf / self.f0
         for _ in range(4):
-            t = t - (self.phase(t) - k) / (self.f0 * (1 + 1e-6 * self.ppm(t)))
+            t = t - (self.phase(t) - kf) / (self.f0 * (1 + 1e-6 * self.ppm(t)))
         return t
 
 
@@ -258,11 +258,13 @@ def _usb(
         copies[b] = 2 if copies[b] else 1
     rows: list[NDArray[np.int64]] = []
     times: list[FloatArray] = []
-    for b in np.flatnonzero(copies):
-        for c in range(int(copies[b])):
-            rows.append(np.arange(starts[b], ends[b]))
+    for blk in np.flatnonzero(copies).tolist():
+        for c in range(int(copies[blk])):
+            rows.append(np.arange(starts[blk], ends[blk]))
             # The copy arrives with the next transfer, 0.1-1 ms later.
-            times.append(np.full(ends[b] - starts[b], arrival[b] + c * rng.uniform(1e-4, 1e-3)))
+            times.append(
+                np.full(ends[blk] - starts[blk], arrival[blk] + c * rng.uniform(1e-4, 1e-3))
+            )
     r = np.concatenate(rows)
     t = np.concatenate(times)
     order = np.argsort(t, kind="stable")
@@ -369,7 +371,8 @@ def write_independent_sweep(
 
     # ---- physics on a 16 kHz trial-time grid --------------------------------------------------
     dt_p = 1.0 / 16000
-    grid = -prof["pre_s"] - 0.01 + np.arange(round((prof["pre_s"] + prof["record_s"] + 0.03) / dt_p)) * dt_p
+    n_grid = round((prof["pre_s"] + prof["record_s"] + 0.03) / dt_p)
+    grid: FloatArray = -prof["pre_s"] - 0.01 + np.arange(n_grid, dtype=np.float64) * dt_p
     w_link, q_link = _joint_physics(rng, t_ref, direction.astype(float), grid, r["bw"], prof)
     level = ONSET_FRACTION * prof["speed_rad_s"]
     v_dir = w_link * direction[:, None]

@@ -6,10 +6,13 @@ from __future__ import annotations
 import json
 import math
 import uuid
+from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.extraction import check_recording, extract_recording
@@ -18,9 +21,12 @@ from timedexec.recording import GyroHeader
 FS = 8000.0
 B = 8
 PERIOD = 0.008
+FloatArray = NDArray[np.float64]
 
 
-def _write_minimal(path, *, n=24, gyro_unit="LSB", drop_key=None, seed=0):
+def _write_minimal(
+    path: Path, *, n: int = 24, gyro_unit: str = "LSB", drop_key: str | None = None, seed: int = 0
+) -> Path:
     """A minimal recording, following the document's tables: root attributes, the required
     per-trial datasets (with their unit attributes) and statics. Physics: the joint speed
     follows the commanded ramp 20 ms late (first order, 5 ms); the state is 3 ms old."""
@@ -32,7 +38,7 @@ def _write_minimal(path, *, n=24, gyro_unit="LSB", drop_key=None, seed=0):
     k = np.arange(g)
     fields, data = [], {}
 
-    def add(name, arr, unit, doc=""):
+    def add(name: str, arr: Any, unit: str, doc: str = "") -> None:
         arr = np.asarray(arr)
         fields.append({"name": name, "shape": list(arr.shape[1:]), "dtype": arr.dtype.name,
                        "unit": unit, "doc": doc})  # fmt: skip
@@ -45,7 +51,7 @@ def _write_minimal(path, *, n=24, gyro_unit="LSB", drop_key=None, seed=0):
     speed, accel, hold, pause = 0.4, 8.0, 0.05, 0.15
     onset_lag = 0.02
 
-    def v_phys(t):  # out pulse only, first-order lag of a delayed trapezoid
+    def v_phys(t: FloatArray) -> FloatArray:  # out pulse only, first-order lag of a delayed trapezoid
         x = t - onset_lag
         ramp = speed / accel
         pulse = 2 * ramp + hold
@@ -124,7 +130,7 @@ def _write_minimal(path, *, n=24, gyro_unit="LSB", drop_key=None, seed=0):
     return path
 
 
-def test_minimal_h5py_recording_is_extracted(tmp_path):
+def test_minimal_h5py_recording_is_extracted(tmp_path: Path) -> None:
     """Written from the document alone: check_recording finds nothing, the extraction
     recovers the 20 ms + ramp onset and the 3 ms state age (tolerances: 0.3 ms, several
     times the standard error of these 24 short, noisy trials)."""
@@ -136,12 +142,13 @@ def test_minimal_h5py_recording_is_extracted(tmp_path):
     # The first-order lag of 5 ms reaches 10 % of the ramp later than the ramp itself:
     # onset of v = level is the delayed ramp's crossing + ~tau (5 ms) for a ramp input.
     act = table["actuation_delay"][ok]
-    assert np.all(np.isfinite(act)) and 0.015 < np.median(act) < 0.035
+    assert np.all(np.isfinite(act))
+    assert 0.015 < np.median(act) < 0.035
     np.testing.assert_allclose(np.median(table["response_delay"][ok]), 3e-3, atol=3e-4)
     assert np.all(table["actuation_delay_se"][ok] > 0)
 
 
-def test_gyro_rates_in_deg_per_s_are_converted(tmp_path):
+def test_gyro_rates_in_deg_per_s_are_converted(tmp_path: Path) -> None:
     """The same recording with the gyro stored in °/s (float) gives the same delays
     (0.05 ms: the counts' quantisation differs)."""
     a = extract_recording(_write_minimal(tmp_path / "a.h5"), progress=False).table
@@ -152,7 +159,7 @@ def test_gyro_rates_in_deg_per_s_are_converted(tmp_path):
 
 
 @pytest.mark.parametrize("key", ["group_delay_s", "transport_latency_s"])
-def test_missing_sensor_constant_is_an_error_not_zero(tmp_path, key):
+def test_missing_sensor_constant_is_an_error_not_zero(tmp_path: Path, key: str) -> None:
     """A header without the group delay or the transport latency is refused, naming it."""
     path = _write_minimal(tmp_path / "x.h5", n=4, drop_key=key)
     problems = check_recording(path)
@@ -161,7 +168,7 @@ def test_missing_sensor_constant_is_an_error_not_zero(tmp_path, key):
         extract_recording(path, progress=False)
 
 
-def test_check_names_every_problem(tmp_path):
+def test_check_names_every_problem(tmp_path: Path) -> None:
     """A wrong unit, a missing field and a missing static are all listed, each named."""
     path = _write_minimal(tmp_path / "bad.h5", n=4)
     with h5py.File(path, "r+") as f:
@@ -175,14 +182,15 @@ def test_check_names_every_problem(tmp_path):
         del f["static/plan_joint"]
     problems = check_recording(path)
     text = "\n".join(problems)
-    assert "state_q_rad" in text and "furlong" in text
+    assert "state_q_rad" in text
+    assert "furlong" in text
     assert "cmd_send_time_s" in text
     assert "plan_joint" in text
     with pytest.raises(RecordingError, match="furlong"):
         extract_recording(path, progress=False)
 
 
-def test_check_never_raises_on_garbage(tmp_path):
+def test_check_never_raises_on_garbage(tmp_path: Path) -> None:
     """Not a file, not HDF5: one problem each, no exception."""
     bad = tmp_path / "g.h5"
     bad.write_bytes(b"nope")
@@ -190,12 +198,64 @@ def test_check_never_raises_on_garbage(tmp_path):
     assert len(check_recording(tmp_path / "missing.h5")) == 1
 
 
-def test_sensor_profile_round_trip(tmp_path):
+def test_sensor_profile_round_trip(tmp_path: Path) -> None:
     """A sensor profile JSON loads into the header; missing constants are refused."""
     p = tmp_path / "mpu.json"
     p.write_text(json.dumps({"group_delay_s": 0.00098, "transport_latency_s": 0.00072}))
     h = GyroHeader.from_json(p)
-    assert h.group_delay_s == 0.00098 and h.transport_latency_s == 0.00072
+    assert h.group_delay_s == 0.00098
+    assert h.transport_latency_s == 0.00072
     p.write_text(json.dumps({"group_delay_s": 0.00098}))
     with pytest.raises(ConfigError, match="transport_latency_s"):
         GyroHeader.from_json(p)
+
+
+def _doc_section(title: str) -> str:
+    """The text of one ### section of docs/recording-format.md."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "recording-format.md").read_text()
+    start = text.index(f"### {title}")
+    end = text.find("\n#", start + 4)
+    return text[start : end if end > 0 else None]
+
+
+def _table_rows(section: str) -> list[list[str]]:
+    rows = [ln for ln in section.splitlines() if ln.startswith("| ")]
+    return [[c.strip() for c in ln.strip("|").split(" | ")] for ln in rows[1:]]  # no header
+
+
+def _ticked(cell: str) -> list[str]:
+    import re
+
+    return re.findall(r"`([^`]*)`", cell)
+
+
+def test_document_and_code_state_the_same_contract() -> None:
+    """docs/recording-format.md ("What extraction needs") lists exactly the fields (with
+    their kinds), statics and header keys the extraction requires, and the units table
+    accepts exactly the spellings the code converts: the document is the contract."""
+    from timedexec.extraction import REQUIRED_FIELDS, REQUIRED_HEADER, REQUIRED_STATICS, UNITS
+
+    fields = {_ticked(r[0])[0]: r[2] for r in _table_rows(_doc_section("Per-trial fields"))}
+    assert fields == {name: kind for name, (kind, _) in REQUIRED_FIELDS.items()}
+    statics = [_ticked(r[0])[0] for r in _table_rows(_doc_section("Static arrays"))]
+    assert statics == list(REQUIRED_STATICS)
+    header = [_ticked(r[0])[0] for r in _table_rows(_doc_section("Header keys"))]
+    assert header[: len(REQUIRED_HEADER)] == list(REQUIRED_HEADER)
+    # the rest are conditional: the sensitivity, needed only for counts
+    assert header[len(REQUIRED_HEADER) :] == ["gyro.lsb_per_dps"]
+    units = {r[0]: set(_ticked(r[1])) for r in _table_rows(_doc_section("Units"))}
+    assert set(units) == set(UNITS)
+    for kind, table in UNITS.items():
+        assert units[kind] == set(table), kind
+
+
+def test_deep_check_names_trials_outside_the_plan(tmp_path: Path) -> None:
+    """A trial index beyond the plan arrays and a repeated one are named (deep check only:
+    --shallow does not read the data)."""
+    path = _write_minimal(tmp_path / "t.h5", n=4)
+    with h5py.File(path, "r+") as f:
+        f["trials/trial"][:] = [0, 1, 1, 7]
+    problems = check_recording(path)
+    assert any("index no row of the plan" in p for p in problems)
+    assert any("more than once" in p for p in problems)
+    assert check_recording(path, deep=False) == []

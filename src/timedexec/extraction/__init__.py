@@ -11,6 +11,7 @@ from timedexec.extraction._check import (
     REQUIRED_FIELDS,
     REQUIRED_HEADER,
     REQUIRED_STATICS,
+    UNITS,
     check_recording,
 )
 from timedexec.extraction._extract import (
@@ -31,6 +32,7 @@ __all__ = [
     "REQUIRED_FIELDS",
     "REQUIRED_HEADER",
     "REQUIRED_STATICS",
+    "UNITS",
     "ExtractionResult",
     "StillAnalysis",
     "analyse_still",

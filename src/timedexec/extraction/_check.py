@@ -21,6 +21,7 @@ __all__ = [
     "REQUIRED_FIELDS",
     "REQUIRED_HEADER",
     "REQUIRED_STATICS",
+    "UNITS",
     "Contract",
     "check_recording",
     "read_contract",
@@ -62,14 +63,30 @@ REQUIRED_HEADER = (
     "gyro.transport_latency_s",
 )
 
+#: Header keys that may be 0 (the rest must be positive).
+_NON_NEGATIVE = (
+    "profile.hold_s",
+    "profile.pause_s",
+    "gyro.group_delay_s",
+    "gyro.transport_latency_s",
+)
+
 #: Accepted unit spellings -> factor to SI, per kind.
 UNITS: dict[str, dict[str, float]] = {
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9},
     "angle": {"rad": 1.0, "deg": math.pi / 180, "°": math.pi / 180},
     "speed": {"rad/s": 1.0, "deg/s": math.pi / 180, "°/s": math.pi / 180, "dps": math.pi / 180},
     # gyro rates: counts need the header's sensitivity (filled in by read_contract)
-    "rate": {"rad/s": 1.0, "deg/s": math.pi / 180, "°/s": math.pi / 180, "dps": math.pi / 180,
-             "LSB": math.nan, "lsb": math.nan, "counts": math.nan, "": math.nan},  # fmt: skip
+    "rate": {
+        "rad/s": 1.0,
+        "deg/s": math.pi / 180,
+        "°/s": math.pi / 180,
+        "dps": math.pi / 180,
+        "LSB": math.nan,
+        "lsb": math.nan,
+        "counts": math.nan,
+        "": math.nan,
+    },
     "none": {"": 1.0, "1": 1.0, "count": 1.0, "counts": 1.0},
 }
 
@@ -129,11 +146,10 @@ def _problems(reader: RecordingReader) -> tuple[list[str], Contract | None]:
         except (TypeError, ValueError):
             problems.append(f"header: {key} = {v!r} is not a number")
             continue
-        positive = key not in ("gyro.group_delay_s", "gyro.transport_latency_s")
+        positive = key not in _NON_NEGATIVE
         if not math.isfinite(f) or f < 0 or (positive and f <= 0):
             need = "a positive" if positive else "a non-negative"
             problems.append(f"header: {key} = {v!r} must be {need} finite number (SI units)")
-    rate_units = UNITS["rate"]
     gyro = header.get("gyro", {}) if isinstance(header.get("gyro"), dict) else {}
     lsb = gyro.get("lsb_per_dps")
     if lsb is None and "full_scale_dps" in gyro:
@@ -203,8 +219,9 @@ def _problems(reader: RecordingReader) -> tuple[list[str], Contract | None]:
         robot=str(header["robot"]["name"]),
         vendor=str(header["robot"].get("vendor", "")),
         period_s=float(header["controller_period_s"]),
-        profile={k: float(prof[k]) for k in ("speed_rad_s", "acceleration_rad_s2", "hold_s",
-                                            "pause_s")},  # fmt: skip
+        profile={
+            k: float(prof[k]) for k in ("speed_rad_s", "acceleration_rad_s2", "hold_s", "pause_s")
+        },
         fs_hz=float(gyro["nominal_rate_hz"]),
         block=int(gyro["block_samples"]),
         group_delay_s=float(gyro["group_delay_s"]),
@@ -285,6 +302,17 @@ def _deep_problems(reader: RecordingReader, contract: Contract) -> list[str]:
         out.append(f"static 'still_gyro_block_host_time_s' holds {sb.shape[0]} blocks; "
                    f"{still.shape[0]} samples in blocks of {contract.block} make "
                    f"{still.shape[0] // contract.block}")  # fmt: skip
+    trial = np.asarray(reader.read("trial"))
+    n_plan = min(len(reader.static(name)) for name in ("plan_q_start_rad", "plan_joint",
+                                                         "plan_direction"))
+    outside = int(np.sum((trial < 0) | (trial >= n_plan)))
+    if outside:
+        out.append(f"field 'trial': {outside} trial(s) index no row of the plan arrays "
+                   f"(plan_q_start_rad, plan_joint, plan_direction hold {n_plan} rows)")
+    repeated = int(trial.size - np.unique(trial).size)
+    if repeated:
+        out.append(f"field 'trial': {repeated} plan index(es) recorded more than once; each "
+                   "trial is one row")
     bad_blocks = bad_counters = flat = 0
     for chunk in reader.iter_chunks(1024, names=["gyro_block_host_time_s", "gyro_counter",
                                                  "gyro_raw"]):  # fmt: skip

@@ -19,13 +19,16 @@ each step assumes of the recording):
    filters, weighted out of the fits, and counted).
 3. **Gyro time base.** Counters are unwrapped across the sweep (the host time between
    trials fixes the number of wraps); the sensor clock is fitted per session as blended
-   lower envelopes of the block arrivals that follow the oscillator's drift, the window
-   length chosen from the data (:func:`timedexec.sensors.fit_clock_drifting`); the
-   transport latency and the filter group delay are subtracted.
+   lower envelopes of the block arrivals, quadratic per window so that they follow the
+   oscillator's drift, the window length chosen from the data
+   (:func:`timedexec.sensors.fit_clock_drifting`); the transport latency and the filter
+   group delay are subtracted.
 4. **Rates.** Zero-rate from the pre-command samples of the trial and its neighbours in
-   time (the bias drifts slowly; pooling ~31 trials makes its error negligible), projection
-   on the principal axis of the motion, gain calibrated so that the integrated gyro angle of
-   the out pulse equals the reported joint displacement; per-trial noise σ from the data.
+   time (the bias drifts slowly; pooling ~31 trials makes its error negligible; a trial off
+   its neighbours' median keeps its own; a chunk reads its neighbours' first samples too,
+   so the stream is read once), projection on the principal axis of the motion, gain
+   calibrated so that the integrated gyro angle of the out pulse equals the reported joint
+   displacement; per-trial noise σ from the data.
 5. **Actuation** (method ``fit``): a coarse crossing from the low-pass filtered speed (the
    last sample below the level before the speed passes half the commanded speed), refined
    by a cubic least-squares fit in a window chosen per trial by Lepski's method, with its
@@ -57,7 +60,14 @@ from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
 from timedexec.extraction._check import REQUIRED_FIELDS, Contract, read_contract
-from timedexec.extraction._onset import onset_adaptive, response_increments
+from timedexec.extraction._onset import (
+    ONSET_WINDOWS_S,
+    _parabolic_peak,
+    _robust_sigma,
+    _row_nanmedian,
+    onset_adaptive,
+    response_increments,
+)
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 from timedexec.recording import RecordingReader
 from timedexec.sensors import (
@@ -65,7 +75,6 @@ from timedexec.sensors import (
     fit_clock_drifting,
     fit_clock_lower_envelope,
     relative_counter_rows,
-    unwrap_counter,
 )
 
 __all__ = ["METHODS", "ExtractionResult", "extract_recording"]
@@ -87,6 +96,13 @@ MAX_SE_S = 0.002
 #: of the out pulse (the gain and the response integrate it).
 _MAX_MISSING_ONSET = 0.3
 _MAX_MISSING_PULSE = 0.2
+#: Rows per read of the sweep-wide scan (counters and pre-command samples).
+_SCAN_ROWS = 2048
+#: Every so many samples enter the covariance that finds the principal axis of the motion.
+_COV_STRIDE = 4
+#: Samples between the points at which the sensor clock model is evaluated for each row;
+#: linear in between (the model's curvature makes that exact to < 1 ns).
+_CLOCK_NODE_STEP = 64
 FloatArray = NDArray[np.float64]
 
 
@@ -98,8 +114,9 @@ class _Context:
     taps: FloatArray
     clocks: dict[int, DriftingClockFit]  # per session
     n_first: FloatArray  # unwrapped index of each recorded row's first sample
-    bias: FloatArray  # (n_rows, 3) pooled zero-rate per row, rad/s (sensor axes)
-    bias_n: FloatArray  # (n_rows,) samples behind each pooled zero-rate
+    time_order: NDArray[np.int64]  # rows sorted by session, then by t0
+    time_rank: NDArray[np.int64]  # (n_rows,) each row's position in time_order
+    session_span: NDArray[np.int64]  # (n_rows, 2) its session's [start, stop) in time_order
 
     @property
     def robot(self) -> str:
@@ -174,42 +191,86 @@ def _unwrap_rows(
     return start_index + np.cumsum(dc + 65536 * wraps).astype(np.int64)
 
 
-def _pool_bias(
-    pre_sum: FloatArray, pre_n: FloatArray, t0: FloatArray, session: NDArray[np.int64]
+def _pre_stats(
+    counter: NDArray[Any], raw: NDArray[Any], m_pre: int, rate_scale: float
 ) -> tuple[FloatArray, FloatArray]:
-    """Zero-rate per row from the pre-command samples of the row and its neighbours in time
-    (same session); rows far off their neighbours (moving, knocked) keep their own."""
+    """Sum (rad/s, sensor axes) and count of each row's kept samples among its first
+    ``m_pre`` sample positions (the zero-rate samples before the command)."""
+    c16 = counter if counter.dtype == np.uint16 else (counter.astype(np.int64) % 65536).astype(
+        np.uint16
+    )
+    clean = np.all(np.diff(c16, axis=1) == 1, axis=1)
+    pre = np.ones((len(counter), m_pre), dtype=bool)
+    dirty = np.flatnonzero(~clean)
+    if dirty.size:  # lost, duplicated or out-of-order frames: positions from the counter
+        pos, keep = relative_counter_rows(counter[dirty])
+        pre[dirty] = keep[:, :m_pre] & (pos[:, :m_pre] < m_pre)
+    first = np.asarray(raw[:, :m_pre], dtype=np.float64)
+    pre_sum = np.einsum("nm,nma->na", pre.astype(np.float64), first) * rate_scale
+    return pre_sum, pre.sum(axis=1).astype(np.float64)
+
+
+def _pool_bias(
+    pre_sum: FloatArray, pre_n: FloatArray, nbr: NDArray[np.intp], valid: NDArray[np.bool_]
+) -> tuple[FloatArray, FloatArray]:
+    """Zero-rate of each row from the pre-command samples of its neighbours in time.
+
+    ``nbr`` (k, w) indexes the rows of ``pre_sum``/``pre_n`` around each row in time order
+    (same session; its own row in the middle column), ``valid`` marks the real ones (a
+    session's ends). A neighbour is pooled when its own zero-rate lies within 8 MAD of the
+    window's median (a row taken while the arm moved or was knocked does not); a row that
+    is itself off its window's median keeps its own zero-rate.
+    """
     bias = pre_sum / np.maximum(pre_n, 1)[:, None]
-    out = bias.copy()
-    out_n = pre_n.astype(np.float64).copy()
-    half = _BIAS_POOL // 2
-    for sess in np.unique(session):
-        rows = np.flatnonzero(session == sess)
-        rows = rows[np.argsort(t0[rows])]
-        if len(rows) < 3:
-            continue
-        b, m = bias[rows], pre_n[rows].astype(np.float64)
-        med = np.median(b, axis=0)
-        dev = np.abs(b - med)
-        mad = np.median(dev, axis=0) + 1e-12
-        good = np.all(dev < 8 * 1.4826 * mad + 1e-9, axis=1) & (m > 0)
-        s = np.where(good[:, None], pre_sum[rows], 0.0)
-        c = np.where(good, m, 0.0)
-        cs = np.vstack([np.zeros((1, 3)), np.cumsum(s, axis=0)])
-        cc = np.r_[0.0, np.cumsum(c)]
-        i = np.arange(len(rows))
-        lo = np.clip(i - half, 0, len(rows))
-        hi = np.clip(i + half + 1, 0, len(rows))
-        n_pool = cc[hi] - cc[lo]
-        pooled = (cs[hi] - cs[lo]) / np.maximum(n_pool, 1)[:, None]
-        use = good & (n_pool > 0)
-        out[rows[use]] = pooled[use]
-        out_n[rows[use]] = n_pool[use]
+    b = bias[nbr]  # (k, w, 3)
+    ok = valid & (pre_n[nbr] > 0)
+    bw = np.where(ok[..., None], b, np.nan)
+    k, w, _ = b.shape
+    flat = np.moveaxis(bw, 1, 2).reshape(k * 3, w)
+    med = _row_nanmedian(flat).reshape(k, 3)
+    dev = np.abs(b - med[:, None, :])
+    mad = _row_nanmedian(np.moveaxis(np.where(ok[..., None], dev, np.nan), 1, 2).reshape(k * 3, w))
+    mad = mad.reshape(k, 3) + 1e-12
+    good = ok & np.all(dev < 8 * 1.4826 * mad[:, None, :] + 1e-9, axis=2)
+    n_pool = np.sum(np.where(good, pre_n[nbr], 0.0), axis=1)
+    pooled = np.sum(np.where(good[..., None], pre_sum[nbr], 0.0), axis=1)
+    pooled /= np.maximum(n_pool, 1)[:, None]
+    centre = nbr[:, w // 2]
+    use = good[:, w // 2] & (n_pool > 0) & (np.sum(valid, axis=1) >= 3)
+    out = np.where(use[:, None], pooled, bias[centre])
+    out_n = np.where(use, n_pool, pre_n[centre])
     return out, out_n
 
 
+_Scan = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]
+
+
+def _scan_rows(
+    reader: RecordingReader, start: int, stop: int, rows_b: NDArray[np.int64]
+) -> _Scan:
+    """What the sweep-wide clock fit needs of rows ``start:stop``: each row's first counter,
+    and the position and kept state of each block's last row."""
+    c = reader.read("gyro_counter", slice(start, stop))
+    k = len(c)
+    c16 = c if c.dtype == np.uint16 else (c.astype(np.int64) % 65536).astype(np.uint16)
+    clean = np.all(np.diff(c16, axis=1) == 1, axis=1)
+    pos_block = np.broadcast_to(rows_b, (k, rows_b.size)).copy()
+    keep_block = np.ones((k, rows_b.size), dtype=bool)
+    dirty = np.flatnonzero(~clean)
+    if dirty.size:  # lost, duplicated or out-of-order frames: positions from the counter
+        pos, keep = relative_counter_rows(c[dirty])
+        pos_block[dirty] = pos[:, rows_b]
+        keep_block[dirty] = keep[:, rows_b]
+    return np.asarray(c[:, 0], dtype=np.int64), pos_block, keep_block
+
+
+def _scan_path(path: str, start: int, stop: int, rows_b: NDArray[np.int64]) -> _Scan:
+    with RecordingReader(path) as reader:
+        return _scan_rows(reader, start, stop, rows_b)
+
+
 def _context(
-    reader: RecordingReader, *, clock_window_s: float | None, numtaps: int
+    reader: RecordingReader, *, clock_window_s: float | None, numtaps: int, jobs: int = 1
 ) -> tuple[_Context, StillAnalysis, float, float, dict[str, Any]]:
     con = read_contract(reader)
     fs, block = con.fs_hz, con.block
@@ -238,29 +299,26 @@ def _context(
     blocks = reader.read("gyro_block_host_time_s").astype(np.float64)
     blocks *= con.scale["gyro_block_host_time_s"]
     n_blocks = blocks.shape[1]
-    first_counter = np.empty(n, np.int64)
-    pos_block = np.empty((n, n_blocks), np.int64)
-    keep_block = np.empty((n, n_blocks), bool)
-    pre_sum = np.empty((n, 3))
-    pre_n = np.empty(n)
-    m_pre = max(int(_PRE_S * fs), 1)
     rows_b = np.arange(n_blocks) * block + block - 1
-    start = 0
-    for chunk in reader.iter_chunks(2048, names=["gyro_counter", "gyro_raw"]):
-        c = chunk["gyro_counter"]
-        k = len(c)
-        pos, keep = relative_counter_rows(c)
-        sl = slice(start, start + k)
-        first_counter[sl] = np.asarray(c[:, 0], dtype=np.int64)
-        pos_block[sl] = pos[:, rows_b]
-        keep_block[sl] = keep[:, rows_b]
-        pre = keep[:, :m_pre] & (pos[:, :m_pre] < m_pre)
-        raw = np.asarray(chunk["gyro_raw"][:, :m_pre], dtype=np.float64)
-        pre_sum[sl] = np.einsum("nm,nma->na", pre.astype(np.float64), raw) * rate_scale
-        pre_n[sl] = pre.sum(axis=1)
-        start += k
-    keep_block &= np.isfinite(blocks)
-    bias, bias_n = _pool_bias(pre_sum, pre_n, t0, session)
+    spans = [(a, min(a + _SCAN_ROWS, n)) for a in range(0, n, _SCAN_ROWS)]
+    if jobs == 1 or len(spans) == 1:
+        parts = [_scan_rows(reader, a, b, rows_b) for a, b in spans]
+    else:
+        from joblib import Parallel, delayed
+
+        parts = Parallel(n_jobs=jobs)(
+            delayed(_scan_path)(reader.path, a, b, rows_b) for a, b in spans
+        )
+    first_counter = np.concatenate([p[0] for p in parts])
+    pos_block = np.concatenate([p[1] for p in parts])
+    keep_block = np.concatenate([p[2] for p in parts]) & np.isfinite(blocks)
+    # Time order within each session: the zero-rate of a row pools its neighbours in time.
+    time_order = np.lexsort((t0, session)).astype(np.int64)
+    time_rank = np.empty(n, dtype=np.int64)
+    time_rank[time_order] = np.arange(n)
+    sess_sorted = session[time_order]
+    bounds = np.searchsorted(sess_sorted, [session, session + 1], side="left").T
+    session_span = np.asarray(bounds, dtype=np.int64)
 
     # Unwrap every row's first sample, per session (a resumed run is a new gyro stream and
     # host clock), in time order; the still recording anchors session 0. The arrival of
@@ -318,44 +376,15 @@ def _context(
     motion = np.linalg.norm(raw - still.bias_rad_s, axis=2)
     taps, cutoff = design_lowpass(still, motion, fs, numtaps=numtaps)
     ctx = _Context(
-        contract=con, taps=taps, clocks=clocks, n_first=n_first.astype(np.float64),
-        bias=bias, bias_n=bias_n,
-    )  # fmt: skip
+        contract=con,
+        taps=taps,
+        clocks=clocks,
+        n_first=n_first.astype(np.float64),
+        time_order=time_order,
+        time_rank=time_rank,
+        session_span=session_span,
+    )
     return ctx, still, cutoff, rate, clock_info
-
-
-def _block_alignment(
-    n: NDArray[np.int64], t: FloatArray, group: NDArray[np.int64], block: int, fs: float
-) -> NDArray[np.int64]:
-    """Samples from each recorded block's last row to the last sample of the USB transfer
-    that delivered it, per group (trial).
-
-    A recorder groups a window's rows in blocks from the window's first row, but the
-    device's transfers need not start there: the arrival stamped on a recorded block is
-    then that of a later sample, o·dt later (0 <= o < block, constant in a trial). The
-    lower envelope would touch only aligned trials; here o is recovered. Relative to a
-    clock fitted in short fixed windows, each trial's lowest arrival residual is
-    e(t) + o·dt + (small jitter excess), with e smooth; its fractional part in samples does
-    not depend on o, so unwrapping it across trials (in time order) gives e, and the
-    remainder rounds to o. Groups are trials; the still recording (group -1) is aligned
-    as a whole.
-    """
-    if block <= 1 or n.size < 4:
-        return np.zeros_like(n)
-    first = fit_clock_drifting(n, t, group, nominal_rate_hz=fs, window_s=20.0)
-    resid = (t - first.to_host_time(n)) * fs  # samples
-    uniq, g_idx = np.unique(group, return_inverse=True)
-    m = np.full(uniq.size, np.inf)
-    np.minimum.at(m, g_idx, resid)
-    t_first = np.full(uniq.size, np.inf)
-    np.minimum.at(t_first, g_idx, t)
-    order = np.argsort(t_first)
-    phase = np.unwrap(2 * np.pi * (m[order] - np.round(m[order])), period=2 * np.pi) / (2 * np.pi)
-    o_sorted = np.round(m[order] - phase)
-    o_sorted -= np.min(o_sorted)
-    o = np.empty(uniq.size)
-    o[order] = np.clip(o_sorted, 0, block - 1)
-    return o[g_idx].astype(np.int64)
 
 
 def _grid(
@@ -389,22 +418,54 @@ def _grid(
 def _sample_times(
     ctx: _Context, rows: NDArray[np.int64], t0: FloatArray, g: int, session: NDArray[np.int64]
 ) -> FloatArray:
-    """Trial time of every grid position's sample (the physical instant it describes)."""
-    n_idx = ctx.n_first[rows][:, None] + np.arange(g, dtype=np.float64)
+    """Trial time of every grid position's sample (the physical instant it describes).
+
+    The clock model (blended lines, windows of >= 4 s) bends by well under a nanosecond
+    over _CLOCK_NODE_STEP samples, so it is evaluated every so many samples of a row and
+    interpolated linearly in between (the full evaluation costs 10x more)."""
+    nodes = np.r_[np.arange(0, g - 1, _CLOCK_NODE_STEP), g - 1].astype(np.float64)
+    n_idx = ctx.n_first[rows][:, None] + nodes
     host = np.empty_like(n_idx)
     for sess in np.unique(session):
         m = session == sess
         host[m] = ctx.clocks[int(sess)].to_host_time(n_idx[m])
-    return host - ctx.contract.latency_s - t0[:, None]
+    host -= (ctx.contract.latency_s + t0)[:, None]
+    # Segment m covers samples m·step .. m·step + step - 1 (the last one ends before
+    # g - 1, the last node): broadcast each segment's start and slope over its samples.
+    step = _CLOCK_NODE_STEP
+    m = nodes.size - 1
+    slope = np.diff(host, axis=1) / np.diff(nodes)
+    seg = host[:, :-1, None] + slope[:, :, None] * np.arange(step, dtype=np.float64)
+    out: FloatArray = np.empty((len(rows), g))
+    out[:, : g - 1] = seg.reshape(len(rows), m * step)[:, : g - 1]
+    out[:, g - 1] = host[:, -1]
+    return out
 
 
-def _robust_sigma(y: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
-    """White-noise standard deviation per row from first differences (MAD, robust to a
-    slow trend and to outliers), over the masked samples."""
-    d = np.where(mask[:, 1:] & mask[:, :-1], np.diff(y, axis=1), np.nan)
-    med = np.nanmedian(d, axis=1)
-    mad = np.nanmedian(np.abs(d - med[:, None]), axis=1)
-    return np.asarray(1.4826 * mad / np.sqrt(2.0))
+def _span(t_g: FloatArray, lo: FloatArray | None, hi: FloatArray | None) -> slice:
+    """Columns that hold, in every row, the samples between times ``lo`` and ``hi`` (per
+    row; None: unbounded), with a margin of two samples. A row's sample times are a
+    line to well under a sample (the sensor clock's curvature), so the line finds them."""
+    g = t_g.shape[1]
+    first = t_g[:, 0]
+    step = (t_g[:, -1] - first) / (g - 1)
+    a = 0 if lo is None else int(np.floor(np.nanmin((lo - first) / step))) - 2
+    b = g if hi is None else int(np.ceil(np.nanmax((hi - first) / step))) + 3
+    return slice(int(np.clip(a, 0, g)), int(np.clip(b, 0, g)))
+
+
+def _filter_cols(y: FloatArray, taps: FloatArray, cols: slice) -> FloatArray:
+    """``y`` low-pass filtered with the symmetric FIR ``taps`` (zero phase, zeros beyond
+    the row's ends), on the columns ``cols`` only: the same values as filtering whole
+    rows, from the columns the taps reach."""
+    g = y.shape[1]
+    reach = taps.size // 2
+    lo, hi = cols.start, cols.stop
+    if hi <= lo:
+        return np.zeros((y.shape[0], 0))
+    a, b = max(lo - reach, 0), min(hi + reach, g)
+    part = signal.oaconvolve(y[:, a:b], taps[None, :], mode="same", axes=1)
+    return np.asarray(part[:, lo - a : hi - a])
 
 
 def _extract_chunk_inner(
@@ -433,23 +494,36 @@ def _extract_chunk_inner(
     clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2)) if raw.dtype.kind == "i" else (
         np.zeros(n, bool)
     )
-    rates, have, _ = _grid(raw, chunk["gyro_counter"])
+    rates, have, _ = _grid(raw, chunk["gyro_counter"])  # as stored (counts or a rate unit)
     g = rates.shape[1]
     t_g = _sample_times(ctx, rows, t0, g, session)
-    rates *= con.scale["gyro_raw"]  # rad/s, sensor axes
-    rates -= ctx.bias[rows][:, None, :]
-    pre = have & (t_g < t_send[:, None])
-    # Principal axis of the motion (after the command), batched 3x3 covariances.
-    active = ((t_g > t_send[:, None]) & have).astype(np.float64)
-    cov = np.matmul(rates.transpose(0, 2, 1), rates * active[:, :, None])
+    scale = con.scale["gyro_raw"]  # stored unit -> rad/s
+    bias = chunk["bias"]  # (n, 3) pooled zero-rate, rad/s, sensor axes
+    # The masks and sums below cover only the columns some row needs (t_g rises with the
+    # column; _span finds the columns of a time interval in every row).
+    s_pre = _span(t_g, None, t_send)
+    pre = have[:, s_pre] & (t_g[:, s_pre] < t_send[:, None])
+    # Principal axis of the motion (after the command): covariance of scale·r - bias from
+    # the raw moments, on every _COV_STRIDE-th sample (the motion dwarfs the noise).
+    s_cov = slice(_span(t_g, t_send, None).start, g, _COV_STRIDE)
+    w_cov = ((t_g[:, s_cov] > t_send[:, None]) & have[:, s_cov]).astype(np.float64)
+    r_cov = rates[:, s_cov]
+    m2 = np.einsum("nga,ngb->nab", r_cov * w_cov[:, :, None], r_cov, optimize=True)
+    m1 = np.einsum("nga,ng->na", r_cov, w_cov)
+    cross = m1[:, :, None] * bias[:, None, :]
+    cov = scale**2 * m2 - scale * (cross + cross.transpose(0, 2, 1))
+    cov += w_cov.sum(axis=1)[:, None, None] * bias[:, :, None] * bias[:, None, :]
     _, vecs = np.linalg.eigh(cov)
     axis = vecs[:, :, -1]
     y = np.matmul(rates, axis[:, :, None])[:, :, 0]
+    y *= scale
+    y -= np.sum(bias * axis, axis=1)[:, None]  # speed along the axis, rad/s
     # The sensor's true sample spacing (its clock runs off nominal by up to ~1 %).
     dt = (t_g[:, -1] - t_g[:, 0]) / (g - 1)
     out_end = t_send + pulse + 0.12
-    in_out = (t_g > t_send[:, None]) & (t_g < out_end[:, None])
-    sign = np.sign(np.sum(y * in_out, axis=1))
+    s_out = _span(t_g, t_send, out_end)
+    in_out = (t_g[:, s_out] > t_send[:, None]) & (t_g[:, s_out] < out_end[:, None])
+    sign = np.sign(np.sum(y[:, s_out] * in_out, axis=1))
     sign[sign == 0] = 1.0
     y *= sign[:, None]  # now positive in the out pulse: speed along the commanded direction
 
@@ -470,18 +544,21 @@ def _extract_chunk_inner(
     )
     package_gap = (present.mean(axis=1) < 0.5) | long_gap
 
-    # Filtered speed (zero phase: the FIR is symmetric and "same" centres its output).
-    filt = signal.oaconvolve(y, ctx.taps[None, :], mode="same", axes=1)
+    # Filtered speed (zero phase: the FIR is symmetric and centred) over the out pulse's
+    # columns, the only ones the coarse crossing and the peak use.
+    filt_out = _filter_cols(y, ctx.taps, s_out)
     level = ONSET_FRACTION * speed
     # Coarse crossing: the last sample below the level before the speed first passes half
     # the commanded speed (noise cannot fake that), then the next one.
-    after = t_g > t_send[:, None]
-    half_up = after & (filt >= 0.5 * speed[:, None])
+    half_up = in_out & (filt_out >= 0.5 * speed[:, None])
     found = half_up.any(axis=1)
-    k50 = np.where(found, np.argmax(half_up, axis=1), g - 1)
-    below = after & (filt < level[:, None]) & (np.arange(g) < k50[:, None])
-    k_c = np.where(below.any(axis=1), g - 1 - np.argmax(below[:, ::-1], axis=1) + 1, k50)
-    k_c = np.clip(k_c, 0, g - 1)
+    m_out = filt_out.shape[1]
+    k50_loc = np.where(found, np.argmax(half_up, axis=1), m_out)
+    below = in_out & (filt_out < level[:, None]) & (np.arange(m_out) < k50_loc[:, None])
+    k_c = s_out.start + np.where(
+        below.any(axis=1), m_out - np.argmax(below[:, ::-1], axis=1), k50_loc
+    )
+    k_c = np.clip(np.where(found, k_c, g - 1), 0, g - 1)
     tau_coarse = np.where(found, t_g[np.arange(n), k_c] - t_send, np.nan)
 
     # Gain: integrated gyro angle of the out pulse against the reported displacement.
@@ -491,21 +568,31 @@ def _extract_chunk_inner(
     q_mid = np.array([np.interp(pause_mid[i] + 0.03, host[i][present[i]], q_rep[i][present[i]])
                       if present[i].sum() > 1 else np.nan for i in range(n)])  # fmt: skip
     disp = (q_mid - q_start) * direction
-    in_pulse = (t_g >= (t_send - 0.002)[:, None]) & (t_g <= pause_mid[:, None])
-    angle = np.sum(y * in_pulse, axis=1) * dt
+    s_pulse = _span(t_g, t_send - 0.002, pause_mid)
+    in_pulse = (t_g[:, s_pulse] >= (t_send - 0.002)[:, None]) & (
+        t_g[:, s_pulse] <= pause_mid[:, None]
+    )
+    angle = np.sum(y[:, s_pulse] * in_pulse, axis=1) * dt
     gain = angle / np.where(np.abs(disp) > 1e-9, disp, np.nan)
     y_phys = y / gain[:, None]
-    filt_phys = filt / gain[:, None]
-    peak = np.max(filt_phys * in_out, axis=1)
-    sigma = _robust_sigma(y_phys, pre)
-    missing_pulse = 1.0 - np.sum(have & in_pulse, axis=1) / np.maximum(in_pulse.sum(axis=1), 1)
+    peak = np.max(filt_out / gain[:, None] * in_out, axis=1)
+    sigma = _robust_sigma(y_phys[:, s_pre], pre)
+    missing_pulse = 1.0 - np.sum(have[:, s_pulse] & in_pulse, axis=1) / np.maximum(
+        in_pulse.sum(axis=1), 1
+    )
+    if traces or method != "fit":
+        filt = _filter_cols(y, ctx.taps, slice(0, g)) if traces else np.zeros_like(y)
+        filt[:, s_out] = filt_out
+        filt_phys = filt / gain[:, None]
+        in_out_full = np.zeros((n, g), dtype=bool)
+        in_out_full[:, s_out] = in_out
 
     n_cols = {}
     if method == "fit":
         on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz)
         act = on["onset"] - (t_send + level / accel)
         # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
-        sd_bias = sigma / np.sqrt(np.maximum(ctx.bias_n[rows], 1.0))
+        sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
         act_se = np.sqrt(on["crb"] ** 2 + on["bias"] ** 2 + (sd_bias / on["slope"]) ** 2)
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
         resp, resp_se = response_increments(
@@ -521,7 +608,7 @@ def _extract_chunk_inner(
         }
     else:
         t_cmd_peak = t_send + pulse / 2
-        kk = np.argmax(np.where(in_out, filt_phys, -np.inf), axis=1)
+        kk = np.argmax(np.where(in_out_full, filt_phys, -np.inf), axis=1)
         t_meas = _parabolic_peak(t_g, filt_phys, kk)
         rep = np.where(
             (host > t_send[:, None]) & (host < out_end[:, None] + 0.03),
@@ -563,36 +650,50 @@ def _extract_chunk_inner(
 
 
 def _windows() -> tuple[tuple[float, float], ...]:
-    from timedexec.extraction._onset import ONSET_WINDOWS_S
-
     return ONSET_WINDOWS_S
-
-
-def _parabolic_peak(t: FloatArray, y: FloatArray, k: NDArray[np.int64]) -> FloatArray:
-    n, g = y.shape
-    k = np.clip(k, 1, g - 2)
-    r = np.arange(n)
-    y0, y1, y2 = y[r, k - 1], y[r, k], y[r, k + 1]
-    den = y0 - 2 * y1 + y2
-    frac = np.where(np.abs(den) > 1e-15, 0.5 * (y0 - y2) / den, 0.0)
-    return t[r, k] + np.clip(frac, -1, 1) * (t[r, k + 1] - t[r, k])
 
 
 def _run_rows(
     path: str, ctx: _Context, rows: NDArray[np.int64], method: str, max_se_s: float = MAX_SE_S
 ) -> dict[str, NDArray[Any]]:
     with RecordingReader(path) as reader:
-        chunk = _read_chunk(reader, rows, ctx.contract)
+        chunk = _read_chunk(reader, rows, ctx)
     return _extract_chunk(ctx, chunk, rows, method, max_se_s=max_se_s)
 
 
 def _read_chunk(
-    reader: RecordingReader, rows: NDArray[np.int64], contract: Contract
+    reader: RecordingReader, rows: NDArray[np.int64], ctx: _Context
 ) -> dict[str, NDArray[Any]]:
     """The fields extraction needs for ``rows`` (``session`` where the recording has it),
-    times, angles and speeds converted to SI (gyro rates stay as stored: see _grid)."""
+    times, angles and speeds converted to SI (gyro rates stay as stored: see _grid), and
+    each row's pooled zero-rate (``bias``, rad/s, sensor axes; ``bias_n`` samples behind
+    it), for which the gyro of the _BIAS_POOL // 2 rows before and after each row in time
+    is read too (the rows themselves and a margin: the stream is read once)."""
+    contract = ctx.contract
+    half = _BIAS_POOL // 2
+    offs = np.arange(-half, half + 1)
+    pos = ctx.time_rank[rows][:, None] + offs
+    span = ctx.session_span[rows]
+    valid = (pos >= span[:, :1]) & (pos < span[:, 1:])
+    nbr_rows = ctx.time_order[np.clip(pos, 0, len(ctx.time_order) - 1)]
+    union = np.unique(np.concatenate([rows, nbr_rows[valid]]))
     names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
-    out = {name: reader.read(name, rows=rows) for name in names}
+    at = np.searchsorted(union, rows)
+    out: dict[str, NDArray[Any]] = {}
+    for name in names:
+        if name in ("gyro_raw", "gyro_counter"):
+            out[name] = reader.read(name, rows=union)
+        else:
+            out[name] = reader.read(name, rows=rows)
+    m_pre = max(int(_PRE_S * contract.fs_hz), 1)
+    pre_sum, pre_n = _pre_stats(
+        out["gyro_counter"], out["gyro_raw"], m_pre, contract.scale["gyro_raw"]
+    )
+    nbr = np.searchsorted(union, nbr_rows).astype(np.intp)
+    out["bias"], out["bias_n"] = _pool_bias(pre_sum, pre_n, np.where(valid, nbr, 0), valid)
+    if union.size != rows.size:
+        out["gyro_raw"] = out["gyro_raw"][at]
+        out["gyro_counter"] = out["gyro_counter"][at]
     for name, factor in contract.scale.items():
         if name not in ("gyro_raw", "gyro_counter", "trial") and factor != 1.0:
             out[name] = out[name].astype(np.float64) * factor
@@ -626,7 +727,7 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
     with RecordingReader(path) as reader:
         ctx, still, cutoff, _, _ = _context(reader, clock_window_s=None, numtaps=161)
-        chunk = _read_chunk(reader, rows, ctx.contract)
+        chunk = _read_chunk(reader, rows, ctx)
         truth = {
             k: reader.read(f"true_{k}_s", rows=rows)
             for k in ("actuation_delay", "response_delay")
@@ -704,7 +805,7 @@ def extract_recording(
     path = os.fspath(path)
     with RecordingReader(path) as reader:
         ctx, still, cutoff, rate, clock_info = _context(
-            reader, clock_window_s=clock_window_s, numtaps=numtaps
+            reader, clock_window_s=clock_window_s, numtaps=numtaps, jobs=jobs
         )
         n = reader.n_trials
         trial = reader.read("trial")

@@ -23,15 +23,17 @@ late, noisy part of the walk as if it were exact; the generalised least-squares 
 random-walk error is the fit of *increments* between consecutive packages (independent
 errors, variance ∝ their time span). Model per increment j:
 ``Δq_j = A(h_j - τ) - A(h_{j-1} - τ) + c·(h_j - h_{j-1})`` (c absorbs a rate offset),
-solved by Gauss-Newton for (τ, c); the standard error of τ comes from the residuals.
+solved by Gauss-Newton for (τ, c) with the exact derivative of the (linearly
+interpolated) angle and a backtracking line search, which converges to the least-squares
+minimum (a fixed number of plain Gauss-Newton steps with the interpolated speed as the
+derivative stopped up to 50 µs short of it, and could cycle); the standard error of τ comes
+from the residuals.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-
-from timedexec._signal import interp_rows
 
 __all__ = ["LEPSKI_KAPPA", "ONSET_WINDOWS_S", "onset_adaptive", "response_increments"]
 
@@ -54,53 +56,79 @@ ONSET_WINDOWS_S: tuple[tuple[float, float], ...] = (
 #: (benchmarks/bench_extract_robustness.py): 2.0 let the cubic's bias near the breakaway
 #: kink (0.1-0.2 ms) through on clean data; 1.0 keeps clean data near the first window.
 LEPSKI_KAPPA = 1.0
+#: Step halvings of the response fit's line search before a row is taken as converged.
+_LINE_SEARCH_HALVINGS = 6
+#: Half the baseline of the angle's slope in the response's standard error, s.
+_SE_SLOPE_S = 0.002
 _SCALE = 0.005  # s: the polynomial's abscissa unit (keeps the normal equations well scaled)
 
 
-def _cubic_root(
+def _cubic_roots(
     t_g: FloatArray,
     y: FloatArray,
     w: FloatArray,
     k: NDArray[np.int64],
     level: FloatArray,
     dt: float,
-    window: tuple[float, float],
+    windows: tuple[tuple[float, float], ...],
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Weighted cubic fit around sample ``k`` and its root at ``level``.
+    """Weighted cubic fits around sample ``k`` and their roots at ``level``, one per window.
 
-    Returns the crossing time (s), the root's variance factor gᵀ(XᵀWX)⁻¹g·scale²/p'² (s²
-    per (rad/s)² of noise variance) and the slope p'(t*) (rad/s²)."""
+    The windows share their left edge, so the normal equations of every window are
+    prefix sums of one set of per-sample moments (x⁰..x⁶ and y·x⁰..x³, x the abscissa
+    relative to sample k in units of _SCALE): one pass over the widest window instead of
+    one per window.
+
+    Returns, each of shape (len(windows), n): the crossing time (s), the root's variance
+    factor gᵀ(XᵀWX)⁻¹g/p'² (s² per (rad/s)² of noise variance) and the slope p'(t*)
+    (rad/s²)."""
     n, g = y.shape
-    lo, hi = -round(window[0] / dt), round(window[1] / dt)
-    offs = np.arange(lo, hi + 1)
-    idx = np.clip(k[:, None] + offs, 0, g - 1)
-    inside = ((k[:, None] + offs) >= 0) & ((k[:, None] + offs) < g)
+    los = [round(wd[0] / dt) for wd in windows]
+    his = [round(wd[1] / dt) for wd in windows]
+    if len(set(los)) != 1:
+        raise ValueError("onset windows must share their left edge")
+    lo = -los[0]
+    offs = np.arange(lo, max(his) + 1)
+    raw_idx = k[:, None] + offs
+    inside = (raw_idx >= 0) & (raw_idx < g)
+    idx = np.clip(raw_idx, 0, g - 1)
     yy = np.take_along_axis(y, idx, axis=1)
     ww = np.take_along_axis(w, idx, axis=1) * inside
-    tc = np.take_along_axis(t_g, k[:, None], axis=1)[:, 0]
-    xs = (np.take_along_axis(t_g, idx, axis=1) - tc[:, None]) / _SCALE
-    vander = np.stack([np.ones_like(xs), xs, xs**2, xs**3], axis=-1)
-    a = np.einsum("nmi,nmj->nij", vander * ww[..., None], vander)
-    # Relative ridge against round-off; the absolute one keeps a window without samples
-    # (a trial flagged anyway) solvable.
-    a += np.eye(4) * (1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None] + 1e-12)
     yy = np.where(np.isfinite(yy), yy, 0.0)
-    b = np.einsum("nmi,nm->ni", vander * ww[..., None], yy)
-    coef = np.linalg.solve(a, b[..., None])[..., 0]
-    root = np.zeros(n)
-    x_lo, x_hi = lo * dt / _SCALE, hi * dt / _SCALE
-    for _ in range(8):
-        p = coef[:, 0] + coef[:, 1] * root + coef[:, 2] * root**2 + coef[:, 3] * root**3
+    tc = t_g[np.arange(n), k]
+    xs = (np.take_along_axis(t_g, idx, axis=1) - tc[:, None]) / _SCALE
+    pw = np.empty((7, *xs.shape))
+    pw[0] = ww
+    for p in range(1, 7):
+        np.multiply(pw[p - 1], xs, out=pw[p])
+    mom = np.cumsum(pw, axis=2)  # (7, n, m): Σ w·x^p over the window's first j+1 samples
+    ymom = np.cumsum(pw[:4] * yy, axis=2)  # (4, n, m): Σ w·y·x^p
+    est, var, slopes = [], [], []
+    pairs = np.add.outer(np.arange(4), np.arange(4))
+    for hi in his:
+        j = hi - lo  # column of the window's last sample
+        a = np.moveaxis(mom[:, :, j][pairs], -1, 0)  # (n, 4, 4)
+        b = ymom[:, :, j].T  # (n, 4)
+        # Relative ridge against round-off; the absolute one keeps a window without samples
+        # (a trial flagged anyway) solvable.
+        a = a + np.eye(4) * (1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None] + 1e-12)
+        coef = np.linalg.solve(a, b[..., None])[..., 0]
+        root = np.zeros(n)
+        x_lo, x_hi = lo * dt / _SCALE, hi * dt / _SCALE
+        for _ in range(8):
+            val = coef[:, 0] + coef[:, 1] * root + coef[:, 2] * root**2 + coef[:, 3] * root**3
+            dp = coef[:, 1] + 2 * coef[:, 2] * root + 3 * coef[:, 3] * root**2
+            step = (val - level) / np.where(np.abs(dp) > 1e-9, dp, np.nan)
+            root = np.clip(root - step, x_lo, x_hi)
         dp = coef[:, 1] + 2 * coef[:, 2] * root + 3 * coef[:, 3] * root**2
-        step = (p - level) / np.where(np.abs(dp) > 1e-9, dp, np.nan)
-        root = np.clip(root - step, x_lo, x_hi)
-    dp = coef[:, 1] + 2 * coef[:, 2] * root + 3 * coef[:, 3] * root**2
-    gvec = np.stack([np.ones(n), root, root**2, root**3], axis=-1)
-    ainv_g = np.linalg.solve(a, gvec[..., None])[..., 0]
-    quad = np.einsum("ni,ni->n", gvec, ainv_g)
-    slope = dp / _SCALE
-    var_factor = quad / np.where(np.abs(slope) > 1e-9, slope, np.nan) ** 2
-    return tc + root * _SCALE, var_factor, slope
+        gvec = np.stack([np.ones(n), root, root**2, root**3], axis=-1)
+        ainv_g = np.linalg.solve(a, gvec[..., None])[..., 0]
+        quad = np.einsum("ni,ni->n", gvec, ainv_g)
+        slope = dp / _SCALE
+        est.append(tc + root * _SCALE)
+        var.append(quad / np.where(np.abs(slope) > 1e-9, slope, np.nan) ** 2)
+        slopes.append(slope)
+    return np.array(est), np.array(var), np.array(slopes)
 
 
 def onset_adaptive(
@@ -140,14 +168,9 @@ def onset_adaptive(
     """
     w = have.astype(np.float64)
     n = y.shape[0]
-    est, sd, slopes = [], [], []
     k = k_coarse
-    for window in ONSET_WINDOWS_S:
-        t_on, vf, slope = _cubic_root(t_g, y, w, k, level, dt, window)
-        est.append(t_on)
-        sd.append(sigma * np.sqrt(np.abs(vf)))
-        slopes.append(slope)
-    t_all, sd_all, sl_all = np.array(est), np.array(sd), np.array(slopes)
+    t_all, vf_all, sl_all = _cubic_roots(t_g, y, w, k, level, dt, ONSET_WINDOWS_S)
+    sd_all = sigma * np.sqrt(np.abs(vf_all))
     chosen = np.zeros(n, dtype=np.int64)
     alive = np.ones(n, dtype=bool)
     for j in range(1, len(ONSET_WINDOWS_S)):
@@ -211,7 +234,7 @@ def response_increments(
     tau, se : ndarray, shape (n,)
         Age of the reported state (s) and its standard error (s).
     """
-    n = y.shape[0]
+    n, g = y.shape
     d = dt[:, None]
     angle = np.concatenate(
         [np.zeros((n, 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1
@@ -223,6 +246,7 @@ def response_increments(
     prev = np.maximum.accumulate(np.concatenate([np.full((n, 1), -1), idx[:, :-1]], axis=1), axis=1)
     use = ok & (prev >= 0)
     pj = np.clip(prev, 0, None)
+    h = np.where(ok, host, 0.0)
     h1 = np.where(use, host, 0.0)
     h0 = np.where(use, np.take_along_axis(host, pj, axis=1), 0.0)
     dq = np.where(use, q_rel - np.take_along_axis(q_rel, pj, axis=1), 0.0)
@@ -231,35 +255,128 @@ def response_increments(
     typical = np.nanmedian(np.where(use, span, np.nan), axis=1, keepdims=True)
     wgt = np.where(use, typical / span, 0.0)
     wgt = np.nan_to_num(wgt)
+    j_c = h1 - h0
+    s_cc_all = np.sum(wgt * j_c * j_c, axis=1) + 1e-18
     tau = np.asarray(tau0, dtype=np.float64).copy()
     c = np.zeros(n)
+    flat_angle = angle.ravel()
 
-    def at(hist: FloatArray, x: FloatArray) -> FloatArray:
-        return interp_rows(hist, (x - first) / d)
+    def at(rows: NDArray[np.intp], x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The gyro angle at times x of ``rows`` (linear interpolation, the ends held) and
+        its derivative with respect to x (the interpolant's slope; 0 past the ends)."""
+        pos = (x - first[rows]) / d[rows]
+        i0 = np.clip(np.floor(pos).astype(np.int64), 0, g - 2)
+        frac = np.clip(pos - i0, 0.0, 1.0)
+        flat = i0 + (rows * g)[:, None]
+        lo = flat_angle[flat]
+        hi = flat_angle[flat + 1]
+        inside = (pos >= 0.0) & (pos <= g - 1)
+        return lo + frac * (hi - lo), np.where(inside, (hi - lo) / d[rows], 0.0)
 
+    def cost(rows: NDArray[np.intp], a_all: FloatArray, c_rows: FloatArray) -> FloatArray:
+        res = dq[rows] - (a_all - np.take_along_axis(a_all, pj[rows], axis=1))
+        res -= c_rows[:, None] * j_c[rows]
+        out: FloatArray = np.sum(wgt[rows] * res * res, axis=1)
+        return out
+
+    # Gauss-Newton on (τ, c) with the exact derivative of the interpolated angle and a
+    # backtracking line search (the interpolant's slope jumps where a package crosses a
+    # sample, so full steps can cycle); the angle at each package's time serves as the
+    # end of one increment and the start of the next. A row stops when its accepted step
+    # falls below 1 ns or no step along its direction lowers the cost.
+    rows = np.arange(n)
+    a_cur, s_cur = at(rows, h - tau[:, None])
+    f_cur = cost(rows, a_cur, c)
+    active = rows
     for _ in range(iterations):
-        a1, a0 = at(angle, h1 - tau[:, None]), at(angle, h0 - tau[:, None])
-        v1, v0 = at(y, h1 - tau[:, None]), at(y, h0 - tau[:, None])
-        r = dq - (a1 - a0) - c[:, None] * (h1 - h0)
+        if active.size == 0:
+            break
+        r_ = active
+        a1, v1 = a_cur[r_], s_cur[r_]
+        pr = pj[r_]
+        a0, v0 = np.take_along_axis(a1, pr, axis=1), np.take_along_axis(v1, pr, axis=1)
+        w_ = wgt[r_]
+        jc = j_c[r_]
+        res = dq[r_] - (a1 - a0) - c[r_, None] * jc
         j_tau = -(v1 - v0)
-        j_c = h1 - h0
-        s_tt = np.sum(wgt * j_tau * j_tau, axis=1)
-        s_tc = np.sum(wgt * j_tau * j_c, axis=1)
-        s_cc = np.sum(wgt * j_c * j_c, axis=1) + 1e-18
-        b_t = np.sum(wgt * j_tau * r, axis=1)
-        b_c = np.sum(wgt * j_c * r, axis=1)
+        s_tt = np.sum(w_ * j_tau * j_tau, axis=1)
+        s_tc = np.sum(w_ * j_tau * jc, axis=1)
+        s_cc = s_cc_all[r_]
+        b_t = np.sum(w_ * j_tau * res, axis=1)
+        b_c = np.sum(w_ * jc * res, axis=1)
         det = s_tt * s_cc - s_tc**2
         det = np.where(np.abs(det) > 1e-30, det, np.nan)
-        d_tau = (s_cc * b_t - s_tc * b_c) / det
-        d_c = (s_tt * b_c - s_tc * b_t) / det
-        d_tau = np.clip(np.nan_to_num(d_tau), -max_step_s, max_step_s)
-        tau += d_tau
-        c += np.nan_to_num(d_c)
-        if np.all(np.abs(d_tau) < 1e-9):
-            break
-    a1, a0 = at(angle, h1 - tau[:, None]), at(angle, h0 - tau[:, None])
-    r = dq - (a1 - a0) - c[:, None] * (h1 - h0)
+        d_tau = np.clip(np.nan_to_num((s_cc * b_t - s_tc * b_c) / det), -max_step_s, max_step_s)
+        d_c = np.nan_to_num((s_tt * b_c - s_tc * b_t) / det)
+        step = np.ones(r_.size)
+        pending = np.arange(r_.size)
+        moved = np.zeros(r_.size)
+        for _ in range(_LINE_SEARCH_HALVINGS):
+            rr = r_[pending]
+            tau_try = tau[rr] + step[pending] * d_tau[pending]
+            c_try = c[rr] + step[pending] * d_c[pending]
+            a_try, s_try = at(rr, h[rr] - tau_try[:, None])
+            f_try = cost(rr, a_try, c_try)
+            better = f_try <= f_cur[rr]
+            acc = pending[better]
+            ra = rr[better]
+            tau[ra], c[ra] = tau_try[better], c_try[better]
+            a_cur[ra], s_cur[ra], f_cur[ra] = a_try[better], s_try[better], f_try[better]
+            moved[acc] = np.abs(step[acc] * d_tau[acc])
+            pending = pending[~better]
+            if pending.size == 0:
+                break
+            step[pending] *= 0.5
+        active = r_[moved >= 1e-9]
+    a0 = np.take_along_axis(a_cur, pj, axis=1)
+    res = dq - (a_cur - a0) - c[:, None] * j_c
     m = np.maximum(np.sum(use, axis=1) - 2, 1)
-    s2 = np.sum(wgt * r * r, axis=1) / m
-    se = np.sqrt(s2 * s_cc / det)
+    s2 = np.sum(wgt * res * res, axis=1) / m
+    # The standard error with the slope of the angle over ±2 ms as the derivative: the
+    # one-sample slope carries the gyro's white noise, which inflates Σ w·J² (and so
+    # shrinks the error) as the noise grows (95 % coverage at 10x noise: 55 % -> 78 %).
+    ap, _ = at(rows, h - tau[:, None] + _SE_SLOPE_S)
+    am, _ = at(rows, h - tau[:, None] - _SE_SLOPE_S)
+    slope = (ap - am) / (2 * _SE_SLOPE_S)
+    j_s = -(slope - np.take_along_axis(slope, pj, axis=1))
+    s_tt = np.sum(wgt * j_s * j_s, axis=1)
+    s_tc = np.sum(wgt * j_s * j_c, axis=1)
+    det = s_tt * s_cc_all - s_tc**2
+    det = np.where(np.abs(det) > 1e-30, det, np.nan)
+    se = np.sqrt(s2 * s_cc_all / det)
     return tau, se
+
+
+def _row_nanmedian(x: FloatArray) -> FloatArray:
+    """Median of each row's finite values (NaN for a row without any): one sort of the
+    whole array instead of a Python-level loop over rows (``np.nanmedian`` on rows)."""
+    srt = np.sort(x, axis=1)  # NaN sort last
+    c = np.sum(np.isfinite(x), axis=1)
+    r = np.arange(x.shape[0])
+    lo = srt[r, np.maximum((c - 1) // 2, 0)]
+    hi = srt[r, np.maximum(c // 2, 0)]
+    return np.where(c > 0, 0.5 * (lo + np.where(c % 2 == 1, lo, hi)), np.nan)
+
+
+def _robust_sigma(y: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
+    """White-noise standard deviation per row from first differences (MAD, robust to a
+    slow trend and to outliers), over the masked samples."""
+    cols = np.flatnonzero(mask.any(axis=0))
+    if cols.size < 2:
+        return np.full(y.shape[0], np.nan)
+    span = slice(int(cols[0]), int(cols[-1]) + 1)  # the masked samples lie in one stretch
+    ys, ms = y[:, span], mask[:, span]
+    d = np.where(ms[:, 1:] & ms[:, :-1], np.diff(ys, axis=1), np.nan)
+    med = _row_nanmedian(d)
+    mad = _row_nanmedian(np.abs(d - med[:, None]))
+    return np.asarray(1.4826 * mad / np.sqrt(2.0))
+
+
+def _parabolic_peak(t: FloatArray, y: FloatArray, k: NDArray[np.int64]) -> FloatArray:
+    n, g = y.shape
+    k = np.clip(k, 1, g - 2)
+    r = np.arange(n)
+    y0, y1, y2 = y[r, k - 1], y[r, k], y[r, k + 1]
+    den = y0 - 2 * y1 + y2
+    frac = np.where(np.abs(den) > 1e-15, 0.5 * (y0 - y2) / den, 0.0)
+    return t[r, k] + np.clip(frac, -1, 1) * (t[r, k + 1] - t[r, k])

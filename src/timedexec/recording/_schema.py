@@ -10,8 +10,10 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
@@ -74,10 +76,18 @@ class GyroHeader(DictMixin):
 
     #: Keys a recording's (or a sensor profile's) gyro entry must state: the two constants
     #: are measured per sensor and host (docs/sensor-constants.md), never assumed to be 0.
-    REQUIRED_KEYS = ("group_delay_s", "transport_latency_s")
-    #: Unit of each numeric key (SI).
-    UNITS = {"full_scale_dps": "°/s", "nominal_rate_hz": "Hz", "block_samples": "samples",
-             "group_delay_s": "s", "transport_latency_s": "s", "lsb_per_dps": "LSB/(°/s)"}  # fmt: skip
+    REQUIRED_KEYS: ClassVar[tuple[str, ...]] = ("group_delay_s", "transport_latency_s")
+    #: Unit of each numeric key (SI); read-only.
+    UNITS: ClassVar[Mapping[str, str]] = MappingProxyType(
+        {
+            "full_scale_dps": "°/s",
+            "nominal_rate_hz": "Hz",
+            "block_samples": "samples",
+            "group_delay_s": "s",
+            "transport_latency_s": "s",
+            "lsb_per_dps": "LSB/(°/s)",
+        }
+    )
 
     @classmethod
     def from_header(cls, data: Any, *, source: str = "recording header") -> GyroHeader:
@@ -100,8 +110,13 @@ class GyroHeader(DictMixin):
                 "(docs/sensor-constants.md) and state them in seconds — they are never "
                 "assumed to be 0"
             )
-        known = {"full_scale_dps", "nominal_rate_hz", "block_samples", "group_delay_s",
-                 "transport_latency_s"}  # fmt: skip
+        known = {
+            "full_scale_dps",
+            "nominal_rate_hz",
+            "block_samples",
+            "group_delay_s",
+            "transport_latency_s",
+        }
         unknown = sorted(set(data) - known - {"lsb_per_dps", "units", "doc", "sensor"})
         if unknown:
             raise ConfigError(

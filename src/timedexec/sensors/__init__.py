@@ -5,8 +5,8 @@
   :func:`relative_counter_rows` (recorded windows of a lossy stream: duplicates, gaps).
 - Clock: :class:`SensorClock` (lower-envelope fit of host_time = a + b·n),
   :func:`fit_clock_lower_envelope`, :func:`fit_clock_least_squares`;
-  :func:`fit_clock_drifting` -> :class:`DriftingClockFit` (blended windows that follow
-  oscillator drift, window length chosen from the data).
+  :func:`fit_clock_drifting` -> :class:`DriftingClockFit` (blended windows, each a curved
+  lower envelope, that follow oscillator drift; window length chosen from the data).
 - Reader: :func:`open_gyro` -> :class:`GyroReader` (background thread, ring buffer,
   zero-rate calibration), :class:`GyroSamples`, :class:`GyroStats`, :class:`GyroSettings`.
 """

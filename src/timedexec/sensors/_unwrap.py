@@ -324,15 +324,28 @@ def relative_counter_rows(
         Frames to use; positions of kept frames increase strictly along each row, and
         position jumps larger than one are gaps (samples lost).
     """
-    c = np.asarray(counter, dtype=np.int64)
-    if c.ndim != 2:
-        raise ConfigError(f"counter must have shape (n, g), got {c.shape}")
-    pos = (c - c[:, :1] + _WRAP // 2) % _WRAP - _WRAP // 2
-    if c.shape[1] < 2:
-        return pos, np.ones(c.shape, dtype=bool)
-    steps = np.diff(pos, axis=1)
-    clean = np.all(steps == 1, axis=1)
-    keep = np.ones(c.shape, dtype=bool)
+    arr = np.asarray(counter)
+    if arr.ndim != 2:
+        raise ConfigError(f"counter must have shape (n, g), got {arr.shape}")
+    n, g = arr.shape
+    if g < 2 or g > _WRAP // 2 or arr.dtype.kind not in "iu":
+        c = arr.astype(np.int64)
+        pos = (c - c[:, :1] + _WRAP // 2) % _WRAP - _WRAP // 2
+        if g < 2:
+            return pos, np.ones(c.shape, dtype=bool)
+        clean = np.all(np.diff(pos, axis=1) == 1, axis=1)
+    else:
+        # Fast path: a clean row counts up by one (uint16 arithmetic wraps by itself), so
+        # its positions are 0..g-1; only the other rows need the full treatment.
+        c16 = arr if arr.dtype == np.uint16 else (arr.astype(np.int64) % _WRAP).astype(np.uint16)
+        clean = np.all(np.diff(c16, axis=1) == 1, axis=1)
+        pos = np.empty((n, g), dtype=np.int64)
+        pos[:] = np.arange(g)
+        dirty = np.flatnonzero(~clean)
+        if dirty.size:
+            c = c16[dirty].astype(np.int64)
+            pos[dirty] = (c - c[:, :1] + _WRAP // 2) % _WRAP - _WRAP // 2
+    keep = np.ones((n, g), dtype=bool)
     bad = np.flatnonzero(~clean)
     if bad.size:
         p = pos[bad]
