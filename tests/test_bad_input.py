@@ -210,6 +210,16 @@ CASES: dict[str, Case] = {
         setup=_setup_plan,
         absent=["c.h5"],
     ),
+    "calibrate-real-robot-without-sensor-constants": Case(
+        "calibrate --robot-url ur://127.0.0.1 --imu sim:// --trials 2 --out c.h5 --quiet",
+        ["give the gyro's group delay and transport latency", "--sensor-profile"],
+        absent=["c.h5"],
+    ),
+    "calibrate-sensor-constant-negative": Case(
+        "calibrate --robot-url sim://ur10 --trials 2 --out c.h5 --gyro-group-delay -1",
+        ["--gyro-group-delay", "-1"],
+        absent=["c.h5"],
+    ),
     "calibrate-url-seed-not-a-number": Case(
         "calibrate --robot-url sim://ur10?seed=abc --trials 2 --out c.h5 --quiet",
         ["seed='abc' is not an integer; use 0 .. 4294967295"],
@@ -221,7 +231,8 @@ CASES: dict[str, Case] = {
         absent=["c.h5"],
     ),
     "calibrate-rsi-url-unknown-parameter": Case(
-        "calibrate --robot-url rsi://49152?host=10.0.0.2 --imu sim:// --trials 2 --out c.h5",
+        "calibrate --robot-url rsi://49152?host=10.0.0.2 --imu sim:// --trials 2 --out c.h5 "
+        "--gyro-group-delay 0.98 --gyro-transport-latency 0.8",
         ["unknown parameter 'host' for rsi:// URLs (allowed: period)"],
         absent=["c.h5"],
     ),

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,3 +185,20 @@ def test_ctrl_c_before_anything_is_recorded_says_interrupted(tmp_path, monkeypat
     assert code == 130
     assert capsys.readouterr().err == "timedexec calibrate: interrupted\n"
     assert not out.exists()
+
+
+def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
+    """`calibrate --gyro-group-delay/--gyro-transport-latency` (ms) land in the recording's
+    gyro header in seconds, which is what extraction subtracts."""
+    import h5py
+
+    out = tmp_path / "c.h5"
+    argv = ["calibrate", "--robot-url", "sim://ur10", "--trials", "1", "--seed", "2",
+            "--out", str(out), "--quiet", "--gyro-group-delay", "2.5",
+            "--gyro-transport-latency", "0.7"]  # fmt: skip
+    assert main(argv) == 0
+    assert h5py.is_hdf5(out)
+    with RecordingReader(out) as r:
+        gyro = r.header["gyro"]
+    assert gyro["group_delay_s"] == pytest.approx(2.5e-3, rel=1e-12)
+    assert gyro["transport_latency_s"] == pytest.approx(0.7e-3, rel=1e-12)

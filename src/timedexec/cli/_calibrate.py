@@ -13,6 +13,7 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
+    float_arg,
     shell_command,
     sweep_stopped,
 )
@@ -51,6 +52,25 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
     p.add_argument("--out", required=True, help="recording to write (HDF5)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep")
+    p.add_argument(
+        "--sensor-profile",
+        metavar="FILE.json",
+        help="the gyro's constants as measured (docs/sensor-constants.md): full_scale_dps, "
+        "nominal_rate_hz, block_samples, group_delay_s, transport_latency_s",
+    )
+    p.add_argument(
+        "--gyro-group-delay",
+        metavar="MS",
+        type=float_arg(0.0, 50.0, unit="ms"),
+        help="the gyro filter's group delay, ms (overrides the profile)",
+    )
+    p.add_argument(
+        "--gyro-transport-latency",
+        metavar="MS",
+        type=float_arg(0.0, 50.0, unit="ms"),
+        help="minimum latency from sampling to host arrival, ms (overrides the profile); "
+        "real robots need both constants (profile or these two options)",
+    )
     add_quiet(p)
     add_json(p, "the summary (recording, planned, recorded_now, ...)")
     p.set_defaults(func=run)
@@ -90,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
         plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
     if scheme != "sim" and not args.imu:
         raise ConfigError("--imu is required for real robots: give the gyro's serial port")
+    protocol = _protocol(args, settings.protocol, real=scheme != "sim")
     options = {"seed": args.seed} if scheme == "sim" else {}
     try:
         with open_driver(args.robot_url, **options) as driver:
@@ -100,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                     gyro,
                     plan,
                     args.out,
-                    protocol=settings.protocol,
+                    protocol=protocol,
                     resume=args.resume,
                     progress=not args.quiet,
                     source=args.robot_url,
@@ -114,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
                         gyro,
                         plan,
                         args.out,
-                        protocol=settings.protocol,
+                        protocol=protocol,
                         resume=args.resume,
                         progress=not args.quiet,
                         source=args.robot_url,
@@ -141,12 +162,45 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--trials", args.trials),
             ("--seed", args.seed),
             ("--plan", args.plan),
+            ("--sensor-profile", args.sensor_profile),
+            ("--gyro-group-delay", args.gyro_group_delay),
+            ("--gyro-transport-latency", args.gyro_transport_latency),
             ("--out", args.out),
             ("--json", args.json),
             ("--quiet", args.quiet),
             ("--resume", True),
         ],
     )
+
+
+def _protocol(args: argparse.Namespace, default: Any, *, real: bool) -> Any:
+    """The sweep protocol with the gyro's constants as the user measured them.
+
+    A simulated robot keeps the simulator's constants unless told otherwise; a real robot
+    needs both (a missing one would shift every delay by its error, silently).
+    """
+    import dataclasses
+
+    from timedexec.recording import GyroHeader
+
+    gyro = default.gyro
+    given = args.sensor_profile is not None
+    if given:
+        gyro = GyroHeader.from_json(args.sensor_profile)
+    changes: dict[str, float] = {}
+    if args.gyro_group_delay is not None:
+        changes["group_delay_s"] = args.gyro_group_delay * 1e-3
+    if args.gyro_transport_latency is not None:
+        changes["transport_latency_s"] = args.gyro_transport_latency * 1e-3
+    if real and not given and len(changes) < 2:
+        raise ConfigError(
+            "give the gyro's group delay and transport latency (--sensor-profile FILE.json, "
+            "or --gyro-group-delay MS and --gyro-transport-latency MS); an error in them "
+            "shifts every measured delay by the same amount (docs/sensor-constants.md)"
+        )
+    if changes:
+        gyro = dataclasses.replace(gyro, **changes)
+    return dataclasses.replace(default, gyro=gyro)
 
 
 def _read_plan(path: str, robot: Any) -> Any:
