@@ -503,7 +503,7 @@ def test_failing_hdf5_writes_end_cleanly_and_resume(tmp_path: Path, nth: int, co
 
 
 def test_ctrl_c_during_a_checkpoint_is_held_until_it_is_done(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest
 ) -> None:
     """Ctrl-C (SIGINT) while a checkpoint has HDF5 writing is held until the checkpoint is
     committed, then raised: a KeyboardInterrupt inside HDF5's write callbacks would abort
@@ -511,6 +511,10 @@ def test_ctrl_c_during_a_checkpoint_is_held_until_it_is_done(
     path = tmp_path / "r.h5"
     real_pwrite = os.pwrite
     sent: list[int] = []
+    # Python's own Ctrl-C handler, as in a terminal: a runner started in the background by a
+    # shell without job control (CI, a script) inherits SIGINT ignored.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
 
     def pwrite(fd: int, data: bytes, offset: int) -> int:
         """The first HDF5 write of the checkpoint: Ctrl-C arrives."""
