@@ -45,7 +45,6 @@ from timedexec.sim._sweep import SweepResult, simulate_delays, simulate_sweep, t
 
 __all__ = [
     "BLOCK_TRIALS",
-    "simulate_block",
     "DEFAULT_BIAS_DPS",
     "FULL_SCALE_SENSITIVITY",
     "ControllerSim",
@@ -71,6 +70,7 @@ __all__ = [
     "default_settings",
     "device_frames",
     "pulse_profile",
+    "simulate_block",
     "simulate_delays",
     "simulate_sweep",
     "sine_rate_source",
