@@ -5,6 +5,11 @@ effect of the vocabulary is missing, and how much of the gap adding it closes.
 >>> result = analyse_discrepancy("ur10-delays.csv", start="base")   # doctest: +SKIP
 >>> result.added_effects, result.gap_after_ms, result.noise_floor_ms  # doctest: +SKIP
 
+The search over structure (:func:`forward_select` over :class:`TermFamily` sets from
+:func:`actuation_families` / :func:`response_families`) names effects by the shape of the
+disagreement — main effects and interactions (direction x load, direction x joint, time x
+joint) under a hierarchy rule and a parsimony test, stopped by a held-out criterion.
+
 See docs/discrepancy.md.
 """
 
@@ -25,6 +30,8 @@ from timedexec.discrepancy._model import (
     deterministic_settings,
 )
 from timedexec.discrepancy._report import write_report
+from timedexec.discrepancy._select import Selection, UnitScore, forward_select
+from timedexec.discrepancy._terms import TermFamily, actuation_families, response_families
 from timedexec.discrepancy._workflow import (
     DiscrepancyResult,
     DiscrepancyStep,
@@ -34,19 +41,25 @@ from timedexec.discrepancy._workflow import (
 
 __all__ = [
     "SIMULATED_EFFECTS",
-    "deterministic_settings",
     "CandidateScore",
     "Conditions",
     "DiscrepancyResult",
     "DiscrepancyStep",
     "FittedModel",
     "NoiseFloor",
+    "Selection",
     "SimModel",
+    "TermFamily",
+    "UnitScore",
+    "actuation_families",
     "analyse_discrepancy",
     "calibrate",
+    "deterministic_settings",
+    "forward_select",
     "group_conditions",
     "load_measured",
     "replicate_noise",
+    "response_families",
     "score_candidates",
     "write_report",
 ]

@@ -49,6 +49,12 @@ class Conditions:
         Mean (s) and sample variance (s², NaN for a single trial) of each delay.
     row_condition : ndarray of int (N,)
         Condition of each measured trial (row of the table after dropping flagged rows).
+    n_dropped : int
+        Trials left out (flagged or without a delay).
+    row_delay_s : dict of delay name -> ndarray (N,), optional
+        Each kept trial's delays, s (for the search over the order of the repeats).
+    row_t_s : ndarray (N,), optional
+        Each kept trial's sweep time, s.
     """
 
     robot: str
@@ -62,6 +68,8 @@ class Conditions:
     var_s2: dict[str, FloatArray]
     row_condition: NDArray[np.int64]
     n_dropped: int = 0
+    row_delay_s: dict[str, FloatArray] | None = None
+    row_t_s: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.joint)
@@ -131,8 +139,10 @@ def group_conditions(table: DelayTable, *, robot: str | None = None) -> Conditio
     n = np.bincount(cond, minlength=m).astype(np.int64)
     mean: dict[str, FloatArray] = {}
     var: dict[str, FloatArray] = {}
+    rows: dict[str, FloatArray] = {}
     for name in DELAY_COLUMNS:
         y = table[name][keep].astype(float)
+        rows[name] = y
         mu = np.bincount(cond, weights=y, minlength=m) / n
         ss = np.bincount(cond, weights=(y - mu[cond]) ** 2, minlength=m)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -151,6 +161,8 @@ def group_conditions(table: DelayTable, *, robot: str | None = None) -> Conditio
         var_s2=var,
         row_condition=cond.astype(np.int64),
         n_dropped=n_dropped,
+        row_delay_s=rows,
+        row_t_s=t,
     )
 
 

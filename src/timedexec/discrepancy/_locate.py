@@ -21,6 +21,7 @@ __all__ = [
     "Variable",
     "condition_variables",
     "locate",
+    "sequence_entries",
     "unexplained_entries",
     "variable_fit",
 ]
@@ -303,3 +304,112 @@ def unexplained_entries(
         )
     entries.sort(key=lambda e: -e["excess_rms_ms"])
     return entries
+
+
+def _positions(cond: Conditions) -> NDArray[np.int64]:
+    """Position of each kept trial among its condition's repeats, in sweep order (0 first)."""
+    assert cond.row_t_s is not None
+    c = cond.row_condition
+    order = np.lexsort((cond.row_t_s, c))
+    pos = np.empty(len(c), dtype=np.int64)
+    sorted_c = c[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(sorted_c)) + 1]
+    first = np.repeat(starts, np.diff(np.r_[starts, len(c)]))
+    pos[order] = np.arange(len(c)) - first
+    return pos
+
+
+def _position_test(
+    dev: FloatArray, pos: NDArray[np.int64], rows: NDArray[np.bool_], n_cond: int
+) -> dict[str, Any] | None:
+    """One-way test of within-condition deviations by repeat position (conditions as
+    blocks: the deviations already have each condition's mean removed)."""
+    from scipy import stats
+
+    d, p = dev[rows], pos[rows]
+    counts = np.bincount(p)
+    # Positions that too few conditions reach say nothing; pool them into the last one.
+    top = int(np.max(np.flatnonzero(counts >= 5))) if np.any(counts >= 5) else 0
+    if top < 1:
+        return None
+    p = np.minimum(p, top)
+    k = top + 1
+    n_p = np.bincount(p, minlength=k).astype(float)
+    eff = np.bincount(p, weights=d, minlength=k) / np.maximum(n_p, 1)
+    ss_pos = float(np.sum(n_p * eff**2))
+    ss_res = float(np.sum(d**2)) - ss_pos
+    df_pos = k - 1
+    df_res = len(d) - n_cond - df_pos
+    if df_res <= 0 or ss_res <= 0:
+        return None
+    f_stat = (ss_pos / df_pos) / (ss_res / df_res)
+    return {
+        "effects_s": eff,
+        "f_statistic": float(f_stat),
+        "df": [df_pos, df_res],
+        "p_value": float(stats.f.sf(f_stat, df_pos, df_res)),
+    }
+
+
+def sequence_entries(cond: Conditions, delay: str, *, alpha: float) -> list[dict[str, Any]]:
+    """The order of the repeats: does the k-th repeat of a condition differ from the
+    condition's mean (settling after a move, a first-trial effect, a trend within the
+    repeats)? No model of condition means can see this, and no effect of the vocabulary
+    has it; the deviations from each condition's mean are tested against their position
+    among the repeats (F test, conditions as blocks). Returns an unexplained entry when
+    significant at ``alpha``, naming the joints where it is significant on its own
+    (Bonferroni), else all."""
+    if cond.row_delay_s is None or cond.row_t_s is None:
+        return []
+    y = cond.row_delay_s[delay]
+    c = cond.row_condition
+    mean = cond.mean_s[delay]
+    replicated = cond.n[c] >= 2
+    dev = y - mean[c]
+    pos = _positions(cond)
+    test = _position_test(dev, pos, replicated, int(np.sum(cond.n >= 2)))
+    if test is None or test["p_value"] >= alpha:
+        return []
+    joints = []
+    for j in cond.joints:
+        rows = replicated & (cond.joint[c] == j)
+        tj = _position_test(dev, pos, rows, int(np.sum((cond.n >= 2) & (cond.joint == j))))
+        if tj is not None and tj["p_value"] < alpha / len(cond.joints):
+            joints.append(j)
+    joints = joints or list(cond.joints)
+    eff = test["effects_s"] * 1e3
+    k = int(np.argmax(np.abs(eff)))
+    rms = float(np.sqrt(np.mean(eff**2)))
+    what = delay.replace("_", " ")
+    ordinal = {0: "first", 1: "second", 2: "third"}.get(k, f"{k + 1}th")
+    last = " (and later ones)" if k == len(eff) - 1 and k > 0 else ""
+    text = (
+        f"{what} depends on the order of the repeats: the {ordinal} repeat{last} of a "
+        f"condition is {eff[k]:+.2f} ms off the condition's mean (repeat positions explain "
+        f"{rms:.2f} ms RMS within conditions, F = {test['f_statistic']:.1f}, p = "
+        f"{test['p_value']:.1e}; joint{'s' if len(joints) > 1 else ''} "
+        f"{', '.join(str(j) for j in joints)}). Condition means cannot show it, and no "
+        "effect of the vocabulary explains it."
+    )
+    return [
+        {
+            "delay": delay,
+            "joints": joints,
+            "direction": "both",
+            "variable": None,
+            "variable_label": "position among the repeats of a condition (sweep order)",
+            "share_explained_by_variable": None,
+            "conditions": int(np.sum(cond.n >= 2)),
+            "mean_ms": 0.0,
+            "rms_ms": rms,
+            "excess_rms_ms": rms,
+            "noise_ms": 0.0,
+            "p_value": test["p_value"],
+            "sequence": {
+                "position_effects_ms": [float(e) for e in eff],
+                "f_statistic": test["f_statistic"],
+                "df": test["df"],
+            },
+            "description": text,
+        }
+    ]
