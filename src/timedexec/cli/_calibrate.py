@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 from typing import Any
 
 from timedexec.cli._common import (
@@ -113,33 +114,25 @@ def run(args: argparse.Namespace) -> int:
     protocol = _protocol(args, settings.protocol, real=scheme != "sim")
     options = {"seed": args.seed} if scheme == "sim" else {}
     try:
-        with open_driver(args.robot_url, **options) as driver:
+        with contextlib.ExitStack() as stack:
+            driver = stack.enter_context(open_driver(args.robot_url, **options))
+            gyro: Any
             if scheme == "sim" and not args.imu:
-                gyro: Any = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
-                result = run_calibration(
-                    driver,
-                    gyro,
-                    plan,
-                    args.out,
-                    protocol=protocol,
-                    resume=args.resume,
-                    progress=not args.quiet,
-                    source=args.robot_url,
-                )
+                gyro = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
             else:
                 from timedexec.sensors import open_gyro
 
-                with open_gyro(args.imu) as gyro:
-                    result = run_calibration(
-                        driver,
-                        gyro,
-                        plan,
-                        args.out,
-                        protocol=protocol,
-                        resume=args.resume,
-                        progress=not args.quiet,
-                        source=args.robot_url,
-                    )
+                gyro = stack.enter_context(open_gyro(args.imu))
+            result = run_calibration(
+                driver,
+                gyro,
+                plan,
+                args.out,
+                protocol=protocol,
+                resume=args.resume,
+                progress=not args.quiet,
+                source=args.robot_url,
+            )
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("calibrate", exc, args.out, resume_command(args))
     info = result.summary()
