@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import signal
@@ -202,3 +203,73 @@ def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
         gyro = r.header["gyro"]
     assert gyro["group_delay_s"] == pytest.approx(2.5e-3, rel=1e-12)
     assert gyro["transport_latency_s"] == pytest.approx(0.7e-3, rel=1e-12)
+
+
+class _FakeDriver:
+    """Stands in for a connected driver: records the options it was opened with."""
+
+    def __init__(self, robot: str, **options: object) -> None:
+        self.robot = robot
+        self.options = options
+
+    def __enter__(self) -> _FakeDriver:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
+def _capture_calibration(monkeypatch: pytest.MonkeyPatch, reported: str) -> dict[str, object]:
+    """Patch open_driver (a controller reporting ``reported``), open_gyro and
+    run_calibration; return what they were called with."""
+    import timedexec.calibration
+    import timedexec.drivers
+    import timedexec.sensors
+
+    seen: dict[str, object] = {}
+
+    def open_driver(url: str, **options: object) -> _FakeDriver:
+        seen["options"] = options
+        return _FakeDriver(str(options.get("robot", reported)))
+
+    def run_calibration(driver: object, gyro: object, plan: object, out: object, **kw: object):
+        seen["plan_robot"] = plan.robot  # type: ignore[attr-defined]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(timedexec.drivers, "open_driver", open_driver)
+    monkeypatch.setattr(timedexec.sensors, "open_gyro", lambda url: contextlib.nullcontext())
+    monkeypatch.setattr(timedexec.calibration, "run_calibration", run_calibration)
+    return seen
+
+
+@pytest.mark.parametrize(
+    ("url", "robot", "driver_robot", "plan_robot"),
+    [
+        # --robot reaches the UR driver (a controller reporting another model is driven as
+        # the model named), and the sweep is planned for it
+        ("ur://127.0.0.9", "ur10e", "ur10e", "ur10e"),
+        # without --robot the UR driver asks the controller; the plan follows its answer
+        ("ur://127.0.0.9", None, None, "ur10e"),
+        ("rsi://49152", None, "kr5", "kr5"),
+    ],
+)
+def test_calibrate_passes_the_robot_model_to_the_driver(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, url, robot, driver_robot, plan_robot
+) -> None:
+    seen = _capture_calibration(monkeypatch, reported="ur10e")
+    argv = ["calibrate", "--robot-url", url, "--imu", "sim://", "--trials", "2",
+            "--out", str(tmp_path / "c.h5"), "--quiet",
+            "--gyro-group-delay", "1", "--gyro-transport-latency", "1"]  # fmt: skip
+    if robot:
+        argv += ["--robot", robot]
+    assert main(argv) == 130
+    assert seen["options"].get("robot") == driver_robot  # type: ignore[attr-defined]
+    assert seen["plan_robot"] == plan_robot
+
+
+def test_calibrate_refuses_a_robot_that_contradicts_the_sim_url(tmp_path, capsys) -> None:
+    code = main(["calibrate", "--robot-url", "sim://ur10", "--robot", "kr5", "--trials", "1",
+                 "--out", str(tmp_path / "c.h5"), "--quiet"])  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--robot kr5 contradicts --robot-url sim://ur10" in err

@@ -47,7 +47,11 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--robot-url", required=True, help="sim://ROBOT, ur://HOST or rsi://PORT")
     p.add_argument("--imu", help="gyro URL (serial device, pty path)")
-    add_robot(p, help="robot spec for ur:// and rsi:// (default: ur10 for ur://, kr5 for rsi://)")
+    add_robot(
+        p,
+        help="robot model, passed to the driver (default: asked from the controller for ur://, "
+        "kr5 for rsi://, the URL's robot for sim://)",
+    )
     p.add_argument("--trials", type=int, help="number of trials (with --seed)")
     add_seed(p, help="plan seed")
     p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
@@ -87,13 +91,13 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.sim import default_settings
 
     scheme = urlsplit(args.robot_url).scheme
-    robot = args.robot
-    if scheme == "sim":
-        robot = robot or (urlsplit(args.robot_url).netloc or "ur10")
-    elif robot is None:
-        robot = "kr5" if scheme == "rsi" else "ur10"
+    robot = _robot(args, scheme)
     if (args.trials is None) == (args.plan is None):
         raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
+    if args.trials is not None and args.trials < 1:
+        raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
+    if scheme != "sim" and not args.imu:
+        raise ConfigError("--imu is required for real robots: give the gyro's serial port")
     imu = args.imu if args.imu and "://" not in args.imu else None
     check_files(
         args,
@@ -102,20 +106,22 @@ def run(args: argparse.Namespace) -> int:
         inputs={"--plan": args.plan, "--imu": imu},
         outputs={"--out": args.out},
     )
-    settings = default_settings(robot)
-    if args.plan:
-        plan = _read_plan(args.plan, settings.robot)
-    else:
-        if args.trials < 1:
-            raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
-        plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
-    if scheme != "sim" and not args.imu:
-        raise ConfigError("--imu is required for real robots: give the gyro's serial port")
-    protocol = _protocol(args, settings.protocol, real=scheme != "sim")
-    options = {"seed": args.seed} if scheme == "sim" else {}
+    _check_gyro_constants(args, real=scheme != "sim")
+    # The driver gets the robot model the user named (a UR controller reporting another
+    # model, or a KUKA that says nothing, is then driven as that model); without --robot a
+    # UR driver asks the controller's dashboard, and the sweep is planned for its answer.
+    options: dict[str, Any] = {"seed": args.seed} if scheme == "sim" else {}
+    if scheme != "sim" and robot is not None:
+        options["robot"] = robot
     try:
         with contextlib.ExitStack() as stack:
             driver = stack.enter_context(open_driver(args.robot_url, **options))
+            settings = default_settings(robot or driver.robot)
+            if args.plan:
+                plan = _read_plan(args.plan, settings.robot)
+            else:
+                plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
+            protocol = _protocol(args, settings.protocol)
             gyro: Any
             if scheme == "sim" and not args.imu:
                 gyro = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
@@ -166,31 +172,58 @@ def resume_command(args: argparse.Namespace) -> str:
     )
 
 
-def _protocol(args: argparse.Namespace, default: Any, *, real: bool) -> Any:
-    """The sweep protocol with the gyro's constants as the user measured them.
+def _robot(args: argparse.Namespace, scheme: str) -> str | None:
+    """The robot model the sweep is for: ``--robot``, the simulator's name, ``kr5`` for
+    RSI, or None for ``ur://`` (ask the controller).
 
-    A simulated robot keeps the simulator's constants unless told otherwise; a real robot
-    needs both (a missing one would shift every delay by its error, silently).
+    Raises
+    ------
+    ConfigError
+        ``--robot`` contradicts the ``sim://`` URL's robot.
     """
+    from urllib.parse import urlsplit
+
+    if scheme == "sim":
+        named = (urlsplit(args.robot_url).netloc or "ur10").lower()
+        if args.robot is not None and args.robot != named:
+            raise ConfigError(
+                f"--robot {args.robot} contradicts --robot-url {args.robot_url} (a simulated "
+                f"{named}); drop --robot or use sim://{args.robot}"
+            )
+        return str(named)
+    if scheme == "rsi":
+        return str(args.robot or "kr5")
+    return None if args.robot is None else str(args.robot)
+
+
+def _check_gyro_constants(args: argparse.Namespace, *, real: bool) -> None:
+    """A real robot's sweep needs the gyro's group delay and transport latency (a missing
+    one would shift every delay by its error, silently); checked before connecting."""
+    given = args.sensor_profile is not None
+    both = args.gyro_group_delay is not None and args.gyro_transport_latency is not None
+    if real and not (given or both):
+        raise ConfigError(
+            "give the gyro's group delay and transport latency (--sensor-profile FILE.json, "
+            "or --gyro-group-delay MS and --gyro-transport-latency MS); an error in them "
+            "shifts every measured delay by the same amount (docs/sensor-constants.md)"
+        )
+
+
+def _protocol(args: argparse.Namespace, default: Any) -> Any:
+    """The sweep protocol with the gyro's constants as the user measured them (a simulated
+    robot keeps the simulator's constants unless told otherwise)."""
     import dataclasses
 
     from timedexec.recording import GyroHeader
 
     gyro = default.gyro
-    given = args.sensor_profile is not None
-    if given:
+    if args.sensor_profile is not None:
         gyro = GyroHeader.from_json(args.sensor_profile)
     changes: dict[str, float] = {}
     if args.gyro_group_delay is not None:
         changes["group_delay_s"] = args.gyro_group_delay * 1e-3
     if args.gyro_transport_latency is not None:
         changes["transport_latency_s"] = args.gyro_transport_latency * 1e-3
-    if real and not given and len(changes) < 2:
-        raise ConfigError(
-            "give the gyro's group delay and transport latency (--sensor-profile FILE.json, "
-            "or --gyro-group-delay MS and --gyro-transport-latency MS); an error in them "
-            "shifts every measured delay by the same amount (docs/sensor-constants.md)"
-        )
     if changes:
         gyro = dataclasses.replace(gyro, **changes)
     return dataclasses.replace(default, gyro=gyro)
