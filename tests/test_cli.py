@@ -98,6 +98,9 @@ EVALUATION = {"robot": "ur10", "strategies": {"none": {"timing_rms_ms": 20.0}},
               "coverage_95": 0.95}  # fmt: skip
 DISCREPANCY = {"added_effects": ["gravity_load"], "unexplained": []}
 FLEET = {"summary": {"robots": 1, "ok": 1, "failed": []}, "robots": []}
+MONITOR = {"threshold": 9.27, "arl0_moves": 10000, "warmup_moves": 100, "alerts": [],
+           "joints": [{"joint": 1, "status": "ok", "moves": 120, "gap_to_model_ms": -1.1,
+                       "shift_ms": 0.05}]}  # fmt: skip
 _JOINT = {"median_ms": 20.0, "p2_5_ms": 15.0, "p97_5_ms": 25.0}
 DEMO = {
     "summary": {"joints": {"1": {"actuation_delay": _JOINT, "response_delay": _JOINT}},
@@ -150,6 +153,12 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
         "timedexec.fleet.run_fleet": Call(
             SimpleNamespace(failed=(), document=FLEET, summary_text=lambda: "fleet of 1 robots")
         ),
+        "timedexec.monitoring.moves_from_recording": Call(
+            ([], {"robot": "ur10", "period_s": 0.008})
+        ),
+        "timedexec.monitoring.DelayMonitor": Call(
+            SimpleNamespace(update=lambda moves: None, summary=lambda: dict(MONITOR))
+        ),
         "timedexec.report.build_report": Call(Path("r") / "report.md"),
         "timedexec.report.run_demo": Call(DEMO),
     }
@@ -158,6 +167,7 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
     monkeypatch.setattr("timedexec.delays.DelayTable", FakeTable)
     monkeypatch.setattr(signal, "signal", Call())  # `serve` must not take over SIGTERM here
     (tmp_path / "d.csv").write_text("trial\n", encoding="utf-8")
+    (tmp_path / "r.h5").write_bytes(b"")  # monitor checks its input is a file
     (tmp_path / "m.csv").write_text("name,robot,source\na,ur10,a.h5\n", encoding="utf-8")
     return {target.rpartition(".")[2]: call for target, call in calls.items()}
 
@@ -191,6 +201,8 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
                     "discrepancy of ur10: gravity_load added"),
     "fleet": (["fleet", "m.csv", "--out", "fleet", "--scheduler", "", "--quiet"], "run_fleet",
               {"scheduler": None, "jobs": 1, "progress": False}, "fleet of 1 robots"),
+    "monitor": (["monitor", "r.h5", "--model", "ur10-sim", "--warmup", "50"], "DelayMonitor",
+                {"warmup_moves": 50, "arl0_moves": 10000.0}, "no alarm"),
     "report": (["report", "d.csv", "r.h5", "--out", "r", "--trial", "3"], "build_report",
                {"trial": 3}, "report written to r/report.md"),
     "demo": (["demo", "--robot", "kr5", "--trials", "160", "--out", "demo"], "run_demo",
@@ -208,6 +220,7 @@ JSON_KEYS = {
     "evaluate": "strategies",
     "discrepancy": "added_effects",
     "fleet": "robots",
+    "monitor": "alerts",
     "demo": "conveyor",
 }
 

@@ -57,7 +57,7 @@ MAX_SEED = 2**32 - 1
 #: The ``--json`` convention, as the top-level ``--help`` and the README state it.
 JSON_CONVENTION = (
     "--json [PATH] (simulate, calibrate, check, extract, train, evaluate, discrepancy, fleet,\n"
-    "  demo): the command's machine-readable result. Bare --json (or --json -) prints the\n"
+    "  monitor, demo): the command's machine-readable result. Bare --json (or --json -) prints the\n"
     "  JSON on stdout instead of the text; --json PATH writes it to PATH and prints the text\n"
     "  as usual.\n"
     "  Put a bare --json after the positional arguments, or write --json=-."

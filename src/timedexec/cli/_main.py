@@ -24,6 +24,7 @@ from timedexec.cli import (
     _evaluate,
     _extract,
     _fleet,
+    _monitor,
     _report,
     _serve,
     _simulate,
@@ -58,6 +59,7 @@ COMMANDS = (
     _evaluate,
     _discrepancy,
     _fleet,
+    _monitor,
     _report,
     _demo,
 )

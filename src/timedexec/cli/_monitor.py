@@ -1,0 +1,170 @@
+"""``timedexec monitor``: has the robot drifted from its delay model? (no gyro needed)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from timedexec.cli._common import (
+    add_command,
+    add_json,
+    check_files,
+    emit,
+    float_arg,
+    int_arg,
+    note,
+)
+
+__all__ = ["EXIT_ALARM", "add_parser", "run"]
+
+#: Exit code when an alarm fired with --fail-on-alarm (without it an alarm exits 0).
+EXIT_ALARM = 4
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``monitor`` to the subparsers ``sub``."""
+    p = add_command(
+        sub,
+        "monitor",
+        help="watch a deployed delay model from the robot's own stream (no gyro): drift alarms",
+        description=(
+            "Measure every move's lag from command to the state stream showing the motion "
+            "(actuation + response, sub-period by inverting the commanded ramp), compare it "
+            "with the model's prediction, and run a two-sided CUSUM per joint whose threshold "
+            "gives one false alarm per --arl0 moves (docs/monitor.md). The first --warmup "
+            "moves of each joint are the reference: the monitor detects change relative to "
+            "them (the absolute gap to the model is reported too).\n\n"
+            "INPUT: a calibration recording (HDF5; its robot stream only) or an executor's "
+            "cycle log saved with timedexec.monitoring.save_cycle_log (.npz).\n\n"
+            "Output: per joint ok/alarm/warm-up, moves, shift estimate, and each alarm with "
+            "its shift (95 % CI), evidence and the calibration sweep that re-fits it. Exit 0 "
+            f"whether or not an alarm fired (printed); with --fail-on-alarm exit {EXIT_ALARM} "
+            "on an alarm. Bad input: exit 2.\n\n"
+            "example:\n  timedexec monitor ur10.h5 --model ur10-sim --figure monitor.png"
+        ),
+    )
+    p.add_argument("input", help="recording (.h5) or saved cycle log (.npz)")
+    p.add_argument(
+        "--model",
+        metavar="NAME_OR_DIR",
+        help="deployed model: bundle directory or bundled name (default: the recording's "
+        "robot + '-sim', e.g. ur10-sim)",
+    )
+    p.add_argument(
+        "--warmup",
+        type=int_arg(20, 100_000, fix=" (moves per joint that set the reference)"),
+        default=100,
+        help="warm-up moves per joint",
+    )
+    p.add_argument(
+        "--arl0",
+        type=float_arg(10.0, 1e12, unit="moves", fix=" (e.g. 10000)"),
+        default=10_000.0,
+        help="moves per joint between false alarms with no change",
+    )
+    p.add_argument(
+        "--k",
+        type=float_arg(0.0, 3.0, low_open=True, fix=" (0.5: fastest for a one-sigma shift)"),
+        default=0.5,
+        help="CUSUM reference, standardized units",
+    )
+    p.add_argument(
+        "--sweep-time",
+        action="store_true",
+        help="give a time-input model each trial's sweep time (recordings); default: warm",
+    )
+    p.add_argument(
+        "--every-trial",
+        action="store_true",
+        help="recordings: one move per trial (default: a condition's repeats are one move; "
+        "they share the model's error at that pose)",
+    )
+    p.add_argument("--figure", metavar="PATH", help="write the monitor figure (PNG, PDF, SVG)")
+    p.add_argument(
+        "--fail-on-alarm", action="store_true", help=f"exit {EXIT_ALARM} when an alarm fired"
+    )
+    add_json(p, "the monitor state {settings, joints, alerts}")
+    p.set_defaults(func=run)
+
+
+def _text(summary: dict[str, Any], source: str) -> str:
+    lines = [
+        f"{source}: threshold {summary['threshold']:.2f} (1 false alarm per "
+        f"{summary['arl0_moves']:,.0f} moves per joint; warm-up {summary['warmup_moves']} moves)",
+        "joint  state    moves  gap to model  shift since warm-up",
+    ]
+    for j in summary["joints"]:
+        gap = j.get("gap_to_model_ms")
+        shift = j.get("shift_ms")
+        lines.append(
+            f"{j['joint']:>5}  {j['status']:<7}  {j['moves']:>5}  "
+            f"{'-' if gap is None else f'{gap:+.2f} ms':>12}  "
+            f"{'-' if shift is None else f'{shift:+.2f} ms':>12}"
+        )
+    if summary["alerts"]:
+        lines.append("alarms:")
+        for a in summary["alerts"]:
+            lo, hi = a["ci_ms"]
+            lines.append(
+                f"  joint {a['joint']}: lag {a['side']} by {a['shift_ms']:+.2f} ms (95 % CI "
+                f"{lo:+.2f} .. {hi:+.2f}); CUSUM {a['statistic']:.1f} > {a['threshold']:.1f}, "
+                f"{a['moves_since_change']} moves since the change (move {a['move']}); "
+                f"recalibrate {a['recalibrate']['delay']} of joint(s) "
+                f"{','.join(map(str, a['recalibrate']['joints']))} with "
+                f"{a['recalibrate']['trials']} trials: {a['recalibrate']['command']}"
+            )
+    else:
+        lines.append("no alarm")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``monitor``; 0 (alarm or not), or 4 on an alarm with --fail-on-alarm."""
+    from timedexec.errors import ConfigError
+    from timedexec.monitoring import (
+        DelayMonitor,
+        load_cycle_log,
+        monitor_figure,
+        moves_from_recording,
+    )
+
+    outputs = {"--figure": args.figure} if args.figure else {}
+    check_files(args, "monitor", inputs={"INPUT": args.input}, outputs=outputs)
+    path = Path(args.input)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path}: no such file; give a recording (.h5) or a cycle log (.npz)"
+        )
+    if path.suffix.lower() == ".npz":
+        arrays, meta = load_cycle_log(path)
+        robot, period, moves = str(meta.get("robot", "")), float(meta["period_s"]), None
+    else:
+        moves, meta = moves_from_recording(path, collapse_repeats=not args.every_trial)
+        robot, period = meta["robot"], meta["period_s"]
+    model = args.model
+    if model is None:
+        if not robot:
+            raise ConfigError(f"{path} does not name its robot; give --model NAME_OR_DIR")
+        model = f"{robot}-sim"
+        note("monitor", f"no --model: using the bundled {model}")
+    mon = DelayMonitor(
+        model,
+        warmup_moves=args.warmup,
+        arl0_moves=args.arl0,
+        reference_k=args.k,
+        sweep_time=args.sweep_time,
+        period_s=period,
+    )
+    if moves is None:
+        mon.feed_log(arrays)
+    else:
+        mon.update(moves)
+    summary = mon.summary() | {"input": str(path), "model": str(model)}
+    if args.figure:
+        monitor_figure(mon, args.figure)
+    text = _text(summary, str(path))
+    if args.figure:
+        text += f"\nwrote the figure to {args.figure}"
+    emit(args, summary, text)
+    return EXIT_ALARM if (args.fail_on_alarm and summary["alerts"]) else 0

@@ -1,0 +1,67 @@
+"""The monitor figure: each joint's CUSUM over its moves, the threshold, and the alarm."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["monitor_figure"]
+
+
+def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> Any:
+    """Draw the upper and lower CUSUM of every joint against its moves.
+
+    One panel per joint: the two statistics (warm-up moves shaded), the threshold, and a
+    marker where an alarm fired. matplotlib is imported here, never at import time, and
+    pyplot is not used (``timedexec._plot``).
+
+    Parameters
+    ----------
+    monitor : DelayMonitor
+        The monitor after its updates.
+    path : path, optional
+        Where to save it (the type from the suffix, e.g. .png, .pdf).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from timedexec._plot import subplots
+
+    states = monitor.states()
+    n = max(1, len(states))
+    fig, axes = subplots(n, 1, figsize=(7.0, 1.8 * n + 0.6), sharex=False, squeeze=False)
+    h = monitor.threshold
+    for ax, st in zip(axes[:, 0], states, strict=False):
+        hist = monitor.history(st.joint)
+        x = np.arange(1, len(hist["upper"]) + 1)
+        ax.plot(x, hist["upper"], lw=1.0, color="C3", label="upper (later)")
+        ax.plot(x, hist["lower"], lw=1.0, color="C0", label="lower (earlier)")
+        ax.axhline(h, color="k", lw=0.8, ls="--", label=f"threshold {h:.1f}")
+        ax.axvspan(0.5, min(monitor.warmup_moves, len(x)) + 0.5, color="0.9", label="warm-up")
+        if st.alarm is not None:
+            ax.plot([st.alarm.move], [st.alarm.statistic], "kv", ms=7, label="alarm")
+            ax.set_title(f"joint {st.joint}: {st.alarm.shift_ms:+.2f} ms", fontsize=9)
+        else:
+            ax.set_title(f"joint {st.joint}: {st.status}", fontsize=9)
+        ax.set_ylabel("CUSUM")
+        ax.set_ylim(
+            0,
+            max(
+                1.3 * h,
+                float(np.max(hist["upper"], initial=0)) * 1.05,
+                float(np.max(hist["lower"], initial=0)) * 1.05,
+            ),
+        )
+    axes[0, 0].legend(fontsize=7, loc="upper left", ncol=3)
+    axes[-1, 0].set_xlabel("moves of the joint")
+    fig.suptitle(
+        f"delay monitor: 1 false alarm per {monitor.arl0_moves:,.0f} moves per joint", fontsize=10
+    )
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(Path(path), dpi=110)
+    return fig

@@ -1,0 +1,455 @@
+"""DelayMonitor: per-joint CUSUM of observed lag minus the model's actuation + response.
+
+Per move: residual ``r = lag - (actuation_mean + response_mean)`` (the model's prediction
+for the joint, direction and start configuration). The first ``warmup_moves`` moves of a
+joint fix its reference: the absolute gap to the model (their median) and the residual
+distribution, whose empirical quantiles map later residuals to normal scores
+``z = Phi^-1(F_warm(r))`` (the standardization). A two-sided CUSUM with reference ``k`` runs
+on ``z``; its threshold gives the false-alarm rate asked for (``arl0_moves``, Siegmund's
+approximation averaged over the warm-up's own estimation error, :mod:`._cusum`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from timedexec.errors import ConfigError
+from timedexec.monitoring._cusum import false_alarm_rate, threshold_for_arl
+from timedexec.monitoring._moves import Move, MoveExtractor
+
+__all__ = ["Alert", "DelayMonitor", "JointState", "RecalibrationPlan"]
+
+FloatArray = NDArray[np.float64]
+
+#: Smallest warm-up: the quantile map and the threshold's correction need it.
+MIN_WARMUP = 20
+#: Target half-width of a re-measured shift (95 %), ms, for the suggested trial count.
+RECAL_PRECISION_MS = 0.25
+
+
+@dataclass(frozen=True)
+class RecalibrationPlan:
+    """The calibration sweep that re-fits what an alert says changed.
+
+    Attributes
+    ----------
+    joints : tuple of int
+        The joint(s) to sweep (only these).
+    delay : str
+        What to re-fit: the state stream cannot separate actuation from response, so
+        "actuation" when one joint moved alone (response is shared by the joints), else
+        "actuation or response".
+    trials : int
+        Trials: enough for the shift to +-``RECAL_PRECISION_MS`` (95 %) at the model's
+        single-trial std, in whole conditions (2 directions x 10 repeats), at least 200.
+    command : str
+        How to run it.
+    """
+
+    joints: tuple[int, ...]
+    delay: str
+    trials: int
+    command: str
+
+    def sweep_plan(self, robot: str, *, seed: int = 0) -> Any:
+        """The :class:`~timedexec.recording.SweepPlan` of this sweep (save its
+        ``to_arrays()`` with ``numpy.savez`` for ``timedexec calibrate --plan``)."""
+        from timedexec.recording import SweepPlan
+
+        return SweepPlan.generate(robot, self.trials, seed=seed, joints=self.joints)
+
+
+@dataclass(frozen=True)
+class Alert:
+    """A detected change of one joint's observed lag.
+
+    Attributes
+    ----------
+    joint : int
+        The joint, 1-based.
+    shift_ms : float
+        Estimated shift since the warm-up, ms (Hodges-Lehmann: median of the pairwise
+        differences of the residuals since the change and the warm-up's).
+    ci_ms : (float, float)
+        Its 95 % confidence interval, ms (distribution-free, Mann-Whitney).
+    statistic : float
+        The CUSUM that crossed; ``threshold`` the threshold it crossed.
+    side : str
+        "later" (lags grew) or "earlier".
+    move : int
+        The joint's move count at the alarm (warm-up included).
+    moves_since_change : int
+        Moves since the estimated change (the last move the CUSUM was zero).
+    false_alarm_rate : float
+        The false-alarm rate the threshold was set for, per move.
+    arl0_moves : float
+        Its inverse.
+    gap_to_model_ms : float
+        The warm-up's median residual: the absolute gap between the observed lag and the
+        model's actuation + response (offsets of the method included).
+    recalibrate : RecalibrationPlan
+        What to sweep to re-fit it.
+    """
+
+    joint: int
+    shift_ms: float
+    ci_ms: tuple[float, float]
+    statistic: float
+    threshold: float
+    side: str
+    move: int
+    moves_since_change: int
+    false_alarm_rate: float
+    arl0_moves: float
+    gap_to_model_ms: float
+    recalibrate: RecalibrationPlan
+
+    def message(self) -> str:
+        """One line for people."""
+        lo, hi = self.ci_ms
+        return (
+            f"joint {self.joint}: lag {self.side} by {self.shift_ms:+.2f} ms "
+            f"(95 % CI {lo:+.2f} .. {hi:+.2f}) — CUSUM {self.statistic:.1f} > {self.threshold:.1f} "
+            f"after {self.moves_since_change} moves since the change (move {self.move}); "
+            f"threshold set for 1 false alarm per {self.arl0_moves:,.0f} moves; "
+            f"recalibrate: {self.recalibrate.command}"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe form."""
+        d = asdict(self)
+        d["ci_ms"] = list(self.ci_ms)
+        d["recalibrate"]["joints"] = list(self.recalibrate.joints)
+        return d
+
+
+@dataclass
+class JointState:
+    """The monitor's state of one joint (see :meth:`DelayMonitor.states`)."""
+
+    joint: int
+    moves: int = 0
+    skipped: int = 0
+    warm: FloatArray | None = None  # sorted warm-up residuals, s
+    scores: FloatArray | None = None  # their normal scores
+    up: float = 0.0
+    down: float = 0.0
+    up_zero: int = 0  # move index at which `up` was last zero
+    down_zero: int = 0
+    alarm: Alert | None = None
+    residual_s: list[float] = field(default_factory=list)
+    lag_s: list[float] = field(default_factory=list)
+    send_s: list[float] = field(default_factory=list)
+    up_hist: list[float] = field(default_factory=list)
+    down_hist: list[float] = field(default_factory=list)
+    act_std_s: list[float] = field(default_factory=list)
+
+    @property
+    def status(self) -> str:
+        """ "warm-up", "ok" or "alarm"."""
+        if self.alarm is not None:
+            return "alarm"
+        return "warm-up" if self.warm is None else "ok"
+
+
+def _normal_scores(n: int) -> FloatArray:
+    from statistics import NormalDist
+
+    nd = NormalDist()
+    return np.array([nd.inv_cdf((i + 0.5) / n) for i in range(n)])
+
+
+def _hodges_lehmann(
+    post: FloatArray, warm: FloatArray, conf: float = 0.95
+) -> tuple[float, float, float]:
+    """Shift estimate and distribution-free CI (s) of ``post`` against ``warm``."""
+    from statistics import NormalDist
+
+    diffs = np.sort((post[:, None] - warm[None, :]).ravel())
+    m, n = len(post), len(warm)
+    est = float(np.median(diffs))
+    zq = NormalDist().inv_cdf(0.5 + conf / 2)
+    c = math.floor(m * n / 2 - zq * math.sqrt(m * n * (m + n + 1) / 12.0))
+    c = min(max(c, 0), len(diffs) - 1)
+    return est, float(diffs[c]), float(diffs[len(diffs) - 1 - c])
+
+
+class DelayMonitor:
+    """Watches a deployed delay model from the robot's own commands and states (no gyro).
+
+    Parameters
+    ----------
+    model : DelayModel, DelayPredictor, str or path
+        The deployed model (a bundle directory or a bundled name such as "ur10-sim").
+    warmup_moves : int
+        Moves per joint that fix the reference (>= 20; default 100): the monitor detects
+        change relative to them.
+    arl0_moves : float
+        Wanted moves between false alarms per joint with no change (default 10,000).
+    reference_k : float
+        CUSUM reference, in standardized units (default 0.5: fastest for a one-sigma shift).
+    joints : sequence of int, optional
+        Joints to watch (default: every joint the moves show).
+    sweep_time : bool
+        Pass each move's ``sweep_time_s`` to a model with a time input (recordings); by
+        default a time-input model predicts the warm robot.
+    period_s : float, optional
+        Controller period for cycle logs (default the model's ``period_s``).
+
+    Examples
+    --------
+    >>> mon = DelayMonitor("ur10-sim")                             # doctest: +SKIP
+    >>> alerts = mon.update(moves_from_recording("ur10.h5")[0])    # doctest: +SKIP
+    >>> with TimedExecutor(open_driver("ur://10.0.0.2"), "ur10-sim") as ex:  # doctest: +SKIP
+    ...     for plan in plans:
+    ...         ex.execute(plan)
+    ...         for alert in mon.follow(ex):
+    ...             print(alert.message())
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        *,
+        warmup_moves: int = 100,
+        arl0_moves: float = 10_000.0,
+        reference_k: float = 0.5,
+        joints: Sequence[int] | None = None,
+        sweep_time: bool = False,
+        period_s: float | None = None,
+    ) -> None:
+        from timedexec.execution import load_delay_model
+
+        if (
+            isinstance(warmup_moves, bool)
+            or not isinstance(warmup_moves, int)
+            or warmup_moves < MIN_WARMUP
+        ):
+            raise ConfigError(
+                f"warmup_moves={warmup_moves!r} is out of range; use an integer >= {MIN_WARMUP} "
+                "(100 by default: the reference residuals of each joint)"
+            )
+        self.model = load_delay_model(model)
+        self.warmup_moves = warmup_moves
+        self.reference_k = float(reference_k)
+        self.arl0_moves = float(arl0_moves)
+        self.threshold = threshold_for_arl(self.arl0_moves, self.reference_k, warmup_moves)
+        self.nominal_arl0_moves = 1.0 / false_alarm_rate(self.threshold, self.reference_k)
+        if joints is not None:
+            bad = [j for j in joints if j not in range(1, 7)]
+            if bad:
+                raise ConfigError(f"joints {list(joints)}: {bad} not in 1..6; name joints 1-based")
+        self.joints = None if joints is None else tuple(int(j) for j in joints)
+        self.sweep_time = bool(sweep_time) and bool(getattr(self.model, "time_input", False))
+        self.period_s = period_s if period_s is not None else getattr(self.model, "period_s", None)
+        self._state: dict[int, JointState] = {}
+        self._extractor: MoveExtractor | None = None
+        self._followed = 0
+        self.alerts: list[Alert] = []
+
+    # ----------------------------------------------------------------- inputs
+    def update(self, moves: Move | Iterable[Move]) -> list[Alert]:
+        """Add moves (in the order they ran); return the alerts they raised.
+
+        Moves without a lag (no package in the onset window) and joints outside ``joints``
+        or unknown to the model are counted as skipped.
+        """
+        from timedexec.execution import predict_delays
+
+        batch = [moves] if isinstance(moves, Move) else list(moves)
+        if not batch:
+            return []
+        known = set(getattr(self.model, "joints", range(1, 7)))
+        use = [
+            m
+            for m in batch
+            if math.isfinite(m.lag_s)
+            and (self.joints is None or m.joint in self.joints)
+            and m.joint in known
+        ]
+        for m in batch:
+            if not (math.isfinite(m.lag_s) and m.joint in known):
+                self._joint(m.joint).skipped += 1
+        if not use:
+            return []
+        t_s = np.array([m.sweep_time_s for m in use]) if self.sweep_time else None
+        if t_s is not None and not np.all(np.isfinite(t_s)):
+            t_s = None
+        pred = predict_delays(
+            self.model,
+            [m.joint for m in use],
+            [m.direction for m in use],
+            np.array([m.q_start_rad for m in use]),
+            t_s=t_s,
+        )
+        expected = pred.actuation_mean + pred.response_mean
+        new: list[Alert] = []
+        for m, e, s in zip(use, expected, pred.actuation_std, strict=True):
+            st = self._joint(m.joint)
+            st.lag_s.append(m.lag_s)
+            st.send_s.append(m.send_s)
+            alert = self._step(st, m.lag_s - float(e), float(s))
+            if alert is not None:
+                new.append(alert)
+        self.alerts.extend(new)
+        return new
+
+    def feed_log(self, arrays: dict[str, NDArray[Any]]) -> list[Alert]:
+        """Add the next rows of a cycle log (:meth:`CycleLog.arrays` or a saved log)."""
+        if self._extractor is None:
+            if self.period_s is None:
+                raise ConfigError(
+                    "the controller period is unknown; give DelayMonitor(period_s=...)"
+                )
+            self._extractor = MoveExtractor(float(self.period_s))
+        return self.update(self._extractor.feed(arrays))
+
+    def follow(self, executor: Any) -> list[Alert]:
+        """Consume the rows of ``executor.log`` added since the last call; return new alerts.
+
+        Call it between executions (or from ``on_step`` every few hundred cycles): the cost
+        is one pass over the new rows plus one model query per completed move.
+        """
+        log = executor.log
+        n = len(log)
+        if n < self._followed:  # the log was cleared
+            self._followed = 0
+        if n == self._followed:
+            return []
+        if self._extractor is None:
+            period = getattr(executor, "period_s", None)
+            if period is not None and math.isfinite(period):
+                self.period_s = float(period)
+        arrays = log.arrays(self._followed)
+        self._followed = n
+        return self.feed_log(arrays)
+
+    # ----------------------------------------------------------------- the test
+    def _joint(self, joint: int) -> JointState:
+        st = self._state.get(joint)
+        if st is None:
+            st = self._state[joint] = JointState(joint)
+        return st
+
+    def _step(self, st: JointState, r: float, act_std_s: float) -> Alert | None:
+        st.moves += 1
+        st.residual_s.append(r)
+        st.act_std_s.append(act_std_s)
+        if st.warm is None:
+            st.up_hist.append(0.0)
+            st.down_hist.append(0.0)
+            if st.moves >= self.warmup_moves:
+                st.warm = np.sort(np.array(st.residual_s[-self.warmup_moves :]))
+                st.scores = _normal_scores(self.warmup_moves)
+                st.up_zero = st.down_zero = st.moves
+            return None
+        assert st.scores is not None
+        z = float(np.interp(r, st.warm, st.scores))
+        k = self.reference_k
+        st.up = max(0.0, st.up + z - k)
+        st.down = max(0.0, st.down - z - k)
+        if st.up == 0.0:
+            st.up_zero = st.moves
+        if st.down == 0.0:
+            st.down_zero = st.moves
+        st.up_hist.append(st.up)
+        st.down_hist.append(st.down)
+        if st.alarm is not None or max(st.up, st.down) <= self.threshold:
+            return None
+        upper = st.up > self.threshold
+        since = st.moves - (st.up_zero if upper else st.down_zero)
+        post = np.array(st.residual_s[-since:])
+        est, lo, hi = _hodges_lehmann(post, st.warm)
+        alert = Alert(
+            joint=st.joint,
+            shift_ms=est * 1e3,
+            ci_ms=(lo * 1e3, hi * 1e3),
+            statistic=st.up if upper else st.down,
+            threshold=self.threshold,
+            side="later" if upper else "earlier",
+            move=st.moves,
+            moves_since_change=since,
+            false_alarm_rate=1.0 / self.arl0_moves,
+            arl0_moves=self.arl0_moves,
+            gap_to_model_ms=float(np.median(st.warm)) * 1e3,
+            recalibrate=self._recalibration([st.joint], float(np.median(st.act_std_s))),
+        )
+        st.alarm = alert
+        return alert
+
+    def _recalibration(self, joints: list[int], act_std_s: float) -> RecalibrationPlan:
+        others = [
+            s.joint for s in self._state.values() if s.alarm is not None and s.joint not in joints
+        ]
+        delay = "actuation" if not others else "actuation or response"
+        n = math.ceil((1.96 * act_std_s * 1e3 / RECAL_PRECISION_MS) ** 2 / 20.0) * 20
+        n = max(200, n)
+        js = ",".join(str(j) for j in joints)
+        robot = str(getattr(self.model, "robot", "ROBOT"))
+        cmd = (
+            f'python -c "import numpy as np; from timedexec.recording import SweepPlan; '
+            f"np.savez('recal-j{js}.npz', **SweepPlan.generate('{robot}', {n}, seed=1, "
+            f'joints=({js},)).to_arrays())" && timedexec calibrate --robot-url URL --imu PORT '
+            f"--plan recal-j{js}.npz --out recal-j{js}.h5; then extract it and retrain joint "
+            f"{js} on its new rows"
+        )
+        return RecalibrationPlan(joints=tuple(joints), delay=delay, trials=n, command=cmd)
+
+    def rebaseline(self, joint: int) -> None:
+        """Forget a joint's reference and alarm (after recalibrating): a new warm-up starts."""
+        self._state.pop(int(joint), None)
+
+    # ----------------------------------------------------------------- outputs
+    def states(self) -> list[JointState]:
+        """Per joint, in joint order."""
+        return [self._state[j] for j in sorted(self._state)]
+
+    def history(self, joint: int) -> dict[str, FloatArray]:
+        """``residual_ms``, ``upper``, ``lower`` per move of ``joint`` (warm-up included)."""
+        st = self._state[joint]
+        return {
+            "residual_ms": np.array(st.residual_s) * 1e3,
+            "upper": np.array(st.up_hist),
+            "lower": np.array(st.down_hist),
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe state: settings, per joint status, and the alerts."""
+        joints = []
+        for st in self.states():
+            row: dict[str, Any] = {
+                "joint": st.joint,
+                "status": st.status,
+                "moves": st.moves,
+                "skipped": st.skipped,
+                "upper": st.up,
+                "lower": st.down,
+            }
+            if st.warm is not None:
+                res = np.array(st.residual_s[self.warmup_moves :])
+                row["gap_to_model_ms"] = float(np.median(st.warm)) * 1e3
+                row["warmup_spread_ms"] = float(
+                    1.4826 * np.median(np.abs(st.warm - np.median(st.warm))) * 1e3
+                )
+                row["shift_ms"] = (
+                    float(np.median(res) - np.median(st.warm)) * 1e3 if len(res) else None
+                )
+            if st.alarm is not None:
+                row["alert"] = st.alarm.to_dict()
+            joints.append(row)
+        return {
+            "warmup_moves": self.warmup_moves,
+            "reference_k": self.reference_k,
+            "threshold": self.threshold,
+            "arl0_moves": self.arl0_moves,
+            "nominal_arl0_moves": self.nominal_arl0_moves,
+            "false_alarm_rate_per_move": 1.0 / self.arl0_moves,
+            "joints": joints,
+            "alerts": [a.to_dict() for a in self.alerts],
+        }
