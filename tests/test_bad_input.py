@@ -233,7 +233,10 @@ CASES: dict[str, Case] = {
     "calibrate-rsi-url-unknown-parameter": Case(
         "calibrate --robot-url rsi://49152?host=10.0.0.2 --imu sim:// --trials 2 --out c.h5 "
         "--gyro-group-delay 0.98 --gyro-transport-latency 0.8",
-        ["unknown parameter 'host' for rsi:// URLs (allowed: period)"],
+        [
+            "unknown parameter 'host' for rsi:// URLs (allowed: period, listen, robot, "
+            "ipoc_tick_ms, first_frame_timeout_s)"
+        ],
         absent=["c.h5"],
     ),
     "report-garbage-json": Case(

@@ -34,6 +34,9 @@ KR5 = get_robot("kr5")
 T12 = 0.012
 Q0 = np.array([0.0, -1.2, 1.4, 0.0, 0.6, 0.0])
 WIRE_RAD = 9e-9  # axes travel in degrees with 6 decimals: <= 5e-7 deg = 8.8e-9 rad
+#: Driver options for a scripted robot: it sends frames as fast as the test goes, not every
+#: 12 ms (so no IPOC/period check), and a read before its first frame must not wait 10 s.
+SCRIPTED = {"ipoc_check_s": None, "first_frame_timeout_s": 0.0}
 
 
 class ScriptedRobot:
@@ -75,7 +78,7 @@ class ScriptedRobot:
 
 @pytest.fixture
 def driver() -> KukaRSIDriver:
-    with KukaRSIDriver(0) as drv:
+    with KukaRSIDriver(0, **SCRIPTED) as drv:
         yield drv
 
 
@@ -221,7 +224,7 @@ def test_stop_ramps_to_rest(driver: KukaRSIDriver, robot: ScriptedRobot) -> None
 def test_relative_mode_sends_increments() -> None:
     """In relative mode the answers carry per-cycle increments that sum to the absolute
     profile (same trapezoid as the absolute test)."""
-    with KukaRSIDriver(0, mode="relative") as drv:
+    with KukaRSIDriver(0, **SCRIPTED, mode="relative") as drv:
         bot = ScriptedRobot(drv.port)
         try:
             bot.frame()
@@ -265,7 +268,7 @@ def test_commands_beyond_the_spec_are_refused(
 def test_correction_stays_inside_max_correction_and_joint_limits() -> None:
     """An endless speedj brakes at the spec's acceleration limit and stops at
     max_correction_deg; towards a joint limit it stops 0.5° inside the limit."""
-    with KukaRSIDriver(0, max_correction_deg=2.0) as drv:
+    with KukaRSIDriver(0, **SCRIPTED, max_correction_deg=2.0) as drv:
         bot = ScriptedRobot(drv.port)
         try:
             bot.frame()
@@ -281,7 +284,7 @@ def test_correction_stays_inside_max_correction_and_joint_limits() -> None:
         assert drv.stats().clamped_cycles > 0
     q_near = Q0.copy()
     q_near[1] = KR5.q_max_rad[1] - math.radians(3.0)
-    with KukaRSIDriver(0) as drv:
+    with KukaRSIDriver(0, **SCRIPTED) as drv:
         bot = ScriptedRobot(drv.port)
         try:
             bot.frame(q_near, aspos=q_near)
@@ -369,7 +372,7 @@ def test_silence_raises_driver_timeout(driver: KukaRSIDriver, robot: ScriptedRob
 def test_new_session_after_silence_resets_the_correction() -> None:
     """After a silence longer than session_gap_s the next frame starts a new RSI session:
     its pose is the new start pose and the correction restarts from zero."""
-    with KukaRSIDriver(0, session_gap_s=0.05) as drv:
+    with KukaRSIDriver(0, **SCRIPTED, session_gap_s=0.05) as drv:
         bot = ScriptedRobot(drv.port)
         try:
             bot.frame()
@@ -387,7 +390,7 @@ def test_new_session_after_silence_resets_the_correction() -> None:
 
 def test_queue_keeps_the_newest_states() -> None:
     """Unread states are bounded by queue_size; the oldest are dropped and counted."""
-    with KukaRSIDriver(0, queue_size=5) as drv:
+    with KukaRSIDriver(0, **SCRIPTED, queue_size=5) as drv:
         bot = ScriptedRobot(drv.port)
         try:
             for _ in range(12):

@@ -28,13 +28,18 @@ Conventions and assumptions
   session with zero correction.
 * **Controller time.** ``controller_time_s = (IPOC - IPOC0) * ipoc_tick_s`` where IPOC0 is
   the first IPOC after :meth:`~KukaRSIDriver.connect` (the raw value stays in
-  :attr:`RSIState.ipoc`). Subtracting IPOC0 keeps the times small and exact (an IPOC of
-  1.2e11 ms as float seconds would carry only 15 ns resolution and make clock fits
-  ill-conditioned). The default tick of 1 ms assumes a KR C4, whose IPOC is a millisecond
-  time stamp (it advances by 4 per 4 ms cycle, 12 per 12 ms cycle); on KR C2 / RSI 2.x,
-  where the IPOC advances by 1 per cycle, pass ``ipoc_tick_s=period_s``. If the IPOC goes
-  backwards (controller restarted), IPOC0 is re-based so that controller time continues one
-  cycle after the last frame.
+  :attr:`RSIState.ipoc`); subtracting it keeps the times small and exact. The tick
+  (``ipoc_tick_s``, default ``"auto"``: 1 ms, KR C4, unless the IPOC advances by exactly 1
+  per frame, KR C2 / RSI 2.x, then one period) is checked once per session against the frame
+  period measured on the host clock, and so is ``period_s``: a mismatch raises
+  :class:`~timedexec.errors.DriverError` naming both numbers and the URL parameter that fixes
+  it (:mod:`timedexec.drivers._rsi_link`). If the IPOC goes backwards (controller
+  restarted), IPOC0 is re-based so that controller time continues one cycle later.
+* **Network.** The driver listens on ``host`` (loopback by default; the PC's address on the
+  robot's network, or ``0.0.0.0``, for a real robot), answers only the robot (``robot_ip``,
+  else the first sender of a valid frame; others are counted in ``ignored_frames`` and
+  never answered) and waits ``first_frame_timeout_s`` (default 10 s) for the first frame,
+  with a progress line on stderr each second.
 * **Velocity.** RSI reports positions only. ``qd`` is the backward difference of
   successive ``AIPos`` over the IPOC time between them; it is the mean velocity over the
   last cycle, i.e. the velocity of half a cycle earlier (a lag of T/2: 6 ms at 12 ms, 2 ms
@@ -70,14 +75,26 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
-from timedexec.drivers._base import RobotDriver, RobotState
+from timedexec.drivers._base import RobotDriver
+from timedexec.drivers._rsi_link import (
+    FirstFrameWait,
+    IpocClock,
+    PeerLock,
+    check_first_frame_timeout,
+    check_ipoc_tick,
+    check_listen_address,
+    check_robot_ip,
+    format_address,
+)
+from timedexec.drivers._rsi_profile import SpeedCommand as _Command
+from timedexec.drivers._rsi_profile import SpeedProfile as _Profile
+from timedexec.drivers._rsi_records import RSICommandRecord, RSIState, RSIStats
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
 
@@ -86,195 +103,6 @@ __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIState", "RSIStats"]
 FloatArray = NDArray[np.float64]
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
-_LIMIT_MARGIN_RAD = math.radians(0.5)  # stay this far inside the joint position limits
-
-
-@dataclass(frozen=True, kw_only=True)
-class RSIState(RobotState):
-    """A :class:`~timedexec.drivers.RobotState` with the RSI-specific fields.
-
-    Attributes
-    ----------
-    ipoc : int
-        The frame's IPOC.
-    q_setpoint : ndarray, shape (6,), or None
-        ``ASPos`` (set-point axis positions), rad, if the configuration sends it.
-    cartesian : ndarray, shape (6,), or None
-        ``RIst``: X, Y, Z (m), A, B, C (rad), if sent.
-    robot_late_count : int or None
-        The controller's late-answer counter ``<Delay D>``, if sent.
-    correction : ndarray, shape (6,)
-        The absolute correction sent in the answer to this frame, rad.
-    answer_host_time_s : float
-        ``time.monotonic()`` right after the answer left, s.
-    """
-
-    ipoc: int = 0
-    q_setpoint: FloatArray | None = None
-    cartesian: FloatArray | None = None
-    robot_late_count: int | None = None
-    correction: FloatArray = field(default_factory=lambda: np.zeros(6))
-    answer_host_time_s: float = math.nan
-
-
-@dataclass(frozen=True, kw_only=True)
-class RSIStats:
-    """Counters of the answer thread (a snapshot; see :meth:`KukaRSIDriver.stats`).
-
-    Attributes
-    ----------
-    frames : int
-        ``<Rob>`` frames received and parsed (empty RSI <= 2.3 start frames excluded).
-    answers : int
-        ``<Sen>`` answers sent.
-    late_answers : int
-        Answers that left more than one period after their frame arrived (the robot would
-        count them late).
-    max_answer_latency_s, mean_answer_latency_s : float
-        Receive-to-send time of the answers, s (``nan`` before the first answer).
-    protocol_errors : int
-        Datagrams rejected by the parser (not answered).
-    last_protocol_error : str
-        Message of the last rejection.
-    empty_frames : int
-        Empty ``<Rob>`` frames ignored.
-    missed_cycles : int
-        Controller cycles without a frame, from IPOC gaps.
-    clamped_cycles : int
-        Cycles in which the correction was held at a position or correction limit.
-    queue_overflows : int
-        States dropped because nobody read them (the queue keeps the newest ``queue_size``).
-    sessions : int
-        RSI sessions seen (a session starts with the first frame after a silence).
-    robot_late_count : int
-        The last ``<Delay D>`` value reported by the robot (-1 if not sent).
-    """
-
-    frames: int = 0
-    answers: int = 0
-    late_answers: int = 0
-    max_answer_latency_s: float = math.nan
-    mean_answer_latency_s: float = math.nan
-    protocol_errors: int = 0
-    last_protocol_error: str = ""
-    empty_frames: int = 0
-    missed_cycles: int = 0
-    clamped_cycles: int = 0
-    queue_overflows: int = 0
-    sessions: int = 0
-    robot_late_count: int = -1
-
-
-@dataclass(frozen=True, kw_only=True)
-class RSICommandRecord:
-    """When a motion command was issued and when it first left in an answer.
-
-    Attributes
-    ----------
-    kind : str
-        ``"speedj"`` or ``"stop"``.
-    qd_rad_s : ndarray, shape (6,)
-        Target joint speeds, rad/s (zeros for stop).
-    acceleration_rad_s2 : float
-        Leading-axis acceleration, rad/s².
-    duration_s : float
-        Hold duration, s (``inf`` for stop).
-    call_host_s : float
-        ``time.monotonic()`` when the method was called, s.
-    first_answer_host_s : float
-        ``time.monotonic()`` when the first answer carrying it left, s (``nan`` if never).
-    first_answer_ipoc : int
-        IPOC of that answer (-1 if never).
-    """
-
-    kind: str
-    qd_rad_s: FloatArray
-    acceleration_rad_s2: float
-    duration_s: float
-    call_host_s: float
-    first_answer_host_s: float = math.nan
-    first_answer_ipoc: int = -1
-
-
-@dataclass
-class _Command:
-    kind: str
-    qd: FloatArray
-    accel: float
-    duration_s: float
-    call_host_s: float
-    index: int
-
-
-class _Profile:
-    """speedj velocity profile integrated per controller cycle (absolute correction, rad)."""
-
-    def __init__(self, spec: RobotSpec, max_correction_rad: FloatArray) -> None:
-        self.qd_max = np.asarray(spec.qd_max_rad_s, dtype=np.float64)
-        self.qdd_max = np.asarray(spec.qdd_max_rad_s2, dtype=np.float64)
-        self.q_min = np.asarray(spec.q_min_rad, dtype=np.float64) + _LIMIT_MARGIN_RAD
-        self.q_max = np.asarray(spec.q_max_rad, dtype=np.float64) - _LIMIT_MARGIN_RAD
-        self.max_corr = max_correction_rad
-        self.reset(np.zeros(6))
-
-    def reset(self, q_start: FloatArray) -> None:
-        self.q_start = q_start.copy()
-        # Allowed correction interval: joint limits and the RSI correction limit together.
-        self.lo = np.maximum(self.q_min - q_start, -self.max_corr)
-        self.hi = np.minimum(self.q_max - q_start, self.max_corr)
-        self.corr = np.zeros(6)
-        self.v = np.zeros(6)
-        self.target = np.zeros(6)
-        self.rate = np.zeros(6)  # per-joint |acceleration| towards target, rad/s²
-        self.accel = 0.0
-        self.hold_s = math.inf
-        self.moving_command = False
-
-    @staticmethod
-    def _scaled_rates(delta: FloatArray, accel: float) -> FloatArray:
-        lead = float(np.max(np.abs(delta)))
-        if lead <= 0.0:
-            return np.full(6, accel)
-        return accel * np.abs(delta) / lead
-
-    def apply(self, cmd: _Command) -> None:
-        self.target = cmd.qd.copy()
-        self.accel = cmd.accel
-        self.rate = self._scaled_rates(self.target - self.v, cmd.accel)
-        self.hold_s = cmd.duration_s
-        self.moving_command = cmd.kind == "speedj"
-
-    def step(self, dt: float) -> bool:
-        """Advance one cycle; return True if a limit held the correction this cycle."""
-        if self.moving_command and self.hold_s <= 1e-9:  # 1 ns: float residue of -= dt
-            # Hold time over: ramp down, leading axis at the command's acceleration.
-            self.target = np.zeros(6)
-            self.rate = self._scaled_rates(self.v, self.accel)
-            self.moving_command = False
-        self.hold_s -= dt
-        target = self.target
-        # Brake before a limit: stopping distance at the spec's acceleration limit.
-        v = self.v
-        stop_dist = v * v / (2.0 * self.qdd_max) + np.abs(v) * dt
-        braking = ((v > 0) & (self.corr + stop_dist >= self.hi)) | (
-            (v < 0) & (self.corr - stop_dist <= self.lo)
-        )
-        toward = ((target > 0) & (self.corr >= self.hi)) | ((target < 0) & (self.corr <= self.lo))
-        limited = braking | toward
-        rate = self.rate
-        if np.any(limited):
-            target = np.where(limited, 0.0, target)
-            rate = np.where(braking, self.qdd_max, rate)
-        step = np.clip(target - v, -rate * dt, rate * dt)
-        v_new = v + step
-        corr = self.corr + 0.5 * (v + v_new) * dt
-        clamped = (corr > self.hi) | (corr < self.lo)
-        if np.any(clamped):
-            corr = np.clip(corr, self.lo, self.hi)
-            v_new = np.where(clamped, 0.0, v_new)
-        self.corr = corr
-        self.v = v_new
-        return bool(np.any(limited | clamped))
 
 
 class KukaRSIDriver(RobotDriver):
@@ -286,9 +114,13 @@ class KukaRSIDriver(RobotDriver):
         UDP port to bind (the RSI configuration's destination port; 49152 in the common ROS
         configurations). 0 binds an ephemeral port (see :attr:`port`), handy for tests.
     host : str, optional
-        Address to bind. The default, loopback, serves the simulated controller
-        (:class:`timedexec.twins._rsi.RSITwin`); for a real robot bind the PC's address
-        on the RSI network (or ``"0.0.0.0"``).
+        IPv4 address to listen on. The default, loopback, serves the simulated controller
+        (:class:`timedexec.twins.RSITwin`) only; for a real robot give the PC's address on
+        the RSI network (``"192.168.1.5"``) or ``"0.0.0.0"`` (every interface).
+    robot_ip : str, optional
+        The robot controller's IPv4 address: only its frames are taken (and answered).
+        Default None: lock to the first sender of a valid frame. Frames from anyone else are
+        counted (:attr:`ignored_frames`) and dropped unparsed.
     robot : str or RobotSpec, optional
         Robot spec (limits, default period); ``"kr5"`` by default.
     period_s : float, optional
@@ -302,8 +134,23 @@ class KukaRSIDriver(RobotDriver):
     max_correction_deg : float or array_like of 6, optional
         Largest absolute correction per axis, degrees; keep it at or inside the limits of
         the configuration's AXISCORR object (beyond them the robot stops RSI). Default 90.
-    ipoc_tick_s : float, optional
-        Seconds per IPOC unit (default 0.001, KR C4); see the module notes.
+    ipoc_tick_s : float or "auto", optional
+        Seconds per IPOC unit: 0.001 on a KR C4 (millisecond stamps), the period on a
+        KR C2 / RSI 2.x (frame counter); ``"auto"`` (default) tells them apart on the second
+        frame. Checked against the host clock (``ipoc_check_s``).
+    ipoc_check_s : float or None, optional
+        After this much host time (and at least 10 frames) of each session, check that IPOC
+        step x tick and ``period_s`` both match the measured frame period within 30 %
+        (the wrong settings differ by a factor of 3 or more); a mismatch stops motion and
+        makes :meth:`read_state` and :meth:`speedj` raise DriverError naming the numbers
+        and the fix. Default 1.0; None switches it off (a scripted robot in tests).
+    first_frame_timeout_s : float, optional
+        How long the first :meth:`read_state` after :meth:`connect` waits for the robot's
+        first frame, whatever its own ``timeout_s`` (default 10 s: a KUKA takes seconds
+        from ``RSI_ON``). Later reads use their own timeout.
+    progress : bool, optional
+        While waiting for the first frame, print a line on stderr each second saying what
+        is awaited on which address:port; on :meth:`close`, report ignored datagrams there.
     queue_size : int, optional
         Most unread states kept (default 4096: 49 s at 12 ms).
     session_gap_s : float, optional
@@ -331,13 +178,17 @@ class KukaRSIDriver(RobotDriver):
         port: int = 49152,
         *,
         host: str = "127.0.0.1",
+        robot_ip: str | None = None,
         robot: str | RobotSpec = "kr5",
         period_s: float | None = 0.012,
         sen_type: str = "ImFree",
         correction_tag: str = "AK",
         mode: Literal["absolute", "relative"] = "absolute",
         max_correction_deg: float | ArrayLike = 90.0,
-        ipoc_tick_s: float = 0.001,
+        ipoc_tick_s: float | str = "auto",
+        ipoc_check_s: float | None = 1.0,
+        first_frame_timeout_s: float = 10.0,
+        progress: bool = True,
         queue_size: int = 4096,
         session_gap_s: float | None = None,
         max_frame_bytes: int = MAX_FRAME_BYTES,
@@ -362,8 +213,14 @@ class KukaRSIDriver(RobotDriver):
             raise ConfigError(
                 f"max_correction_deg={max_corr.tolist()} must be positive and finite per axis"
             )
-        if not (math.isfinite(ipoc_tick_s) and ipoc_tick_s > 0):
-            raise ConfigError(f"ipoc_tick_s={ipoc_tick_s!r} must be a positive number of s")
+        tick = check_ipoc_tick(ipoc_tick_s)
+        if ipoc_check_s is not None and not (
+            isinstance(ipoc_check_s, (int, float)) and 0.1 <= ipoc_check_s <= 60.0
+        ):
+            raise ConfigError(
+                f"ipoc_check_s={ipoc_check_s!r} must be None (no check) or 0.1 .. 60 s of "
+                "frames to measure the period on (default 1.0)"
+            )
         if not isinstance(queue_size, int) or queue_size < 1:
             raise ConfigError(f"queue_size={queue_size!r} must be a positive integer")
         # Validate the answer settings once by building a frame.
@@ -373,13 +230,15 @@ class KukaRSIDriver(RobotDriver):
             raise ConfigError(str(exc)) from None
         self.robot = spec.name
         self.spec = spec
-        self.host = host
+        self.host = check_listen_address(host)
+        self.robot_ip = check_robot_ip(robot_ip)
+        self.first_frame_timeout_s = check_first_frame_timeout(first_frame_timeout_s)
+        self.progress = bool(progress)
         self._requested_port = port
         self.sen_type = sen_type
         self.correction_tag = correction_tag
         self.mode = mode
         self.max_correction_rad: FloatArray = np.radians(max_corr)
-        self.ipoc_tick_s = float(ipoc_tick_s)
         self.queue_size = queue_size
         period = spec.controller_period_s
         self.session_gap_s = 150 * period if session_gap_s is None else float(session_gap_s)
@@ -400,6 +259,10 @@ class KukaRSIDriver(RobotDriver):
         self._pending: _Command | None = None
         self._commands: list[RSICommandRecord] = []
         self._profile = _Profile(spec, self.max_correction_rad)
+        self._peers = PeerLock(self.robot_ip, self.session_gap_s)
+        self._clock = IpocClock(tick, period, ipoc_check_s)
+        self._fault: DriverError | None = None  # the time-base check failed
+        self._frames_since_connect = 0
         self._mute = False  # test hook: stop answering (the robot then counts late cycles)
         # Thread-owned session state.
         self._last_rx_s = -math.inf
@@ -430,6 +293,29 @@ class KukaRSIDriver(RobotDriver):
         """True between :meth:`connect` and :meth:`close`."""
         return self._sock is not None
 
+    @property
+    def ipoc_tick_s(self) -> float:
+        """Seconds per IPOC unit in use (with ``"auto"``: 1 ms until the second frame)."""
+        return self._clock.tick_s
+
+    @property
+    def ignored_frames(self) -> int:
+        """Datagrams from addresses other than the robot's, dropped without an answer."""
+        with self._cond:
+            return self._peers.ignored_frames
+
+    @property
+    def last_foreign_address(self) -> tuple[str, int] | None:
+        """(ip, port) of the last ignored datagram's sender, None if there was none."""
+        with self._cond:
+            return self._peers.last_foreign
+
+    @property
+    def peer_address(self) -> tuple[str, int] | None:
+        """(ip, port) of the robot this driver answers (None before its first frame)."""
+        with self._cond:
+            return self._peers.peer
+
     # ------------------------------------------------------------------ lifecycle
 
     def connect(self) -> None:
@@ -454,6 +340,7 @@ class KukaRSIDriver(RobotDriver):
         sock.settimeout(_RECV_POLL_S)
         self._sock = sock
         self._error = None
+        self._frames_since_connect = 0
         self._running.set()
         self._thread = threading.Thread(
             target=self._serve, name=f"rsi-answer-{self.port}", daemon=True
@@ -495,6 +382,9 @@ class KukaRSIDriver(RobotDriver):
                 self._saved_switch_interval = None
             with self._cond:
                 self._cond.notify_all()
+                ignored = self._peers.ignored_frames
+            if ignored and self.progress:
+                print(f"KukaRSIDriver: {self._peers.summary()}", file=sys.stderr, flush=True)
 
     # ------------------------------------------------------------------ state
 
@@ -517,25 +407,57 @@ class KukaRSIDriver(RobotDriver):
         DriverError
             If the driver is not connected or its receive thread failed.
         """
-        deadline = time.monotonic() + float(timeout_s)
+        start = time.monotonic()
+        wait_s = float(timeout_s)
+        first = self._frames_since_connect == 0 and self.first_frame_timeout_s > wait_s
+        if first:  # a KUKA takes seconds from RSI_ON to its first frame
+            wait_s = self.first_frame_timeout_s
+            waiter = FirstFrameWait(
+                f"the robot's first RSI frame on UDP {self.host}:{self.port}",
+                wait_s,
+                enabled=self.progress,
+            )
+        deadline = start + wait_s
         with self._cond:
+            if self._fault is not None:
+                raise self._fault
             while not self._queue:
+                if self._fault is not None:
+                    raise self._fault
                 if self._error is not None:
                     raise DriverError(f"RSI receive thread failed: {self._error}")
                 if self._sock is None:
                     raise DriverError("KukaRSIDriver is not connected; call connect() first")
-                remaining = deadline - time.monotonic()
+                now = time.monotonic()
+                remaining = deadline - now
                 if remaining <= 0.0:
-                    raise DriverTimeout(self._silence_message(timeout_s))
+                    raise DriverTimeout(self._silence_message(wait_s))
+                if first and self._frames_since_connect == 0:
+                    due = start + (waiter.lines + 1) * waiter.INTERVAL_S
+                    if now >= due:
+                        waiter.tick(now - start, self._ignored_note())
+                        continue
+                    remaining = min(remaining, due - now)
                 self._cond.wait(remaining)
             return self._queue.popleft()
 
+    def _ignored_note(self) -> str:
+        peers = self._peers
+        if not peers.ignored_frames:
+            return ""
+        return (
+            f"ignored {peers.ignored_frames} datagram(s) from other senders, last "
+            f"{format_address(peers.last_foreign)}"
+        )
+
     def _silence_message(self, timeout_s: float) -> str:
         if self._last_ipoc < 0:
+            note = self._ignored_note()
             return (
                 f"no RSI frame within {timeout_s:g} s on UDP {self.host}:{self.port}; is the "
-                "robot program past RSI_ON, and does its RSI configuration send to this "
-                "address and port?"
+                "robot program past RSI_ON, does its RSI configuration send to this "
+                "address and port (IP_NUMBER, PORT), and does the firewall let it through?"
+                + (f" ({note}; if that is the robot, set ?robot=IP)" if note else "")
             )
         age = time.monotonic() - self._last_rx_s
         return (
@@ -559,7 +481,16 @@ class KukaRSIDriver(RobotDriver):
     def stats(self) -> RSIStats:
         """Snapshot of the answer thread's counters."""
         with self._cond:
-            return RSIStats(**self._stats)
+            peers = self._peers
+            return RSIStats(
+                **{
+                    **self._stats,
+                    "ignored_frames": peers.ignored_frames,
+                    "last_foreign_address": format_address(peers.last_foreign),
+                    "peer_address": format_address(peers.peer),
+                    "ipoc_tick_s": self._clock.tick_s,
+                }
+            )
 
     def command_log(self) -> list[RSICommandRecord]:
         """Every motion command since connect, with the time its first answer left."""
@@ -586,6 +517,8 @@ class KukaRSIDriver(RobotDriver):
     def _require_active(self, what: str) -> None:
         if self._sock is None:
             raise DriverError(f"cannot {what}: KukaRSIDriver is not connected")
+        if self._fault is not None:
+            raise DriverError(f"cannot {what}: {self._fault}")
         if self._error is not None:
             raise DriverError(f"cannot {what}: RSI receive thread failed: {self._error}")
         if not self._active():
@@ -719,6 +652,17 @@ class KukaRSIDriver(RobotDriver):
         except Exception as exc:  # pragma: no cover - a bug; surface it to the reader
             self._fail(exc)
 
+    def _time_base_fault(self, exc: DriverError, t_rx: float) -> None:
+        """The IPOC/period check failed: ramp any motion down (still answering, so the robot
+        sees no jump) and make read_state/speedj raise ``exc``."""
+        decel = float(np.min(self.spec.qdd_max_rad_s2))
+        with self._cmd_lock:
+            self._pending = None
+        self._profile.apply(_Command("stop", np.zeros(6), decel, math.inf, t_rx, -1))
+        with self._cond:
+            self._fault = exc
+            self._cond.notify_all()
+
     def _fail(self, exc: BaseException) -> None:
         with self._cond:
             self._error = exc
@@ -726,6 +670,9 @@ class KukaRSIDriver(RobotDriver):
 
     def _handle(self, data: bytes, addr: tuple[str, int], t_rx: float) -> None:
         st = self._stats
+        with self._cond:
+            if not self._peers.admits(addr, t_rx):
+                return  # not the robot: neither parsed nor answered (counted)
         try:
             frame = parse_rob(data, max_bytes=self.max_frame_bytes)
         except ProtocolError as exc:
@@ -744,6 +691,8 @@ class KukaRSIDriver(RobotDriver):
                     "Rob frame has no <AIPos>; add AIPos to the RSI configuration's SEND list"
                 )
             # Still answer below: the robot must not time out because of our needs.
+        with self._cond:
+            self._peers.lock(addr, t_rx)  # a valid frame: this sender is the robot
         prof = self._profile
         period = self.controller_period_s
         new_session = (
@@ -752,10 +701,17 @@ class KukaRSIDriver(RobotDriver):
             or frame.ipoc <= self._last_ipoc
         )
         q = frame.aipos_rad
+        if new_session:
+            self._clock.reset_session()
+        try:  # resolves an "auto" tick on the second frame; checks it after ipoc_check_s
+            self._clock.observe(frame.ipoc, t_rx, None if new_session else self._last_ipoc)
+        except DriverError as exc:
+            self._time_base_fault(exc, t_rx)
+        tick_s = self._clock.tick_s
         if self._ipoc_origin < 0:
             self._ipoc_origin = frame.ipoc
         elif frame.ipoc <= self._last_ipoc:  # controller restarted: keep time increasing
-            one_cycle = max(1, round(period / self.ipoc_tick_s))
+            one_cycle = max(1, round(period / tick_s))
             self._ipoc_origin = frame.ipoc - (self._last_ipoc - self._ipoc_origin) - one_cycle
         if new_session:
             start = frame.aspos_rad if frame.aspos_rad is not None else q
@@ -769,7 +725,7 @@ class KukaRSIDriver(RobotDriver):
             with self._cond:
                 st["sessions"] += 1
         else:
-            dt_ctrl = (frame.ipoc - self._last_ipoc) * self.ipoc_tick_s
+            dt_ctrl = (frame.ipoc - self._last_ipoc) * tick_s
             cycles = max(1, round(dt_ctrl / period))
             if q is not None and self._last_q is not None and dt_ctrl > 0:
                 qd = (q - self._last_q) / dt_ctrl
@@ -784,7 +740,7 @@ class KukaRSIDriver(RobotDriver):
 
         state = RSIState(
             host_time_s=t_rx,
-            controller_time_s=(frame.ipoc - self._ipoc_origin) * self.ipoc_tick_s,
+            controller_time_s=(frame.ipoc - self._ipoc_origin) * tick_s,
             q=q if q is not None else np.full(6, np.nan),
             qd=qd,
             raw=bytes(data),
@@ -846,6 +802,7 @@ class KukaRSIDriver(RobotDriver):
         state = dataclasses.replace(state, correction=corr.copy(), answer_host_time_s=t_tx)
         with self._cond:
             st["frames"] += 1
+            self._frames_since_connect += 1
             if not new_session:
                 st["missed_cycles"] += cycles - 1
             if clamped:

@@ -23,7 +23,7 @@ SCHEMES = ("sim", "ur", "rsi")
 URL_PARAMS: dict[str, tuple[str, ...]] = {
     "sim": ("realtime", "seed"),
     "ur": (),
-    "rsi": ("period",),
+    "rsi": ("period", "listen", "robot", "ipoc_tick_ms", "first_frame_timeout_s"),
 }
 
 #: Largest seed (32-bit unsigned, as the command line's ``--seed``).
@@ -77,8 +77,11 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
     ``sim://ur10`` (in-process simulator, virtual time; ``sim://ur10?realtime=1`` real
     time, ``?seed=N`` its seed, which wins over a ``seed=`` option), ``ur://192.168.1.10``
     (ur_rtde; a UR twin: ``ur://127.0.0.2``; no parameters), ``rsi://49152`` (the PC side
-    of KUKA RSI listening on that UDP port; ``rsi://49152?period=0.004``). Extra keyword
-    options go to the driver's constructor.
+    of KUKA RSI listening on that UDP port of the loopback interface;
+    ``rsi://0.0.0.0:49152`` or ``?listen=192.168.1.5`` listens where a real robot can
+    reach it; ``?robot=IP`` answers only that controller, ``?period=0.004``,
+    ``?ipoc_tick_ms=1|12|auto``, ``?first_frame_timeout_s=10``; see docs/rsi.md). Extra
+    keyword options go to the driver's constructor (URL parameters win).
 
     Raises
     ------
@@ -132,17 +135,72 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
         return URDriver(where, **options)
     from timedexec.drivers._rsi import KukaRSIDriver
 
+    options.update(_rsi_options(url, parts, query))
+    port = options.pop("port")
+    return KukaRSIDriver(port, **options)
+
+
+_RSI_FORM = "rsi://PORT or rsi://LISTEN_IP:PORT, e.g. rsi://49152 or rsi://0.0.0.0:49152"
+
+
+def _rsi_options(url: str, parts: Any, query: dict[str, str]) -> dict[str, Any]:
+    """``rsi://[LISTEN_IP:]PORT?period=&listen=&robot=&ipoc_tick_ms=&first_frame_timeout_s=``
+    as the driver's keyword arguments (``port`` included)."""
+    from timedexec.drivers._rsi_link import (
+        check_first_frame_timeout,
+        check_listen_address,
+        check_robot_ip,
+    )
+
     where = parts.netloc or parts.path
+    host, sep, port_text = where.rpartition(":")
+    if not sep:
+        host, port_text = "", where
     try:
-        port = int(where)
+        port = int(port_text)
     except ValueError:
         raise ConfigError(
-            f"robot URL {url!r}: the RSI port {where!r} is not a number; use rsi://49152"
+            f"robot URL {url!r}: the RSI port {port_text!r} is not a number; use {_RSI_FORM}"
         ) from None
     if not 1 <= port <= 65535:
         raise ConfigError(f"robot URL {url!r}: port {port} outside 1..65535")
     if parts.netloc:
-        _no_path(url, parts.path, "rsi://PORT, e.g. rsi://49152")
+        _no_path(url, parts.path, _RSI_FORM)
+    out: dict[str, Any] = {"port": port}
+
+    def checked(check: Any, value: str, name: str) -> Any:
+        try:
+            return check(value)
+        except ConfigError as exc:
+            raise ConfigError(f"robot URL {url!r}: {name}: {exc}") from None
+
+    listen = query.get("listen")
+    if host and listen is not None and host != listen:
+        raise ConfigError(
+            f"robot URL {url!r}: the listen address is given twice ({host!r} before the port, "
+            f"listen={listen!r}); give it once"
+        )
+    if host or listen is not None:
+        out["host"] = checked(check_listen_address, host or listen or "", "listen address")
+    if "robot" in query:
+        out["robot_ip"] = checked(check_robot_ip, query["robot"], "robot")
+    if "first_frame_timeout_s" in query:
+        out["first_frame_timeout_s"] = checked(
+            check_first_frame_timeout, query["first_frame_timeout_s"], "first_frame_timeout_s"
+        )
+    if "ipoc_tick_ms" in query:
+        tick = query["ipoc_tick_ms"].strip().lower()
+        try:
+            tick_ms = math.nan if tick == "auto" else float(tick)
+        except ValueError:
+            tick_ms = -1.0
+        if tick != "auto" and not (math.isfinite(tick_ms) and 0.0 < tick_ms <= 1000.0):
+            raise ConfigError(
+                f"robot URL {url!r}: ipoc_tick_ms={query['ipoc_tick_ms']!r} must be auto or "
+                "the milliseconds per IPOC unit in (0, 1000]: 1 on a KR C4, the period (12 or "
+                "4) on a KR C2 / RSI 2.x counting frames"
+            )
+        out["ipoc_tick_s"] = "auto" if tick == "auto" else tick_ms / 1000.0
     if "period" in query:
         try:
             period = float(query["period"])
@@ -153,5 +211,5 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
                 f"robot URL {url!r}: period={query['period']!r} must be a controller period "
                 "in s > 0 (KUKA RSI: 0.012 or 0.004)"
             )
-        options.setdefault("period_s", period)
-    return KukaRSIDriver(port, **options)
+        out["period_s"] = period
+    return out

@@ -18,7 +18,9 @@ timing:
 * **IPOC.** ``ipoc_start + k * ipoc_step``; the default step is the period in milliseconds
   (KR C4: 12 per 12 ms frame, 4 per 4 ms); ``ipoc_step=1`` mimics KR C2 / RSI 2.x.
 * **Answers and the late counter.** An answer counts if it echoes the IPOC of the latest
-  frame and arrives before the next frame leaves. Otherwise the cycle is late: the counter
+  frame and arrives before the next frame leaves; one echoing an older IPOC than a frame
+  already sent is late at once and not applied, as on KSS (unless the twin itself sent the
+  two frames back to back, behind real time). Otherwise the cycle is late: the counter
   (sent as ``<Delay D>``) goes up and the correction of the previous cycle stays in force
   (absolute mode) or nothing is added (relative mode). When the counter reaches
   ``timeout_packets`` (KSS's ETHERNET object ``Timeout``, default 100) RSI stops with
@@ -55,6 +57,10 @@ goes to the JSON-lines file ``truth_path`` when the twin stops (a ``"meta"`` lin
 ``t0_monotonic_s``, then ``"command"`` lines, then an ``"rsi"`` line with the stop reason),
 and is returned by :meth:`RSITwin.truth`; the frames sent and the answers received are
 returned by :meth:`RSITwin.frames` and :meth:`RSITwin.answers`.
+
+A slow robot program: ``first_frame_delay_s`` holds the first frame back (a KUKA needs
+seconds to reach ``RSI_ON``). The truth's ``"rsi"`` line has ``last_motion_s``: when the
+arm came to rest (faster than 0.02 rad/s for the last time, controller time).
 
 Fault injection for tests: :meth:`RSITwin.stall` / :meth:`RSITwin.pause` (frames are lost
 for a while), :meth:`RSITwin.drop_frames`, :meth:`RSITwin.drop_answers` and

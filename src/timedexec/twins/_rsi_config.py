@@ -81,6 +81,10 @@ class RSITwinConfig:
         ``True``: frames go out, but the late counter starts with the first answer in time
         (like an operator who starts the robot program once the PC is listening); for
         long-running servers such as ``timedexec serve``.
+    first_frame_delay_s : float
+        Time from start-up until the first frame leaves, s (default 0): a real controller
+        takes seconds from the program start to ``RSI_ON`` (the public RSI simulator too);
+        the PC must wait for it. The clock origin ``t0_host_s`` moves by as much.
     settle_s : float
         After RSI stops, the physics runs on (faster than real time) until the robot is
         still or this much controller time passed, so the ground truth is complete.
@@ -111,6 +115,7 @@ class RSITwinConfig:
     send_cartesian: bool = True
     max_duration_s: float | None = None
     wait_for_pc: bool = False
+    first_frame_delay_s: float = 0.0
     settle_s: float = 1.0
     truth_path: str | None = None
     controller_factory: str | None = None
@@ -152,7 +157,7 @@ class RSITwinConfig:
                 f"max_correction_deg={limits.tolist()} must be positive and finite per axis"
             )
         object.__setattr__(self, "max_correction_deg", tuple(float(x) for x in limits))
-        for name in ("max_duration_s", "settle_s"):
+        for name in ("max_duration_s", "settle_s", "first_frame_delay_s"):
             value = getattr(self, name)
             if value is None and name == "max_duration_s":
                 continue
@@ -217,7 +222,8 @@ class RSITwinStatus:
     answers_in_time : int
         Answers that echoed the latest IPOC before the next frame left.
     stale_answers : int
-        Answers with an old IPOC, or arriving after the next frame (ignored).
+        Answers not taken: echoing an IPOC older than the latest frame sent when they
+        arrived (each counted late, as KSS does), or arriving after their period ran out.
     late_count : int
         The late counter as sent in ``<Delay D>``.
     late_total : int

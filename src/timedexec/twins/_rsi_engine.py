@@ -39,6 +39,10 @@ FloatArray = NDArray[np.float64]
 _LATE_SEND_S = 0.001  # a frame leaving more than this after its send time counts as late
 _SWITCH_INTERVAL_S = 0.0002
 _T0_LEAD_S = 0.02  # controller time 0 lies this far after the twin is ready
+#: Below this joint speed (max over the joints, mean over a cycle) the arm is at rest, rad/s
+#: (1.1 deg/s): above the stick-slip hunting of a held position loop (up to 0.011 rad/s in
+#: short bursts, a fraction of a mrad), an order of magnitude under commanded motion.
+_REST_SPEED_RAD_S = 0.02
 
 # Shared status slots (a multiprocessing double array).
 _S_FRAMES, _S_DROPPED, _S_ANSWERS, _S_STALE, _S_LATE, _S_PROTO = 0, 1, 2, 3, 4, 5
@@ -159,6 +163,12 @@ class _Engine:
         self.pause_until = -math.inf
         self.drop_out = 0
         self.drop_in = 0
+        # (ipoc, host time it left) of the latest frames the controller sent, lost or not:
+        # an answer echoing an older IPOC than one sent before it arrived is late (KSS).
+        self.sent_ipocs: collections.deque[tuple[int, float, bool]] = collections.deque(maxlen=64)
+        self.stale_late = 0
+        self.last_motion_s = math.nan
+        self._q_prev: FloatArray | None = None
         self.frame_log: list[dict[str, Any]] = []
         self.answer_log: list[dict[str, Any]] = []
         self.physics_error: BaseException | None = None
@@ -272,6 +282,7 @@ class _Engine:
                 arrival_s, q_cmd = self.commands.popleft()
                 sim.submit(ServoJ(tuple(q_cmd), time_s=period), arrival_s=arrival_s)
             result = sim.cycle()
+            self._track_motion()
             packet = result.packet
             if int(packet.cycle) != frame.cycle or not (
                 np.array_equal(np.asarray(packet.q_rad), frame.q_rad)
@@ -288,9 +299,18 @@ class _Engine:
         end = float(sim.time_s) + self.cfg.settle_s
         while float(sim.time_s) < end:
             sim.cycle()
+            self._track_motion()
             self._inc(_S_CYCLES)
             if sim.is_steady():
                 break
+
+    def _track_motion(self) -> None:
+        """Note the controller time of the last cycle in which the arm moved (truth)."""
+        q = np.array(self.sim.q_rad, dtype=float)
+        prev = self._q_prev
+        if prev is not None and float(np.max(np.abs(q - prev))) > _REST_SPEED_RAD_S * self.period_s:
+            self.last_motion_s = float(self.sim.time_s)
+        self._q_prev = q
 
     def _wait_for_inputs(self, boundary: float) -> None:
         """Wait until every answer that could still reach the register before ``boundary``
@@ -320,11 +340,14 @@ class _Engine:
     # ---------------------------------------------------------------- I/O loop
     def io_loop(self) -> None:
         sock = self.sock
-        if self.cfg.legacy_empty_frame:
-            with contextlib.suppress(OSError):
-                sock.sendto(self._build_rob(None), self.dest)
         while True:
             self._poll_control()
+            if self.reason != "running":
+                break
+            # Answers already waiting are taken before any expiry or the next frame, so the
+            # order of events on the wire decides (an answer is stale only if it truly
+            # arrived after a newer frame left).
+            self._receive()
             if self.reason != "running":
                 break
             self._expire(time.monotonic())
@@ -385,23 +408,47 @@ class _Engine:
                 return
             with self.lock:
                 del pending[ipoc]
-            if not self.pc_seen:
-                continue  # wait_for_pc: the robot program has not "started" yet
-            self.late += 1
-            self.late_total += 1
-            self._set(_S_LATE, self.late)
-            self._set(_S_LATE_TOTAL, self.late_total)
-            if self.late >= self.cfg.timeout_packets:
-                self.stop_rsi(
-                    "RSITimeout",
-                    f"KSS29002 Signal flow (running): Object ETHERNET1 returns error "
-                    f"RSITimeout ({self.late} late cycles, Timeout={self.cfg.timeout_packets})",
-                )
+            self._count_late()
+            if self.reason != "running":
                 return
+
+    def _count_late(self) -> None:
+        """One more late cycle; RSI stops with RSITimeout at ``timeout_packets``."""
+        if not self.pc_seen:
+            return  # wait_for_pc: the robot program has not "started" yet
+        self.late += 1
+        self.late_total += 1
+        self._set(_S_LATE, self.late)
+        self._set(_S_LATE_TOTAL, self.late_total)
+        if self.late >= self.cfg.timeout_packets:
+            self.stop_rsi(
+                "RSITimeout",
+                f"KSS29002 Signal flow (running): Object ETHERNET1 returns error "
+                f"RSITimeout ({self.late} late cycles, Timeout={self.cfg.timeout_packets})",
+            )
+
+    def _newer_frame_sent(self, ipoc: int, departed_s: float, now: float) -> bool:
+        """Whether a frame with a later IPOC than ``ipoc`` (which left at host time
+        ``departed_s``) had left by ``now``: the answer then echoes a stale IPOC.
+
+        Only a newer frame that left on time and at least half a period after this one
+        counts: when the twin itself fell behind real time and sends late or back to back,
+        an answer to the earlier frame is not held against the PC (the twin's lag is never
+        passed on; a real controller never sends late).
+        """
+        for sent_ipoc, left_s, on_time in reversed(self.sent_ipocs):
+            if sent_ipoc <= ipoc:
+                return False
+            if on_time and left_s <= now and left_s - departed_s >= 0.5 * self.period_s:
+                return True
+        return False
 
     def _send(self, frame: _Frame) -> None:
         if self.reason != "running":
             return
+        if self.cfg.legacy_empty_frame and not self.frame_log:  # RSI <= 2.3, before frame 0
+            with contextlib.suppress(OSError):
+                self.sock.sendto(self._build_rob(None), self.dest)
         data = self._build_rob(
             frame.ipoc,
             frame.q_rad,
@@ -430,6 +477,8 @@ class _Engine:
             if lateness > self.shared[_S_MAX_LATENESS]:
                 self._set(_S_MAX_LATENESS, lateness)
         self._inc(_S_FRAMES)
+        on_time = sent_s is None or sent_s - frame.send_time_s <= _LATE_SEND_S
+        self.sent_ipocs.append((frame.ipoc, now, on_time))
         # The PC has one period from the frame's departure to answer it. With the twin on
         # time this is the departure of the next frame, as on KSS; should the twin itself
         # fall behind real time (an overloaded machine) and send frames in a burst, the PC
@@ -475,17 +524,29 @@ class _Engine:
             # turnaround. Equal to the host clock while the twin keeps real time; if it lags
             # (overloaded machine), its own lag is not passed on to the robot.
             arrival_s = entry[2] + (now - entry[1]) if entry is not None else now - self.t0
+            # KSS takes only an answer echoing the latest IPOC: once a newer frame has left,
+            # this one's cycle is late (counted now, its correction not applied).
+            stale = entry is not None and self._newer_frame_sent(sen.ipoc, entry[1], now)
+            in_time = in_time and not stale
             self.answer_log.append(
                 {
                     "ipoc": sen.ipoc,
                     "arrival_s": arrival_s,
                     "arrival_host_s": now,
                     "in_time": in_time,
+                    "stale_ipoc": stale,
                     "correction_rad": sen.correction_rad.tolist(),
                 }
             )
             if not in_time:
                 self._inc(_S_STALE)
+                if stale:
+                    with self.lock:
+                        self.pending.pop(sen.ipoc, None)
+                    self.stale_late += 1
+                    self._count_late()
+                    if self.reason != "running":
+                        return
                 continue
             self._inc(_S_ANSWERS)
             self.pc_seen = True
@@ -535,7 +596,7 @@ class _Engine:
         first = self._peek()
         self.sim.cycle()
         self._inc(_S_CYCLES)
-        self.t0 = time.monotonic() + _T0_LEAD_S
+        self.t0 = time.monotonic() + _T0_LEAD_S + float(self.cfg.first_frame_delay_s)
         first.ready_s = -_T0_LEAD_S
         self.heap.append(first)
         self._set(_S_T0, self.t0)
@@ -585,6 +646,8 @@ class _Engine:
             "stop_time_s": None if math.isnan(self.stop_time_s) else self.stop_time_s,
             "late_count": self.late,
             "late_total": self.late_total,
+            "stale_ipoc_late": self.stale_late,
+            "last_motion_s": None if math.isnan(self.last_motion_s) else self.last_motion_s,
         }
         return {
             "meta": meta,
