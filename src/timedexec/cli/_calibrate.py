@@ -35,7 +35,8 @@ def add_parser(sub: Any) -> None:
             "command on the arrival of a state package, record every package (raw and parsed) "
             "and the gyro stream. A still recording opens the sweep.\n\n"
             "Robot URLs: sim://ur10 (simulator, virtual time), ur://HOST (ur_rtde), "
-            "rsi://PORT (KUKA RSI, this PC listens on the UDP port). --imu: a serial port "
+            "rsi://[LISTEN_IP:]PORT[?robot=IP] (KUKA RSI, this PC listens on the UDP port; "
+            "loopback unless LISTEN_IP is given, docs/rsi.md). --imu: a serial port "
             "(/dev/ttyUSB0, a pty) or sim:// (required for real robots; sim:// robots bring "
             "their own virtual gyro).\n\n"
             "A robot or gyro that stops answering ends the command with exit code 3; "
@@ -45,7 +46,9 @@ def add_parser(sub: Any) -> None:
             "/dev/ttyUSB0 --trials 33500 --seed 1 --out ur10.h5 --resume"
         ),
     )
-    p.add_argument("--robot-url", required=True, help="sim://ROBOT, ur://HOST or rsi://PORT")
+    p.add_argument(
+        "--robot-url", required=True, help="sim://ROBOT, ur://HOST or rsi://[LISTEN_IP:]PORT"
+    )
     p.add_argument("--imu", help="gyro URL (serial device, pty path)")
     add_robot(
         p,
