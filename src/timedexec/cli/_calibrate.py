@@ -43,7 +43,8 @@ def add_parser(sub: Any) -> None:
             "--resume continues the recording.\n\n"
             "examples:\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
             "--out cal.h5\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu "
-            "/dev/ttyUSB0 --trials 33500 --seed 1 --out ur10.h5 --resume"
+            "/dev/ttyUSB0 --sensor-profile gyro.json --trials 33500 --seed 1 --out ur10.h5 "
+            "--resume"
         ),
     )
     p.add_argument(
