@@ -339,3 +339,20 @@ def test_family_rates(family):
     assert rate["interaction"] >= 0.85, detail
     assert rate["time_beside_load"] >= 0.85, detail
     assert rate["null"] == 1.0, detail
+
+
+def test_report_explains_the_structural_evidence(family, tmp_path):
+    """The markdown report of a time-beside-load case says how each effect was found (the
+    family, the parts it was preferred to, the held-out z, leave-one-condition-out CV)
+    and lists the effects the start model had whose form was refined."""
+    case = next(c for c in family if c.case_id in FAST and c.kind == "time_beside_load")
+    result, _ = _run(case)
+    text = result.write_report(tmp_path / "rep").read_text(encoding="utf-8")
+    assert "the structural search over main effects and interactions" in text
+    for step in result.steps:
+        assert f"family *{step.evidence['family_label']}*" in text
+    assert "leave one condition out" in text
+    if result.refined_effects:
+        assert "## Effects refined" in text
+        for r in result.refined_effects:
+            assert f"| {r['effect']} | {r['family_label']} |" in text

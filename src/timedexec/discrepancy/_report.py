@@ -245,21 +245,22 @@ def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
             "",
             f"What it does: {s.explanation}.",
             "",
-            f"Evidence ({_method_words(ev['method'])}): with the effect, the "
-            "cross-validated error of the condition means (5 folds of conditions) falls "
-            f"from {ev['cv_mse_without_ms2']:.3f} to "
-            f"{ev['cv_mse_with_ms2']:.3f} ms², {100 * ev['cv_share_of_excess_explained']:.0f} % "
-            f"of its excess over the noise; F = {ev['f_statistic']:.1f}, p = "
-            f"{_fmt_p(ev['p_value'])} (significant below {result.settings['alpha']} / number "
-            "of candidates). After recalibration the gap fell significantly (p = "
-            f"{_fmt_p(ev['confirmation']['p_value'])}).",
+            _evidence_sentence(ev, result.settings["alpha"]),
             "",
+        ]
+        out += [
             "| candidate | share of excess explained (CV) | p-value | significant |",
             "|---|---|---|---|",
         ]
         for r in ev["ranking"]:
+            name = (
+                r["effect"]
+                if r.get("family") in (None, r["effect"])
+                else (f"{r['effect'] or 'no effect'} ({r['family']})")
+            )
+            share = r["cv_share_of_excess_explained"]
             out.append(
-                f"| {r['effect']} | {100 * r['cv_share_of_excess_explained']:.0f} % | "
+                f"| {name} | {'-' if share is None else f'{100 * share:.0f} %'} | "
                 f"{_fmt_p(r['p_value'])} | {'yes' if r['significant'] else 'no'} |"
             )
         out += ["", f"Fitted parameters: `{_compact(s.parameters)}`", ""]
@@ -270,7 +271,64 @@ def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
 def _method_words(method: str) -> str:
     if method == "refit":
         return "the whole model recalibrated with the effect added"
+    if method == "structure":
+        return "the structural search over main effects and interactions"
     return "the effect's signature fitted to the residuals"
+
+
+def _evidence_sentence(ev: dict[str, Any], alpha: float) -> str:
+    """One paragraph: how the effect was chosen and how strongly."""
+    if ev["method"] == "structure":
+        cv = "leave one condition out"
+        found = (
+            f"it was found as the family *{ev['family_label']}*"
+            + (f", preferred to its parts ({', '.join(ev['scored_with'])})" if ev["scored_with"]
+               else "")
+            + f"; held-out z = {ev['held_out_z']:.1f}. "
+        )  # fmt: skip
+    else:
+        cv = "5 folds of conditions"
+        found = ""
+    text = (
+        f"Evidence ({_method_words(ev['method'])}): {found}With the effect, the "
+        f"cross-validated error of the condition means ({cv}) falls from "
+        f"{ev['cv_mse_without_ms2']:.3f} to {ev['cv_mse_with_ms2']:.3f} ms², "
+        f"{100 * ev['cv_share_of_excess_explained']:.0f} % of its excess over the noise; "
+        f"F = {ev['f_statistic']:.1f}, p = {_fmt_p(ev['p_value'])} (significant below "
+        f"{alpha} / number of candidates)."
+    )
+    confirmation = ev.get("confirmation")
+    if confirmation is not None:
+        text += (
+            " After recalibration the gap fell significantly (p = "
+            f"{_fmt_p(confirmation['p_value'])})."
+        )
+    return text
+
+
+def _lines_refined(result: DiscrepancyResult) -> list[str]:
+    """Effects the model had whose simulated form missed the measured dependence."""
+    if not result.refined_effects:
+        return []
+    out = [
+        "## Effects refined",
+        "",
+        "Effects the start model already had, whose simulated form did not reproduce the "
+        "measured dependence; a shape was added to them:",
+        "",
+        "| effect | shape added | gap before (ms) | gap after (ms) |",
+        "|---|---|---|---|",
+    ]
+    for r in result.refined_effects:
+        before, after = r["gap_before_ms"], r["gap_after_ms"]
+        out.append(
+            f"| {r['effect']} | {r['family_label']} | "
+            + ", ".join(f"{before[d]:.3f}" for d in DELAY_COLUMNS)
+            + " | "
+            + ", ".join(f"{after[d]:.3f}" for d in DELAY_COLUMNS)
+            + " |"
+        )
+    return [*out, "", "(gaps: actuation, response)", ""]
 
 
 def _compact(d: dict[str, Any]) -> str:
@@ -417,6 +475,7 @@ def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -
         + _lines_terms()
         + _lines_summary_table(result)
         + _lines_steps(result, step_figs)
+        + _lines_refined(result)
         + _lines_unexplained(result, un_figs)
         + _lines_where(result)
         + _lines_model(result)
