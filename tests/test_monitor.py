@@ -275,6 +275,16 @@ def test_recording_input_and_cli(recording, tmp_path, capsys) -> None:  # type: 
     assert {j["joint"] for j in out["joints"]} == set(JOINTS)
     assert out["threshold"] > 0
     assert out["alerts"] == []
+    # the JSON result lands in `timedexec report`: the per-joint table and the same figure
+    # drawn from the JSON (the statistic over moves travels in it)
+    doc = tmp_path / "monitor.json"
+    assert main(["monitor", str(recording), "--warmup", "20", "--json", str(doc)]) == 0
+    capsys.readouterr()
+    assert main(["report", str(doc), "--out", str(tmp_path / "rep")]) == 0
+    md = (tmp_path / "rep" / "report.md").read_text(encoding="utf-8")
+    assert "## Delay monitor `monitor.json`" in md
+    assert "No alarm." in md
+    assert (tmp_path / "rep" / "monitor-monitor.png").stat().st_size > 1000
     assert main(["monitor", str(recording), "--warmup", "5"]) == 2
     assert "5 is out of range" in capsys.readouterr().err
     assert main(["monitor", str(tmp_path / "missing.h5")]) == 2

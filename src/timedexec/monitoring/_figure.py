@@ -20,8 +20,9 @@ def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> 
 
     Parameters
     ----------
-    monitor : DelayMonitor
-        The monitor after its updates.
+    monitor : DelayMonitor or dict
+        The monitor after its updates, or its :meth:`DelayMonitor.summary` (as
+        ``timedexec monitor --json`` writes it; ``timedexec report`` draws it from there).
     path : path, optional
         Where to save it (the type from the suffix, e.g. .png, .pdf).
 
@@ -31,35 +32,34 @@ def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> 
     """
     from timedexec._plot import subplots
 
-    states = monitor.states()
-    n = max(1, len(states))
+    summary = monitor if isinstance(monitor, dict) else monitor.summary()
+    joints = summary["joints"]
+    h = float(summary["threshold"])
+    warmup = int(summary["warmup_moves"])
+    n = max(1, len(joints))
     fig, axes = subplots(n, 1, figsize=(7.0, 1.8 * n + 0.6), sharex=False, squeeze=False)
-    h = monitor.threshold
-    for ax, st in zip(axes[:, 0], states, strict=False):
-        hist = monitor.history(st.joint)
-        x = np.arange(1, len(hist["upper"]) + 1)
-        ax.plot(x, hist["upper"], lw=1.0, color="C3", label="upper (later)")
-        ax.plot(x, hist["lower"], lw=1.0, color="C0", label="lower (earlier)")
+    for ax, row in zip(axes[:, 0], joints, strict=False):
+        upper = np.asarray(row["history"]["upper"], dtype=np.float64)
+        lower = np.asarray(row["history"]["lower"], dtype=np.float64)
+        x = np.arange(1, len(upper) + 1)
+        ax.plot(x, upper, lw=1.0, color="C3", label="upper (later)")
+        ax.plot(x, lower, lw=1.0, color="C0", label="lower (earlier)")
         ax.axhline(h, color="k", lw=0.8, ls="--", label=f"threshold {h:.1f}")
-        ax.axvspan(0.5, min(monitor.warmup_moves, len(x)) + 0.5, color="0.9", label="warm-up")
-        if st.alarm is not None:
-            ax.plot([st.alarm.move], [st.alarm.statistic], "kv", ms=7, label="alarm")
-            ax.set_title(f"joint {st.joint}: {st.alarm.shift_ms:+.2f} ms", fontsize=9)
+        ax.axvspan(0.5, min(warmup, len(x)) + 0.5, color="0.9", label="warm-up")
+        alert = row.get("alert")
+        if alert is not None:
+            ax.plot([alert["move"]], [alert["statistic"]], "kv", ms=7, label="alarm")
+            ax.set_title(f"joint {row['joint']}: {alert['shift_ms']:+.2f} ms", fontsize=9)
         else:
-            ax.set_title(f"joint {st.joint}: {st.status}", fontsize=9)
+            ax.set_title(f"joint {row['joint']}: {row['status']}", fontsize=9)
         ax.set_ylabel("CUSUM")
-        ax.set_ylim(
-            0,
-            max(
-                1.3 * h,
-                float(np.max(hist["upper"], initial=0)) * 1.05,
-                float(np.max(hist["lower"], initial=0)) * 1.05,
-            ),
-        )
+        top = max(float(np.max(upper, initial=0)), float(np.max(lower, initial=0)))
+        ax.set_ylim(0, max(1.3 * h, 1.05 * top))
     axes[0, 0].legend(fontsize=7, loc="upper left", ncol=3)
     axes[-1, 0].set_xlabel("moves of the joint")
     fig.suptitle(
-        f"delay monitor: 1 false alarm per {monitor.arl0_moves:,.0f} moves per joint", fontsize=10
+        f"delay monitor: 1 false alarm per {summary['arl0_moves']:,.0f} moves per joint",
+        fontsize=10,
     )
     fig.tight_layout()
     if path is not None:

@@ -442,6 +442,9 @@ class DelayMonitor:
                 )
             if st.alarm is not None:
                 row["alert"] = st.alarm.to_dict()
+            hist = self.history(st.joint)
+            # the statistic over moves, for the monitor figure (rounded: a figure's worth)
+            row["history"] = {k: np.round(hist[k], 3).tolist() for k in ("upper", "lower")}
             joints.append(row)
         return {
             "warmup_moves": self.warmup_moves,

@@ -134,6 +134,8 @@ def _kind(path: Path) -> tuple[str, Any]:
             return "cv", data
         if "added_effects" in data:
             return "discrepancy", data
+        if "arl0_moves" in data and "joints" in data:
+            return "monitor", data
         return "json", data
     raise ConfigError(
         f"{path}: cannot tell what this result is (expected .h5 recording, .csv delay table or "
@@ -167,6 +169,7 @@ _FIGURES = {
     ),
     "model": (("f6", "fig6-model"),),
     "conveyor": (("seam", "seam"),),
+    "monitor": (("monitor", "monitor"),),
 }
 
 
@@ -197,7 +200,8 @@ def build_report(
         per-joint statistics), ``train --json`` output (Tables I-II beside the paper),
         ``evaluate --json`` output (strategy table), model bundle folders (Fig. 6, with the
         dots from the last delay table given before it), conveyor results
-        (:func:`timedexec.execution.compare_seam_tracking` as JSON).
+        (:func:`timedexec.execution.compare_seam_tracking` as JSON), ``monitor --json``
+        output (per-joint state, alarms and the CUSUM figure).
     out_dir : path
         Created if missing.
     trial : int
@@ -290,6 +294,37 @@ def _table_lines(title: str, table: DelayTable, figures: dict[str, Path]) -> lis
     return md
 
 
+def _monitor_lines(title: str, data: dict[str, Any], figure: Path) -> list[str]:
+    """The delay monitor's section (``timedexec monitor --json``): per joint its state and
+    shift, the alarms, and the CUSUM figure."""
+    from timedexec.monitoring import monitor_figure
+
+    monitor_figure(data, figure)
+    md = [f"## Delay monitor `{title}`", "",
+          f"Per-joint CUSUM of each move's observed lag against the model; threshold "
+          f"{data['threshold']:.2f}, set for 1 false alarm per {data['arl0_moves']:,.0f} moves "
+          f"per joint; the first {data['warmup_moves']} moves of each joint are the "
+          "warm-up the shift is measured from.", "",
+          "| joint | state | moves | gap to model (ms) | shift since warm-up (ms) |",
+          "|---|---|---|---|---|"]  # fmt: skip
+
+    def ms(v: float | None) -> str:
+        return "-" if v is None else f"{v:+.2f}"
+
+    for j in data["joints"]:
+        md.append(f"| {j['joint']} | {j['status']} | {j['moves']} | "
+                  f"{ms(j.get('gap_to_model_ms'))} | {ms(j.get('shift_ms'))} |")  # fmt: skip
+    md.append("")
+    for a in data["alerts"]:
+        lo, hi = a["ci_ms"]
+        md += [f"- **Alarm, joint {a['joint']}**: lag {a['side']} by {a['shift_ms']:+.2f} ms "
+               f"(95 % CI {lo:+.2f} .. {hi:+.2f}) at move {a['move']}; recalibrate: "
+               f"`{a['recalibrate']['command']}`"]  # fmt: skip
+    if not data["alerts"]:
+        md.append("No alarm.")
+    return [*md, "", f"![delay monitor]({figure.name})", ""]
+
+
 def _section(
     path: Path,
     title: str,
@@ -380,6 +415,8 @@ def _section(
                 f"| {run['estimated_mean_lag_cm']:+.2f} | {run['actuation_shift_ms']:.1f} |"
             )
         md += ["", f"![conveyor]({fs.name})", ""]
+    elif kind == "monitor":
+        md += _monitor_lines(title, data, figures["monitor"])
     else:
         text = path.read_text(encoding="utf-8", errors="replace")[:4000]
         md += [f"## `{title}`", "", "```json", text, "```", ""]
