@@ -34,6 +34,7 @@ from timedexec.twins import (
     URTwin,
     decode_rtde_header,
     encode_rtde_package,
+    iter_truth_records,
     read_truth,
 )
 
@@ -215,6 +216,7 @@ class RawRTDE:
 COMMAND_INPUTS = ["input_int_register_0", *[f"input_double_register_{i}" for i in range(8)]]
 SPEEDJ = 9
 SPEED_STOP = 15
+SET_WATCHDOG = 35
 
 
 def closed_within(peer: RawRTDE, timeout_s: float) -> bool:
@@ -422,6 +424,42 @@ def test_truth_records_are_appended_and_read_back(raw_twin: URTwin) -> None:
     lines = raw_twin.truth_path.read_text().splitlines()
     assert json.loads(lines[0])["event"] == "meta"
     assert sum('"SpeedJ"' in line for line in lines) >= 2  # first sight + completed
+
+
+def test_speedj_time_does_not_expire_and_the_watchdog_stops_it(raw_twin: URTwin) -> None:
+    """As the uploaded script does: speedj's time argument never ends the motion (the
+    speed thread re-issues it), and a watchdog set with command 35 (``rtde_set_watchdog``
+    on the command register, action "stop") stops the program once the register is not
+    written for 1/f: runtime_state leaves PLAYING and the arm comes to rest. The stop is
+    in the ground truth as a ``program_stop`` line."""
+    peer = RawRTDE(
+        RAW_HOST, ["timestamp", "runtime_state", "actual_qd"], frequency_hz=125.0,
+        inputs=COMMAND_INPUTS,
+    )  # fmt: skip
+    try:
+        upload(RAW_HOST, PROGRAM)
+        peer.wait_for("runtime_state", 2)
+        t_cmd = raw_twin.controller_time_s()
+        peer.write(**command(SPEEDJ, 0.3, 0, 0, 0, 0, 0, 3.0, 0.05))  # t = 50 ms
+        # 0.5 s later (controller time) the joint still runs at the commanded speed.
+        state = peer.states_until(t_cmd + 0.5)[-1]
+        assert state["actual_qd"][0] == pytest.approx(0.3, rel=0.02)
+        peer.write(**command(SET_WATCHDOG, 20.0))  # 20 Hz: 50 ms of silence allowed
+        stopped = peer.wait_for("runtime_state", 1, timeout_s=2.0)
+        rest = peer.states_until(stopped["timestamp"] + 0.3)[-1]
+    finally:
+        peer.close()
+    assert all(v == 0.0 for v in rest["actual_qd"])  # 0.3 rad/s at 4 rad/s²: 75 ms ramp
+    stops = [
+        r
+        for r in iter_truth_records(raw_twin.truth_path)
+        if r.get("event") == "program_stop" and r["time_s"] > t_cmd
+    ]
+    assert [r["reason"] for r in stops] == ["watchdog"]
+    # Fired at the first 8 ms boundary after 50 ms without a write of the register.
+    assert 0.05 < stops[0]["time_s"] - stops[0]["last_update_s"] <= 0.05 + 0.008 + 1e-9
+    # The package sampled at the next boundary is the first to show it.
+    assert stopped["timestamp"] == pytest.approx(stops[0]["time_s"] + 0.008, abs=1e-9)
 
 
 def test_read_truth_skips_a_line_being_written(tmp_path: Path) -> None:

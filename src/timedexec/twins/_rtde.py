@@ -265,6 +265,12 @@ class RTDERecipe:
         return out
 
 
+#: Output fields computed from the kinematics (only while a connection asks for one).
+_TCP_FIELDS = frozenset(
+    {"actual_TCP_pose", "actual_TCP_speed", "target_TCP_pose", "target_TCP_speed"}
+)
+
+
 def _parse_names(raw: bytes) -> list[str]:
     return [n for n in raw.decode("ascii", errors="replace").strip("\0").split(",") if n]
 
@@ -291,6 +297,8 @@ class _RTDEServer(Protocol):
 
     def connection_closed(self, conn: _RTDEConnection) -> None: ...
 
+    def output_recipe_set(self) -> None: ...
+
 
 class _RTDEConnection:
     """One RTDE client connection: handshake in its own thread, data sent by the clock."""
@@ -303,6 +311,8 @@ class _RTDEConnection:
         self.output_recipe: RTDERecipe | None = None
         self.input_recipes: dict[int, RTDERecipe] = {}
         self.decimation = 1
+        #: Whether the output recipe asks for a TCP pose or speed.
+        self.wants_tcp = False
         self.stalled_until = -math.inf
         self.started = False
         self.closed = False
@@ -386,10 +396,24 @@ class _RTDEConnection:
             if "NOT_FOUND" in types or not names:
                 self.reply(kind, b"\x00" + ",".join(types).encode())
                 return
+            rate_hz = 1.0 / server.period_s
+            if not frequency_hz <= rate_hz * (1.0 + 1e-9):  # NaN too
+                # Above the controller's cycle rate (CB3 125 Hz, e-Series 500 Hz): refused,
+                # not served at another rate. The reply carries recipe id 0 (failed); the
+                # recipe is not set, so the following start request is refused too, which
+                # every client sees (docs/ur-twin.md, "Output frequency").
+                server.log(
+                    f"RTDE connection {self.conn_id}: output frequency {frequency_hz} Hz "
+                    f"refused; this controller serves at most {rate_hz:g} Hz"
+                )
+                self.output_recipe = None
+                self.reply(kind, b"\x00" + ",".join(types).encode())
+                return
             recipe_id = 1 if self.output_recipe is None else self.output_recipe.recipe_id + 1
             self.output_recipe = RTDERecipe.build(recipe_id, names, RTDE_OUTPUT_TYPES)
-            rate_hz = 1.0 / server.period_s
             self.decimation = max(1, round(rate_hz / frequency_hz)) if frequency_hz > 0 else 1
+            self.wants_tcp = not _TCP_FIELDS.isdisjoint(names)
+            server.output_recipe_set()
             self.reply(kind, bytes([recipe_id]) + ",".join(types).encode())
         elif kind == RTDEPackageType.CONTROL_PACKAGE_SETUP_INPUTS:
             names = _parse_names(payload)

@@ -6,9 +6,10 @@ listens on the RTDE (30004), dashboard (29999) and script (30003) ports of one a
 steps the simulated controller (:class:`timedexec.sim.ControllerSim`) once per controller
 period on a real-time clock (controller time ``t`` happens at host time ``t0 + t``,
 :func:`time.monotonic`), puts each state package on the wire at the simulated send time and
-appends the ground truth to a JSON-lines file. The RTDE protocol is in
-:mod:`timedexec.twins._rtde`, the control script and the dashboard in
-:mod:`timedexec.twins._urscript`.
+appends the ground truth to a JSON-lines file (:mod:`timedexec.twins._ur_truthlog`). The
+RTDE protocol is in :mod:`timedexec.twins._rtde`, the control script and the dashboard in
+:mod:`timedexec.twins._urscript` (its Cartesian motions in :mod:`timedexec.twins._cartesian`,
+its RTDE watchdog in :mod:`timedexec.twins._watchdog`).
 """
 
 from __future__ import annotations
@@ -16,9 +17,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
+import gc
 import heapq
 import importlib
-import json
 import math
 import os
 import queue
@@ -26,21 +27,21 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
 
 from timedexec._realtime import try_realtime
 from timedexec.errors import ConfigError, ProtocolError
+from timedexec.twins._cartesian import tcp_values
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
+from timedexec.twins._ur_truthlog import TruthLog, json_safe
 from timedexec.twins._urscript import (
     _PROGRAM_START_DELAY_S,
     DASHBOARD_MAX_LINE_BYTES,
-    _as_record,
     _ControlScript,
     _dashboard_reply,
-    _field,
     _LineReader,
     _ScriptReader,
     _SimLike,
@@ -105,26 +106,17 @@ def _resolve_factory(factory: str | Callable[..., _SimLike] | None) -> Callable[
     return result
 
 
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, np.ndarray):
-        return [_json_safe(v) for v in value.tolist()]
-    if isinstance(value, np.generic):
-        return _json_safe(value.item())
-    if isinstance(value, Mapping):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def _tuple6(value: Any) -> tuple[float, ...]:
-    return tuple(float(v) for v in value)
+    return tuple(np.asarray(value, dtype=np.float64).tolist())
 
 
-#: Ground-truth records still open (onsets pending) are rewritten for this long, s.
-_TRUTH_OPEN_S = 10.0
+def _same_array(a: Any, b: Any) -> bool:
+    """Bit-for-bit equality of two float arrays (cheaper than ``np.array_equal``)."""
+    return bool(
+        np.asarray(a, dtype=np.float64).tobytes() == np.asarray(b, dtype=np.float64).tobytes()
+    )
+
+
 #: A package later than this counts as a late send, s.
 _LATE_S = 0.5e-3
 #: SCHED_FIFO priority of the twin's clock and sender threads (None: normal scheduling).
@@ -134,19 +126,6 @@ _GYRO_GRID_HZ = 8000.0
 #: Interpreter switch interval in the twin process: bounds how long the physics thread
 #: can delay the sender thread, s.
 _SWITCH_INTERVAL_S = 0.2e-3
-
-
-def _truth_complete(record: Mapping[str, Any]) -> bool:
-    """Whether a truth record can no longer change."""
-    if record.get("superseded"):
-        return record.get("intake_s") is None or record.get("reference_start_s") is not None
-    if record.get("intake_s") is None or record.get("reference_start_s") is None:
-        return False
-    onset = record.get("onset_s") or []
-    moved = record.get("moved_joints")
-    if moved is None:
-        return all(v is not None for v in onset)
-    return all(onset[j - 1] is not None for j in moved)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +224,8 @@ class _TwinServer:
             factory = _resolve_factory(sim_factory)
             self.sim = factory(robot, effects=effects, q0_rad=q0_rad, seed=seed)
         self.script = _ControlScript(self.sim, self.log)
+        self.script.track_truth = truth_path is not None
+        self._tcp_wanted = False
         self.period_s = float(self.sim.period_s)
         self.t0 = 0.0
         self.stop_event = threading.Event()
@@ -261,10 +242,7 @@ class _TwinServer:
         self._prev_actual_qd: tuple[float, ...] = (0.0,) * 6
         self._static = self._static_values()
         # ground truth
-        self._truth_file = open(truth_path, "a", encoding="utf-8") if truth_path else None  # noqa: SIM115
-        self._truth_written: dict[int, str] = {}
-        self._truth_open: dict[int, Any] = {}
-        self._truth_last_id = 0
+        self._truth = TruthLog(truth_path)
         # gyro twin
         self._imu_link = imu_link
         self._gyro: Any = None
@@ -279,6 +257,8 @@ class _TwinServer:
             "max_lateness_s": 0.0,
             "peek_mismatches": 0,
             "max_cycle_lag_s": 0.0,
+            "max_send_gap_s": 0.0,
+            "program_stops": [],
         }
         self._send_queue: queue.Queue[_Send | None] = queue.Queue()
 
@@ -364,6 +344,7 @@ class _TwinServer:
         with self._lock:
             if conn in self._rtde:
                 self._rtde.remove(conn)
+            self._tcp_wanted = any(c.wants_tcp for c in self._rtde)
             owned = [n for n, owner in self._owners.items() if owner == conn.conn_id]
             for name in owned:
                 del self._owners[name]
@@ -521,6 +502,7 @@ class _TwinServer:
                     stop_program = True
                     continue
                 self.script.inputs.update(write.values)
+                self.script.watchdogs.note(write.values, write.arrival_s)
                 if self.script.command_register in write.values:
                     latest = write
             self.script.start_if_due(boundary_s)
@@ -532,17 +514,17 @@ class _TwinServer:
         qd = _tuple6(packet.qd_rad_s)
         tq = _tuple6(packet.q_target_rad)
         tqd = _tuple6(packet.qd_target_rad_s)
-        period = self.period_s
+        rate = 1.0 / self.period_s
         values["timestamp"] = float(packet.sample_time_s)
         values["actual_q"] = q
         values["actual_qd"] = qd
         values["target_q"] = tq
         values["target_qd"] = tqd
         values["target_qdd"] = tuple(
-            (a - b) / period for a, b in zip(tqd, self._prev_target_qd, strict=True)
+            [(a - b) * rate for a, b in zip(tqd, self._prev_target_qd, strict=True)]
         )
         values["actual_qdd"] = tuple(
-            (a - b) / period for a, b in zip(qd, self._prev_actual_qd, strict=True)
+            [(a - b) * rate for a, b in zip(qd, self._prev_actual_qd, strict=True)]
         )
         self._prev_target_qd = tqd
         self._prev_actual_qd = qd
@@ -552,7 +534,23 @@ class _TwinServer:
         values["robot_status_bits"] = 3 if playing else 1
         values["actual_execution_time"] = 0.4e-3
         values.update(script.output_registers())
+        if self._tcp_wanted and script.kin is not None:
+            values.update(tcp_values(script.kin, packet))
         return values
+
+    def output_recipe_set(self) -> None:
+        """A connection set up its output recipe: compute the TCP fields only while a
+        connection asks for them (a pose and a Jacobian per cycle)."""
+        with self._lock:
+            self._tcp_wanted = any(c.wants_tcp for c in self._rtde)
+
+    def _program_stopped(self) -> None:
+        """Report the program stops of this cycle: stats and ground truth."""
+        for stop in self.script.events:
+            record = json_safe({"event": "program_stop", **stop})
+            self.stats["program_stops"].append(record)
+            self._truth.line(record)
+        self.script.events.clear()
 
     def _record_rates(self, result: Any) -> None:
         """Keep the flange rate of the physics substeps for the gyro twin (last second)."""
@@ -595,48 +593,20 @@ class _TwinServer:
 
     def _write_truth(self) -> None:
         """Append new and changed ground-truth records (one JSON line each, flushed)."""
-        if self._truth_file is None:
-            return
-        truth = getattr(self.sim, "truth", None)
-        if truth is None:
-            events: list[Any] = self.sim.truth_records()
-            fresh = [e for e in events if int(e["id"]) > self._truth_last_id]
-        else:
-            fresh = []
-            for event in reversed(truth):
-                if int(_field(event, "id")) <= self._truth_last_id:
-                    break
-                fresh.append(event)
-            fresh.reverse()
-        for event in fresh:
-            self._truth_open[int(_field(event, "id"))] = event
-            self._truth_last_id = max(self._truth_last_id, int(_field(event, "id")))
-        horizon_s = float(self.sim.time_s) - _TRUTH_OPEN_S
-        for key, event in list(self._truth_open.items()):
-            record = _json_safe(_as_record(event))
-            line = json.dumps({"event": "command", **record}, sort_keys=True)
-            if self._truth_written.get(key) != line:
-                self._truth_written[key] = line
-                self._truth_file.write(line + "\n")
-                self._truth_file.flush()
-            if _truth_complete(record) or float(record.get("arrival_s") or 0.0) < horizon_s:
-                del self._truth_open[key]
-                del self._truth_written[key]
+        self._truth.commands(self.sim, self.script.silent_ids, self.script.truth_kinds)
 
     def _write_meta(self) -> None:
-        if self._truth_file is None:
-            return
-        meta = {
-            "event": "meta",
-            "robot": self.robot,
-            "host": self.host,
-            "version": ".".join(map(str, self.version)),
-            "period_s": self.period_s,
-            "t0_monotonic_s": self.t0,
-            "pid": os.getpid(),
-        }
-        self._truth_file.write(json.dumps(meta, sort_keys=True) + "\n")
-        self._truth_file.flush()
+        self._truth.line(
+            {
+                "event": "meta",
+                "robot": self.robot,
+                "host": self.host,
+                "version": ".".join(map(str, self.version)),
+                "period_s": self.period_s,
+                "t0_monotonic_s": self.t0,
+                "pid": os.getpid(),
+            }
+        )
 
     def _start_gyro(self) -> None:
         """Start the gyro twin (``timedexec.twins._gyro``) fed by the flange rate."""
@@ -658,8 +628,8 @@ class _TwinServer:
         gyro = gyro_mod.GyroTwin(rate_source, link_path=self._imu_link, seed=self._seed)
         gyro.start()
         self._gyro = gyro
-        if self._truth_file is not None:
-            meta = {
+        self._truth.line(
+            {
                 "event": "gyro",
                 "link_path": self._imu_link,
                 "slave_path": gyro.slave_path,
@@ -668,8 +638,7 @@ class _TwinServer:
                 "clock_error_ppm": gyro.clock_error_ppm,
                 "dlpf_group_delay_s": gyro.source.dlpf_group_delay_s,
             }
-            self._truth_file.write(json.dumps(meta, sort_keys=True) + "\n")
-            self._truth_file.flush()
+        )
 
     def serve(self, *, ready: Callable[[dict[str, Any]], None] | None = None) -> None:
         """Run until :attr:`stop_event` is set (bind first)."""
@@ -678,6 +647,7 @@ class _TwinServer:
         # Real-time priority for this thread before any other starts: threads inherit it,
         # so no normal-priority thread can hold the GIL while preempted (priority inversion).
         self.stats["realtime"] = try_realtime(self.rt_priority)
+        self._quiet_gc()
         self.t0 = time.monotonic() + 0.005
         self._write_meta()
         self._start_gyro()
@@ -697,6 +667,31 @@ class _TwinServer:
             self._clock_loop()
         finally:
             self.close()
+
+    def _quiet_gc(self) -> None:
+        """Keep the garbage collector from stalling the clock.
+
+        A full collection walks every object of the process (numpy, SciPy, the simulator:
+        about 30,000), 10-35 ms on the development VM, and one comes every few tens of
+        seconds from the per-cycle allocations: 5-17 missed e-Series cycles. Everything
+        alive at start is frozen (never scanned again), so a collection only walks what
+        was made since. ``stats()["gc_max_pause_s"]`` is the longest collection seen.
+        """
+        gc.collect()
+        gc.freeze()
+        self.stats["gc_max_pause_s"] = 0.0
+        started: list[float] = [0.0]
+
+        def timer(phase: str, info: dict[str, Any]) -> None:
+            if phase == "start":
+                started[0] = time.perf_counter()
+            else:
+                pause = time.perf_counter() - started[0]
+                if pause > self.stats["gc_max_pause_s"]:
+                    self.stats["gc_max_pause_s"] = pause
+
+        gc.callbacks.append(timer)
+        self._gc_timer = timer
 
     def _peek_packet(self) -> Any:
         """The state package of the current cycle boundary, before the cycle is computed.
@@ -733,10 +728,10 @@ class _TwinServer:
         same = (
             int(peeked.cycle) == int(packet.cycle)
             and abs(float(peeked.send_time_s) - float(packet.send_time_s)) < 1e-9
-            and np.array_equal(peeked.q_rad, packet.q_rad)
-            and np.array_equal(peeked.qd_rad_s, packet.qd_rad_s)
-            and np.array_equal(peeked.q_target_rad, packet.q_target_rad)
-            and np.array_equal(peeked.qd_target_rad_s, packet.qd_target_rad_s)
+            and _same_array(peeked.q_rad, packet.q_rad)
+            and _same_array(peeked.qd_rad_s, packet.qd_rad_s)
+            and _same_array(peeked.q_target_rad, packet.q_target_rad)
+            and _same_array(peeked.qd_target_rad_s, packet.qd_target_rad_s)
         )
         if not same:
             self.stats["peek_mismatches"] += 1
@@ -750,17 +745,23 @@ class _TwinServer:
         """Put each package on the wire at its send time (own thread, so a long cycle
         computation does not delay it beyond the interpreter's switch interval)."""
         _set_timer_slack_ns(1000)
+        stats = self.stats
+        last_send = math.nan
         while True:
             item = self._send_queue.get()
             if item is None:
                 return
             target = self.t0 + item.send_time_s
             _sleep_until(target)
-            lateness = time.monotonic() - target
-            if lateness > _LATE_S:
-                self.stats["late_sends"] += 1
-            self.stats["max_lateness_s"] = max(self.stats["max_lateness_s"], lateness)
             now = time.monotonic()
+            lateness = now - target
+            if lateness > _LATE_S:
+                stats["late_sends"] += 1
+            stats["max_lateness_s"] = max(stats["max_lateness_s"], lateness)
+            # Worst stall: the largest gap between two consecutive packages put on the wire.
+            if now - last_send > stats["max_send_gap_s"]:
+                stats["max_send_gap_s"] = now - last_send
+            last_send = now
             with self._lock:
                 conns = [c for c in self._rtde if c.stalled_until <= now]
             for conn in conns:
@@ -799,9 +800,13 @@ class _TwinServer:
                     disconnected,
                     stop_program,
                 )
+                if self.script.events:
+                    self._program_stopped()
                 result = sim.cycle()
                 lag_s = time.monotonic() - self.t0 - float(sim.time_s)
-                self.stats["max_cycle_lag_s"] = max(self.stats["max_cycle_lag_s"], lag_s)
+                if lag_s > self.stats["max_cycle_lag_s"]:
+                    self.stats["max_cycle_lag_s"] = lag_s
+                    self.stats["max_cycle_lag_at_s"] = boundary_s
                 self._check_peek(peeked, result.packet)
                 self.script.after_cycle()
                 self._record_rates(result)
@@ -817,6 +822,10 @@ class _TwinServer:
 
     def close(self) -> None:
         self.stop_event.set()
+        timer = getattr(self, "_gc_timer", None)
+        if timer is not None and timer in gc.callbacks:
+            gc.callbacks.remove(timer)
+            gc.unfreeze()
         for sock in self._listeners:
             with contextlib.suppress(OSError):
                 sock.close()
@@ -828,6 +837,4 @@ class _TwinServer:
         if gyro is not None and gyro is not True:
             with contextlib.suppress(Exception):
                 gyro.close()
-        if self._truth_file is not None:
-            with contextlib.suppress(OSError, ValueError):
-                self._truth_file.close()
+        self._truth.close()

@@ -24,26 +24,54 @@ import dataclasses
 import importlib
 import math
 import sys
+import threading
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 import numpy as np
 
 from timedexec.errors import ConfigError, ProtocolError
+from timedexec.robots import RobotSpec
+from timedexec.twins._cartesian import Kinematics, LinearMove, ToolSpeed, servo_target
 from timedexec.twins._rtde import RTDE_INPUT_TYPES
+from timedexec.twins._watchdog import Watchdogs
 
 _CMD_NO_CMD = 0
 _CMD_MOVEJ = 1
+_CMD_MOVEL = 3
 _CMD_SPEEDJ = 9
+_CMD_SPEEDL = 10
 _CMD_SERVOJ = 11
 _CMD_SPEED_STOP = 15
 _CMD_SERVO_STOP = 16
+_CMD_SERVOL = 24
+_CMD_STOPL = 33
 _CMD_STOPJ = 34
+_CMD_SET_WATCHDOG = 35
 _CMD_IS_STEADY = 47
 _CMD_WATCHDOG = 99
 _CMD_STOP_SCRIPT = 255
 #: Commands the script processes every cycle and only acknowledges with "ready".
 _REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, *range(66, 72)})
+#: Motion commands and stops: each ends what the script's motion threads were doing.
+_MOTION_CMDS = frozenset(
+    {
+        _CMD_MOVEJ,
+        _CMD_MOVEL,
+        _CMD_SPEEDJ,
+        _CMD_SPEEDL,
+        _CMD_SERVOJ,
+        _CMD_SERVOL,
+        _CMD_SPEED_STOP,
+        _CMD_SERVO_STOP,
+        _CMD_STOPL,
+        _CMD_STOPJ,
+    }
+)
+#: Stands for the sim command id of a moveL that is still sending setpoints.
+_MOTION_RUNNING = -1
+#: Time over which a moveL's final position setpoint is reached, s.
+_MOVEL_SETTLE_S = 0.02
 
 _SIGNAL_BUSY = 0
 _SIGNAL_READY = 1
@@ -51,6 +79,7 @@ _SIGNAL_DONE = 2
 
 _RUNTIME_STOPPED = 1
 _RUNTIME_PLAYING = 2
+_RUNTIME_PAUSED = 3
 
 #: Deceleration used when the program is stopped while the arm moves, rad/s².
 _PROGRAM_STOP_DECELERATION_RAD_S2 = 4.0
@@ -226,6 +255,13 @@ def _input_defaults() -> dict[str, Any]:
 class _ControlScript:
     """The ``ur_rtde`` control script's main loop, run on the simulated controller.
 
+    Follows what the uploaded script does (``ur_rtde`` 1.6.5): ``speedj`` / ``speedl`` are
+    re-issued by the script's speed thread with the latest target until a stop, another
+    motion command or a program stop (their time argument never ends the motion); ``servoj``
+    is re-issued to the last target (the arm converges and stays); ``moveL`` follows a
+    straight TCP line (:mod:`timedexec.twins._cartesian`); ``setWatchdog`` arms an RTDE
+    watchdog that stops the program (:mod:`timedexec.twins._watchdog`).
+
     State touched by the server's clock thread, or under the server's lock: the runtime
     state, the input registers the RTDE writes landed in, the output registers.
     """
@@ -234,15 +270,39 @@ class _ControlScript:
         self.sim = sim
         self.commands = _command_types(sim)
         self.log = log
+        self.period_s = float(sim.period_s)
+        spec = getattr(sim, "spec", None)
+        #: Kinematics of the simulated robot (None: a custom simulator without a spec; then
+        #: TCP values stay zero and Cartesian commands are acknowledged without motion).
+        self.kin = Kinematics(spec) if isinstance(spec, RobotSpec) else None
+        self._accel_limit_rad_s2 = (
+            4.0 * max(spec.qdd_max_rad_s2) if isinstance(spec, RobotSpec) else 40.0
+        )
         self.runtime_state = _RUNTIME_STOPPED
         self.program_start_s = math.inf
         self.inputs = _input_defaults()
         self.out_int = [0] * 48
         self.out_double = [0.0] * 48
         self.register_offset = 0
-        self.pending_op: tuple[int, int] | None = None  # (command id, sim command id)
+        self.pending_op: tuple[int, int | None] | None = None  # (command id, sim command id)
         self.async_op: int | None = None
         self.async_op_counter = 0
+        self.watchdogs = Watchdogs()
+        #: The Cartesian motion the script's threads run (moveL, speedL), if any.
+        self.motion: LinearMove | ToolSpeed | None = None
+        self._motion_ids = 0  # sim commands the motion has submitted
+        self._last_motion_id: int | None = None
+        self._planning: _Planning | None = None
+        self._servo_q: np.ndarray | None = None  # last servoL target, rad
+        #: Program stops not yet reported to the server: dicts with time_s, reason, ...
+        self.events: list[dict[str, Any]] = []
+        #: Whether the server writes ground truth (then the two maps below are kept).
+        self.track_truth = False
+        #: Sim command ids the script submits on its own each cycle (a Cartesian motion's
+        #: setpoints after the first): not written to the ground truth.
+        self.silent_ids: set[int] = set()
+        #: Kind to report for a sim command id in the ground truth ("MoveL", "SpeedL", ...).
+        self.truth_kinds: dict[int, str] = {}
 
     @property
     def playing(self) -> bool:
@@ -279,8 +339,27 @@ class _ControlScript:
             return None
 
     def _stop_motion(self, arrival_s: float) -> None:
+        self._cancel_motion()
         if not self.sim.is_steady():
             self._submit("StopJ", arrival_s, deceleration_rad_s2=_PROGRAM_STOP_DECELERATION_RAD_S2)
+
+    def _cancel_motion(self) -> None:
+        """End the Cartesian motion (and a moveL still being planned): the script kills the
+        thread that runs it when another command or a stop comes."""
+        self.motion = None
+        self._planning = None
+
+    def stop_program(self, time_s: float, reason: str, **details: Any) -> None:
+        """Stop the program at controller time ``time_s``: runtime state STOPPED, the arm
+        decelerates to rest (program-stop ramp), every watchdog removed; the stop is
+        reported in :attr:`events`."""
+        self.runtime_state = _RUNTIME_STOPPED
+        self.pending_op = None
+        self.out_int[0] = _SIGNAL_BUSY
+        self.watchdogs.clear()
+        self._servo_q = None
+        self._stop_motion(time_s)
+        self.events.append({"time_s": time_s, "reason": reason, **details})
 
     def step(
         self,
@@ -295,44 +374,79 @@ class _ControlScript:
         before the boundary (None: no new command), ``disconnected`` whether the register
         owner went away, ``stop_program`` whether the dashboard asked to stop.
         """
-        if stop_program or (disconnected and write_arrival_s is None):
-            arrival = boundary_s
-            if stop_program:
-                self.runtime_state = _RUNTIME_STOPPED
-                self.pending_op = None
-                self.out_int[0] = _SIGNAL_BUSY
-            self._stop_motion(arrival)
-            if stop_program:
+        if stop_program:
+            self.stop_program(boundary_s, "dashboard stop")
+            return
+        if self.playing and self.watchdogs:
+            dog = self.watchdogs.expired(boundary_s)
+            if dog is not None:
+                self.log(
+                    f"RTDE watchdog: no update of {dog.variable} for more than "
+                    f"{dog.timeout_s * 1e3:.0f} ms; action {dog.action!r}"
+                )
+                self.stop_program(
+                    boundary_s,
+                    "watchdog",
+                    variable=dog.variable,
+                    min_frequency_hz=dog.min_frequency_hz,
+                    last_update_s=dog.last_update_s,
+                )
+                if dog.action == "pause":
+                    self.runtime_state = _RUNTIME_PAUSED
                 return
-        if self.runtime_state != _RUNTIME_PLAYING:
+        if disconnected and write_arrival_s is None:
+            self._stop_motion(boundary_s)
+        if not self.playing:
             return
-        if write_arrival_s is None:
-            return
-        arrival = write_arrival_s
+        if write_arrival_s is not None:
+            self._command(write_arrival_s, boundary_s)
+        self._tick(boundary_s)
+
+    def _command(self, arrival: float, boundary_s: float) -> None:
+        """Process the command in the registers (written at controller time ``arrival``)."""
         cmd = self._reg_i(0)
         if cmd in (_CMD_NO_CMD, _CMD_WATCHDOG):
             if self.pending_op is None:
                 self.out_int[0] = _SIGNAL_READY
             return
         if cmd == _CMD_STOP_SCRIPT:
-            self.runtime_state = _RUNTIME_STOPPED
-            self.pending_op = None
-            self.out_int[0] = _SIGNAL_BUSY
-            self._stop_motion(arrival)
+            self.stop_program(arrival, "stopScript")
+            return
+        if cmd == _CMD_IS_STEADY:
+            self.out_int[1] = 1 if self.sim.is_steady() else 0
+            self.out_int[0] = _SIGNAL_DONE
+            return
+        if cmd == _CMD_SET_WATCHDOG:
+            self._set_watchdog(arrival)
             return
         q = tuple(self._reg_d(i) for i in range(6))
+        if cmd == _CMD_SPEEDL:
+            if self.kin is None:
+                self.log("speedL needs the robot's kinematics; acknowledged without motion")
+            else:
+                self._speedl(q)
+            self.out_int[0] = _SIGNAL_READY
+            return
+        if cmd not in _MOTION_CMDS:
+            if cmd in _REALTIME_CMDS:
+                self.log(f"realtime command {cmd} is not simulated; acknowledged without motion")
+                self.out_int[0] = _SIGNAL_READY
+            else:
+                self.log(f"command {cmd} is not simulated; acknowledged as done without motion")
+                self.out_int[0] = _SIGNAL_DONE
+            return
+        # Every other motion command or stop ends what the script's threads were doing.
+        self._cancel_motion()
+        self.pending_op = None
+        if cmd != _CMD_SERVOL:
+            self._servo_q = None
         if cmd == _CMD_SPEEDJ:
-            self.pending_op = None
+            # The speed thread re-issues speedj(target, a, t) until stopped: t never ends it.
             self._submit(
-                "SpeedJ",
-                arrival,
-                qd_rad_s=np.array(q),
-                acceleration_rad_s2=self._reg_d(6),
-                duration_s=self._reg_d(7),
+                "SpeedJ", arrival, qd_rad_s=np.array(q), acceleration_rad_s2=self._reg_d(6)
             )
             self.out_int[0] = _SIGNAL_READY
         elif cmd == _CMD_SERVOJ:
-            self.pending_op = None
             self._submit(
                 "ServoJ",
                 arrival,
@@ -341,6 +455,9 @@ class _ControlScript:
                 lookahead_s=self._reg_d(9),
                 gain=self._reg_d(10),
             )
+            self.out_int[0] = _SIGNAL_READY
+        elif cmd == _CMD_SERVOL:
+            self._servol(q, arrival)
             self.out_int[0] = _SIGNAL_READY
         elif cmd == _CMD_MOVEJ:
             sim_id = self._submit(
@@ -351,24 +468,175 @@ class _ControlScript:
                 acceleration_rad_s2=self._reg_d(7),
             )
             self._finish_or_wait(cmd, sim_id, asynchronous=self._reg_i(1) != 0)
-        elif cmd in (_CMD_SPEED_STOP, _CMD_SERVO_STOP, _CMD_STOPJ):
+        elif cmd == _CMD_MOVEL:
+            self._plan_movel(q, arrival, asynchronous=self._reg_i(1) != 0)
+        else:  # SPEED_STOP, SERVO_STOP, STOPL, STOPJ
             deceleration = self._reg_d(0)
             if cmd == _CMD_SPEED_STOP:
                 sim_id = self._submit("SpeedStop", arrival, deceleration_rad_s2=deceleration)
             else:
+                # stopl decelerates along the path in the real controller; the twin stops
+                # the joints with the same number (rad/s²).
                 sim_id = self._submit("StopJ", arrival, deceleration_rad_s2=deceleration)
-            self._finish_or_wait(
-                cmd, sim_id, asynchronous=cmd == _CMD_STOPJ and self._reg_i(1) != 0
-            )
-        elif cmd == _CMD_IS_STEADY:
-            self.out_int[1] = 1 if self.sim.is_steady() else 0
-            self.out_int[0] = _SIGNAL_DONE
-        elif cmd in _REALTIME_CMDS:
-            self.log(f"realtime command {cmd} is not simulated; acknowledged without motion")
-            self.out_int[0] = _SIGNAL_READY
+            asynchronous = cmd in (_CMD_STOPJ, _CMD_STOPL) and self._reg_i(1) != 0
+            self._finish_or_wait(cmd, sim_id, asynchronous=asynchronous)
+
+    def _set_watchdog(self, arrival: float) -> None:
+        """``rtde_set_watchdog(<command register>, min_frequency, "stop")``."""
+        frequency_hz = self._reg_d(0)
+        try:
+            self.watchdogs.arm(self.command_register, frequency_hz, "stop", arrival)
+        except ConfigError as exc:
+            self.log(f"refused set_watchdog: {exc}")
+        self.out_int[0] = _SIGNAL_DONE
+
+    def _reference_q(self) -> np.ndarray:
+        """Joint positions the reference holds now (the physical ones if unknown), rad."""
+        peek = getattr(self.sim, "peek_packet", None)
+        if callable(peek):
+            return np.array(peek().q_target_rad, dtype=float)
+        return np.array(self.sim.q_rad, dtype=float)
+
+    def _speedl(self, xd: tuple[float, ...]) -> None:
+        """``speedl(xd, a, t)``: the speed thread's target changes; it keeps running."""
+        assert self.kin is not None
+        accel = self._reg_d(6)
+        current = self.motion if isinstance(self.motion, ToolSpeed) else None
+        if current is None:
+            _, start_speed = self.kin.tcp(self.sim.q_rad, self.sim.qd_rad_s)
+        try:
+            if current is not None:
+                motion = ToolSpeed(self.kin, xd, accel, current.speed)
+                motion.qd = current.qd
+            else:
+                self._cancel_motion()
+                self._servo_q = None
+                motion = ToolSpeed(self.kin, xd, accel, start_speed)
+        except ConfigError as exc:
+            self.log(f"refused SpeedL: {exc}")
+            return
+        self.pending_op = None
+        if current is None:
+            self._motion_started(motion)
         else:
-            self.log(f"command {cmd} is not simulated; acknowledged as done without motion")
+            self.motion = motion
+
+    def _servol(self, pose: tuple[float, ...], arrival: float) -> None:
+        """``servoL(pose, v, a, t, lookahead, gain)``: an IK target fed to servoj."""
+        if self.kin is None:
+            self.log("servoL needs the robot's kinematics; acknowledged without motion")
+            return
+        seed = self._servo_q if self._servo_q is not None else self._reference_q()
+        try:
+            q = servo_target(self.kin, pose, seed)
+        except ConfigError as exc:
+            self.log(f"refused ServoL: {exc}")
+            return
+        sim_id = self._submit(
+            "ServoJ",
+            arrival,
+            q_rad=q,
+            time_s=self._reg_d(8),
+            lookahead_s=self._reg_d(9),
+            gain=self._reg_d(10),
+        )
+        if sim_id is not None:
+            self._servo_q = q
+            if self.track_truth:
+                self.truth_kinds[sim_id] = "ServoL"
+
+    def _plan_movel(self, pose: tuple[float, ...], arrival: float, *, asynchronous: bool) -> None:
+        """Check the straight path of a moveL off the clock thread; :meth:`_tick` starts
+        the motion once the check is done (a real controller plans before it moves)."""
+        if self.kin is None:
+            self.log("moveL needs the robot's kinematics; acknowledged as done without motion")
             self.out_int[0] = _SIGNAL_DONE
+            return
+        planning = _Planning(
+            self.kin,
+            self._reference_q(),
+            pose,
+            self._reg_d(6),
+            self._reg_d(7),
+            asynchronous=asynchronous,
+            arrival_s=arrival,
+        )
+        self._planning = planning
+        self.pending_op = (_CMD_MOVEL, None)
+        self.out_int[0] = _SIGNAL_BUSY
+        planning.start()
+
+    def _motion_started(self, motion: LinearMove | ToolSpeed) -> None:
+        self.motion = motion
+        self._motion_ids = 0
+        self._last_motion_id = None
+
+    def _tick(self, boundary_s: float) -> None:
+        """The Cartesian threads' work for this cycle: start a planned moveL, then hand the
+        controller the joint command of the coming cycle."""
+        planning = self._planning
+        if planning is not None and planning.done:
+            self._planning = None
+            if planning.error is not None:
+                self.log(f"refused MoveL: {planning.error}")
+                self.pending_op = None
+                self.out_int[0] = _SIGNAL_DONE
+            else:
+                move = planning.move
+                assert move is not None
+                move.start_s = boundary_s
+                self._motion_started(move)
+                if planning.asynchronous:
+                    self.pending_op = None
+                    self.async_op = _MOTION_RUNNING
+                    self.async_op_counter += 1
+                    self.out_int[0] = _SIGNAL_DONE
+        motion = self.motion
+        if motion is None:
+            return
+        if isinstance(motion, LinearMove):
+            qd, accel = motion.joint_speeds(boundary_s, self.period_s)
+        else:
+            qd, accel = motion.joint_speeds(self.sim.q_rad, self.period_s)
+        accel = min(max(accel, 0.1), self._accel_limit_rad_s2)
+        sim_id = self._submit("SpeedJ", boundary_s, qd_rad_s=qd, acceleration_rad_s2=accel)
+        if sim_id is not None and isinstance(motion, LinearMove) and motion.finished:
+            # The end of a moveL: the goal's joints as a position setpoint (the speed loops
+            # lose a little on the way), reached over a few cycles.
+            sim_id = self._submit(
+                "ServoJ",
+                boundary_s + 1e-9,
+                q_rad=motion.q,
+                time_s=_MOVEL_SETTLE_S,
+                lookahead_s=0.1,
+                gain=300.0,
+            )
+        if sim_id is None:  # the controller refused a setpoint: stop there
+            self._stop_motion(boundary_s)
+            self._motion_done(None)
+            return
+        if self.track_truth:
+            if self._motion_ids == 0:
+                self.truth_kinds[sim_id] = motion.kind
+            else:
+                self.silent_ids.add(sim_id)
+        self._motion_ids += 1
+        self._last_motion_id = sim_id
+        if motion.finished:
+            self.motion = None
+            self._motion_done(sim_id)
+
+    def _motion_done(self, sim_id: int | None) -> None:
+        """A moveL has sent its last setpoint: a blocking or async moveL is done once that
+        setpoint is reached and the arm is steady (refused: at once)."""
+        if self.pending_op is not None and self.pending_op[0] == _CMD_MOVEL:
+            if sim_id is None:
+                self.pending_op = None
+                self.out_int[0] = _SIGNAL_DONE
+            else:
+                self.pending_op = (_CMD_MOVEL, sim_id)
+        if self.async_op == _MOTION_RUNNING:
+            self.async_op = sim_id
 
     def _finish_or_wait(self, cmd: int, sim_id: int | None, *, asynchronous: bool) -> None:
         if sim_id is None:
@@ -383,8 +651,11 @@ class _ControlScript:
             self.pending_op = (cmd, sim_id)
             self.out_int[0] = _SIGNAL_BUSY
 
-    def _op_finished(self, sim_id: int) -> bool:
-        """A blocking command is done once its reference has started and the arm is still."""
+    def _op_finished(self, sim_id: int | None) -> bool:
+        """A blocking command is done once its reference has started and the arm is still
+        (a moveL still sending setpoints, ``None`` or :data:`_MOTION_RUNNING`, is not)."""
+        if sim_id is None or sim_id == _MOTION_RUNNING:
+            return False
         record = self._truth_record(sim_id)
         if record is None:
             return False
@@ -425,6 +696,44 @@ class _ControlScript:
         for i in range(6):
             values[f"output_double_register_{i + self.register_offset}"] = self.out_double[i]
         return values
+
+
+class _Planning:
+    """A moveL's path check, run in its own thread (a few milliseconds of kinematics that
+    must not hold up the controller clock). :attr:`done` once finished; then either
+    :attr:`move` or :attr:`error` is set."""
+
+    def __init__(
+        self,
+        kin: Kinematics,
+        q_start_rad: np.ndarray,
+        pose: tuple[float, ...],
+        speed_m_s: float,
+        acceleration_m_s2: float,
+        *,
+        asynchronous: bool,
+        arrival_s: float,
+    ) -> None:
+        self.asynchronous = asynchronous
+        self.move: LinearMove | None = None
+        self.error: str | None = None
+        self.done = False
+        self._args = (kin, q_start_rad, pose, speed_m_s, acceleration_m_s2, arrival_s)
+
+    def start(self) -> None:
+        threading.Thread(target=self._run, name="twin-movel-plan", daemon=True).start()
+
+    def _run(self) -> None:
+        try:
+            move = LinearMove(*self._args)
+            move.check()
+            self.move = move
+        except ConfigError as exc:
+            self.error = str(exc)
+        except Exception as exc:  # a bug must not leave the client waiting 300 s
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self.done = True
 
 
 def _dashboard_reply(
