@@ -42,7 +42,9 @@ def test_long_gap_at_chunk_end_costs_one_frame() -> None:
     kept = np.concatenate((np.arange(0, 100), np.arange(4196, 4600)))
     unwrapper = CounterUnwrapper()
     index, keep = _feed(unwrapper, kept % WRAP, [101])
-    assert not keep[100] and keep[:100].all() and keep[101:].all()
+    assert not keep[100]
+    assert keep[:100].all()
+    assert keep[101:].all()
     np.testing.assert_array_equal(index, np.delete(kept, 100))
     assert unwrapper.dropped_frames == 1
     # the gap runs from sample 100 to the first accepted frame after it (4197)

@@ -235,7 +235,7 @@ def test_stepped_controller_movej_reaches_target_and_rejects_out_of_limits():
     """moveJ lands on target; targets outside the limits and over-speed commands are refused
     with the joint and limit named."""
     c = ControllerSim("kr5", effects=default_effects("kr5"))
-    target = np.array(c.spec.home_q_rad) + [0.1, 0.1, -0.1, 0.0, 0.1, 0.0]
+    target = np.array(c.spec.home_q_rad) + np.array([0.1, 0.1, -0.1, 0.0, 0.1, 0.0])
     c.submit(MoveJ(tuple(target), 1.0, 2.0))
     for _ in range(120):
         c.cycle()
@@ -322,7 +322,7 @@ def test_servoj_stream_from_rest_keeps_the_cycle_cost_flat():
         times.append(time.perf_counter() - t0)
     early, late = np.median(times[:100]), np.median(times[-100:])
     assert late < 3 * early, (early, late)
-    last = c.submit(ServoJ(tuple(q0 + [0.05, 0, 0, 0, 0, 0]), time_s=0.1), arrival_s=c.time_s)
+    last = c.submit(ServoJ(tuple(q0 + np.array([0.05, 0, 0, 0, 0, 0])), time_s=0.1), arrival_s=c.time_s)
     for _ in range(100):
         c.cycle()
     event = next(e for e in c.truth if e.id == last)
