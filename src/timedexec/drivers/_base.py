@@ -6,6 +6,13 @@ controller's state packages (``read_state``) and accepts joint-velocity commands
 Times: ``host_time_s`` is :func:`time.monotonic` on arrival of the package (or the
 simulator's virtual host clock); ``controller_time_s`` is the controller's own clock
 (RTDE ``timestamp``, RSI ``IPOC`` converted to seconds).
+
+Controller watchdog: :meth:`RobotDriver.arm_watchdog` asks the controller to stop the
+program (and so decelerate the arm) when no command or kick reaches it for ``timeout_s``:
+the only protection against a host that dies, hangs or is paused mid-motion when the
+controller keeps executing the last speed command (the UR control script re-issues
+``speedj`` until ``speedStop``). Every command feeds it; :meth:`RobotDriver.kick_watchdog`
+feeds it without moving. A controller without one returns None (the default).
 """
 
 from __future__ import annotations
@@ -93,6 +100,34 @@ class RobotDriver(abc.ABC):
     @abc.abstractmethod
     def stop(self, deceleration_rad_s2: float = 10.0) -> None:
         """Decelerate all joints to rest."""
+
+    # ------------------------------------------------------------------ watchdog
+    def arm_watchdog(self, timeout_s: float) -> float | None:
+        """Ask the controller to stop the program when no command or kick reaches it for
+        ``timeout_s`` (s); once armed it stays armed until the program stops. Re-arming
+        after a trip restarts the program first (the arm is at rest then).
+
+        Returns
+        -------
+        float or None
+            The timeout in force, s; None when the controller has no such watchdog (the
+            default: nothing is armed, :meth:`kick_watchdog` does nothing).
+        """
+        return None
+
+    def kick_watchdog(self) -> None:
+        """Feed the armed watchdog without commanding motion (no-op by default).
+
+        Raises
+        ------
+        DriverError
+            The watchdog already stopped the program (the message says how to recover).
+        """
+        return None
+
+    def watchdog_tripped(self) -> bool:
+        """Whether an armed watchdog has stopped the program (False by default)."""
+        return False
 
     def __enter__(self) -> Self:
         self.connect()

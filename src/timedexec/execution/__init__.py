@@ -21,6 +21,7 @@ from timedexec.execution._conveyor import (
     default_cell,
     plan_seam,
 )
+from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
@@ -35,7 +36,13 @@ from timedexec.execution._model import (
     predict_delays,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
-from timedexec.execution._state import StalenessLimits, StateEstimate
+from timedexec.execution._safety import (
+    DEFAULT_WATCHDOG_TIMEOUT_S,
+    REST_PACKAGES,
+    REST_SPEED_RAD_S,
+    ControllerWatchdog,
+)
+from timedexec.execution._state import StalenessLimits, StateEstimate, StreamJitter
 from timedexec.execution._tasks import (
     SEAM_POSITION_GAIN_1_S,
     InterceptResult,
@@ -57,8 +64,13 @@ from timedexec.execution._welding import (
 
 __all__ = [
     "BUNDLED_MODELS",
+    "DEFAULT_ROUND_TRIP_S",
+    "DEFAULT_WATCHDOG_TIMEOUT_S",
+    "REST_PACKAGES",
+    "REST_SPEED_RAD_S",
     "SEAM_KINDS",
     "SEAM_POSITION_GAIN_1_S",
+    "ControllerWatchdog",
     "Conveyor",
     "ConveyorRun",
     "CycleLog",
@@ -73,9 +85,11 @@ __all__ = [
     "Seam",
     "SeamPlan",
     "SeamResult",
+    "SendPhase",
     "StaleStateError",
     "StalenessLimits",
     "StateEstimate",
+    "StreamJitter",
     "TimedExecutor",
     "TimingBounds",
     "TorchErrors",

@@ -12,11 +12,13 @@ host's send time to the physical onset, and that is what is shifted away.
 Safety: commands never exceed the spec's speed and acceleration limits (clipped, counted in
 the log), a joint approaching a position limit is slowed so it can stop before it, targets
 outside the limits are refused with a :class:`~timedexec.errors.ConfigError` before any
-motion, and a state stream silent for ``stale_periods`` periods (or a package that much
-later than the fastest) is a fault: the robot is stopped at once and
-:class:`~timedexec.errors.StaleStateError` raised. The loop composes ``_timing``
-(predictions, bounds, deadlines), ``_state`` (back-dating, staleness), ``_command`` (the
-Smith predictor, the limits) and ``_log`` (the bookkeeping).
+motion, a state stream silent (or late) beyond the staleness limits adapted to its measured
+jitter is a fault: the robot is stopped at once and
+:class:`~timedexec.errors.StaleStateError` raised; the controller's watchdog stops the arm
+when the host dies, hangs or is paused (``watchdog_timeout_s``), and :meth:`stop` returns
+only once the arm is at rest. The loop composes ``_timing`` (predictions, bounds,
+deadlines), ``_state`` (back-dating, staleness), ``_command`` (the Smith predictor, the
+limits), ``_safety`` (watchdog, stop to rest) and ``_log`` (the bookkeeping).
 """
 
 from __future__ import annotations
@@ -25,16 +27,19 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from types import TracebackType
 from typing import Any, NoReturn, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._realtime import realtime
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
 from timedexec.execution._command import SmithPredictor, limit_command, ramp_acceleration
+from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase, wait_until
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     DelayPredictions,
@@ -43,6 +48,13 @@ from timedexec.execution._model import (
     load_delay_model,
 )
 from timedexec.execution._plan import ExecutionLimits, JointPlan, check_target, plan_motion
+from timedexec.execution._safety import (
+    DEFAULT_WATCHDOG_TIMEOUT_S,
+    REST_PACKAGES,
+    REST_SPEED_RAD_S,
+    ControllerWatchdog,
+    wait_for_rest,
+)
 from timedexec.execution._session import DriverSession
 from timedexec.execution._state import (
     StalenessLimits,
@@ -82,17 +94,27 @@ class TimedExecutor:
         ``rsi://`` driver), else right after connecting, before any command.
     confidence : float
         Default confidence of the timing bounds.
-    stale_periods : float
-        How old the state may get, controller periods (>= 1; default 3): the default of
-        both limits below. A fault stops the robot at once and raises
-        :class:`~timedexec.errors.StaleStateError`.
+    staleness : StalenessLimits, optional
+        When the state is too old to command from (default: limits adapted to the
+        stream's measured jitter, ``StalenessLimits()``: stall limit ``min(0.08 s, max(0.05
+        s, 2 x p99 of the recent gaps))``, the same for lateness). A fault stops the robot
+        at once and raises :class:`~timedexec.errors.StaleStateError`.
+    stale_periods : float, optional
+        Legacy (deprecated in favour of ``staleness``): fixed limits instead of adaptive
+        ones, in controller periods (>= 1), the default of both below.
     stall_periods : float, optional
-        While streaming, no package for this long is a fault (a silent stream; coasting
-        ends there too). Each ``speedj`` is held for this plus two periods, so the
-        controller's own watchdog runs out only after the executor has stopped the arm.
+        Legacy: while streaming, no package for this many periods is a fault.
     late_periods : float, optional
-        A package arriving this much later than the fastest packages (lower-envelope
-        clock model) is a fault (a queued stream: the package is there, but old).
+        Legacy: a package arriving this many periods later than the fastest packages
+        (lower-envelope clock model) is a fault.
+    watchdog_timeout_s : float or None
+        Arm the controller's watchdog with this timeout on connect, s (default 0.1; None:
+        do not arm). The controller stops the program, and so the arm, when no command or
+        kick reaches it for that long: a killed, hung or paused host. While idle each
+        handled package kicks it (at most five times per timeout); if the caller does not
+        step the executor for longer while idle it trips harmlessly and the next motion
+        re-arms it. A trip while moving raises :class:`~timedexec.errors.DriverError`
+        (recover with :meth:`recover`). Drivers without a watchdog ignore it.
     limits : ExecutionLimits, optional
         Fractions of the spec's limits to plan and command with.
     position_gain_1_s : float
@@ -111,6 +133,20 @@ class TimedExecutor:
         Deceleration of a fault stop, rad/s² (default: the spec's smallest joint
         acceleration limit, which every joint and every driver accepts: a driver that checks
         per joint, as the RSI driver does, refuses a stop above a joint's own limit).
+    cycle_lock : bool
+        Send each command at a fixed phase of the controller's cycle, aimed at the middle
+        of its intake window (:mod:`timedexec.execution._cycle`): the earliest arrival of
+        the cycle's package (lower-envelope clock model) plus half a period minus
+        ``round_trip_s``. Real-time drivers only (ignored in virtual time). Opt-in (like
+        ``coast``) until measured on a quiet machine or a real controller: on the shared
+        two-core VM the twin's own cycle jitter hid any difference (docs/execution.md).
+    round_trip_s : float
+        Shortest boundary-to-package-arrival-to-command-arrival time, s (default
+        0.4 ms, the loopback twin's); used by ``cycle_lock``.
+    realtime_priority : int, optional
+        SCHED_FIFO priority for the calling thread while connected (and the driver's
+        threads it starts, which inherit it), where the OS allows it (Linux, root or
+        CAP_SYS_NICE; otherwise normal scheduling, ``ex.realtime`` False). None: never ask.
     coast : bool
         Experimental. While streaming, send each cycle's command on the controller's clock
         even when its package is late: if no package has arrived half a period after the earliest time
@@ -121,7 +157,10 @@ class TimedExecutor:
     Attributes
     ----------
     staleness : StalenessLimits
-        The limits in force (with ``command_hold_periods``, the ``speedj`` duration).
+        The limits (:meth:`stall_limit_s` / :meth:`late_limit_s` give the ones in force).
+    watchdog : ControllerWatchdog
+        The controller watchdog (``armed_s``: the timeout in force or None; ``kicks``;
+        ``rearm_s``: the cost of each re-arm after an idle trip).
     log : CycleLog
         One row per state package handled.
     clip_count, coasted : int
@@ -141,9 +180,14 @@ class TimedExecutor:
         model: DelayPredictor | Any,
         *,
         confidence: float = 0.95,
-        stale_periods: float = 3.0,
+        staleness: StalenessLimits | None = None,
+        stale_periods: float | None = None,
         stall_periods: float | None = None,
         late_periods: float | None = None,
+        watchdog_timeout_s: float | None = DEFAULT_WATCHDOG_TIMEOUT_S,
+        cycle_lock: bool = False,
+        round_trip_s: float = DEFAULT_ROUND_TRIP_S,
+        realtime_priority: int | None = None,
         limits: ExecutionLimits | None = None,
         position_gain_1_s: float = 0.0,
         compensate: bool = True,
@@ -151,14 +195,21 @@ class TimedExecutor:
         coast: bool = False,
     ) -> None:
         self.confidence = check_confidence(confidence)
-        self.staleness = StalenessLimits.from_stale_periods(
+        legacy = (stale_periods, stall_periods, late_periods)
+        if staleness is not None and any(v is not None for v in legacy):
+            raise ConfigError(
+                "give either staleness=StalenessLimits(...) or the legacy stale_periods / "
+                "stall_periods / late_periods, not both"
+            )
+        self.staleness = staleness or StalenessLimits.from_stale_periods(
             stale_periods, stall_periods=stall_periods, late_periods=late_periods
         )
         if not position_gain_1_s >= 0:
             raise ConfigError(f"position_gain_1_s={position_gain_1_s!r} must be >= 0")
         self.driver = driver
         self.model: DelayPredictor = load_delay_model(model)
-        self.stale_periods = float(stale_periods)
+        self.stale_periods = None if stale_periods is None else float(stale_periods)
+        self.watchdog = ControllerWatchdog(driver, watchdog_timeout_s)
         self.limits = limits or ExecutionLimits()
         self.position_gain_1_s = float(position_gain_1_s)
         self.compensate = bool(compensate)
@@ -171,7 +222,9 @@ class TimedExecutor:
         self._session = DriverSession(driver, self.model)
         self._period = math.nan
         self._predictions = PredictionCache(self.model)
-        self._state = StateTracker()
+        self._state = StateTracker(
+            jitter=self.staleness.jitter(), max_gap_s=self.staleness.ceiling_s
+        )
         self._correction = SmithPredictor()
         self._plan: JointPlan | None = None
         self._last_plan: JointPlan | None = None
@@ -182,7 +235,14 @@ class TimedExecutor:
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
         self._served = -1  # last controller cycle a command was sent for
-        self.coast = bool(coast) and not bool(getattr(driver, "virtual", False))
+        virtual = bool(getattr(driver, "virtual", False))
+        self.coast = bool(coast) and not virtual
+        self.cycle_lock = bool(cycle_lock) and not virtual
+        self.round_trip_s = float(round_trip_s)
+        self.send_phase: SendPhase | None = None
+        self.realtime_priority = realtime_priority
+        self.realtime = False
+        self._rt = ExitStack()
         self.coasted = 0
         self.log = CycleLog()
         self.clip_count = 0
@@ -201,18 +261,39 @@ class TimedExecutor:
         return self._period
 
     def connect(self) -> None:
-        """Connect the driver (if needed), check the model against it, read a first state."""
-        self._session.open(self._first_state)
-        self._period = self._session.period_s
+        """Connect the driver (if needed), check the model against it, read a first state,
+        arm the controller's watchdog."""
+        if self._session.spec is None:
+            # Before the driver starts its threads: they inherit the policy.
+            self.realtime = self._rt.enter_context(realtime(self.realtime_priority))
+        try:
+            self._session.open(self._first_state)
+            self._period = self._session.period_s
+            if self.cycle_lock:
+                self.send_phase = SendPhase(self._period, self.round_trip_s)
+        except BaseException:
+            self._rt.close()
+            raise
+        try:
+            self.watchdog.arm(self.now())
+        except BaseException:
+            self._session.close()
+            self._rt.close()
+            raise
 
     def _first_state(self, state: RobotState) -> None:
         self._state.response_s = self._predictions.response_s(state.q)
         self._state.ingest(state)
 
     def close(self) -> None:
-        """Stop any motion and close the driver if the executor connected it."""
+        """Stop any motion (returning at rest) and close the driver if the executor
+        connected it."""
         moving = self._fault is None and bool(np.any(self._v_prev != 0))
-        self._session.close((lambda: self.driver.stop(self._decel())) if moving else None)
+        try:
+            self._session.close(self._stop_for_close if moving else None)
+        finally:
+            self._rt.close()
+            self.realtime = False
 
     def __enter__(self) -> Self:
         self.connect()
@@ -372,7 +453,7 @@ class TimedExecutor:
             meeting plan's first send time has passed): nothing is sent.
         """
         if self._fault is not None:
-            raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
+            raise DriverError(self._fault_refusal())
         if isinstance(plan, MeetPlan):
             p = plan.plan
         else:
@@ -380,7 +461,12 @@ class TimedExecutor:
         if not math.isfinite(p.start_time_s):
             raise ConfigError("give start_time_s (host time at which the motion should start)")
         p = self.prepare(p)
-        if np.all(self._v_prev == 0):  # from rest: the first command must leave in time
+        if np.all(self._v_prev == 0):
+            if self._plan is None:
+                # Idle at rest: a watchdog trip while the caller was not stepping is harmless;
+                # re-arm (the driver restarts the program) before the timing check.
+                self.watchdog.rearm_if_tripped(self.now)
+            # From rest: the first command must leave in time.
             check_start(p, now_s=self.now(), period_s=self._period)
         if self._plan is None and not np.any(self._v_prev != 0):
             self._streaming_since = self.now()
@@ -403,7 +489,9 @@ class TimedExecutor:
         coast_at = None
         if streaming and self.coast and math.isfinite(st.controller_ref_s) and self._served >= 0:
             due = st.earliest_arrival_s(self._served + 1, self._period)
-            coast_at = due + 0.5 * self._period
+            coast_at = due + (
+                self.send_phase.offset_s if self.send_phase is not None else 0.5 * self._period
+            )
         got = self._read(coast_at)
         if got is None:  # the cycle's package is late: command it from the estimate
             assert st.last is not None
@@ -416,6 +504,7 @@ class TimedExecutor:
         cycle = st.cycle_of(state.controller_time_s, self._period)
         if not streaming:
             self._served = cycle
+            self.watchdog.kick_if_due(state.host_time_s)
             self.log.add(state, math.nan, None, False)
             return state
         if cycle <= self._served:  # this cycle was already commanded (coasted)
@@ -434,6 +523,12 @@ class TimedExecutor:
             # may first wait for the controller's acknowledgement of the previous command
             # (ur_rtde's speedStop: ~30 ms when the stream has stalled).
             self.driver.speedj(np.zeros(6), decel, 0.0)
+        except DriverError as exc:
+            # The controller refused it: its watchdog already stopped the program (the
+            # host was paused past the timeout), which stopped the arm.
+            self._fault = f"{message}; {exc}"
+            self._v_prev = np.zeros(6)
+            raise DriverError(self._fault) from exc
         finally:
             self._v_prev = np.zeros(6)
             with contextlib.suppress(DriverError):
@@ -444,7 +539,7 @@ class TimedExecutor:
         """The next package; None when ``coast_at`` (host time) passes first. Faults
         (:meth:`_fault_stop`) when the stream stalls or the package is late."""
         if self._fault is not None:
-            raise DriverError(f"the executor stopped after a fault ({self._fault}); reconnect")
+            raise DriverError(self._fault_refusal())
         if self._plan is None and not np.any(self._v_prev != 0):
             # Idle at rest: gaps in reading are the caller's, not the stream's.
             timeout = self.staleness.idle_timeout_s(self._period)
@@ -461,14 +556,34 @@ class TimedExecutor:
         )
 
     def _send(self, plan: JointPlan | None, state: RobotState, controller_s: float) -> None:
+        t_work = time.perf_counter()
         now = self.now()
+        target = math.nan
+        if self.send_phase is not None:
+            # Aim at the middle of the intake window of the cycle after this package's; the
+            # command is computed for the instant it leaves.
+            cycle = self._state.cycle_of(controller_s, self._period)
+            target = self.send_phase.target_s(self._state.earliest_arrival_s(cycle, self._period))
+            now = max(now, target)
         v, clipped = self._command(plan, now)
         amax = self.limits.acceleration(self.spec)
         a = ramp_acceleration(v, self._v_prev, amax, self._period)
-        self.driver.speedj(v, a, self.staleness.command_hold_periods * self._period)
+        work = time.perf_counter() - t_work
+        if target > self.now():
+            now = wait_until(target, self.now)
+        try:
+            self.driver.speedj(v, a, self._hold_s)
+        except DriverError as exc:
+            # Refused mid-stream (the controller's watchdog stopped the program, or the
+            # link is gone): a fault; the executor refuses to go on until recover().
+            self._fault = str(exc)
+            self._plan = None
+            self._v_prev = np.zeros(6)
+            raise
+        self.watchdog.fed(now)
         self._v_prev = v
         self._last_send_s = now
-        self.log.add(state, now, v, clipped, controller_s=controller_s)
+        self.log.add(state, now, v, clipped, controller_s=controller_s, work_s=work)
 
     def _command(self, plan: JointPlan | None, now: float) -> tuple[FloatArray, bool]:
         """This cycle's speed command (6,), rad/s, and whether a limit clipped it."""
@@ -570,11 +685,103 @@ class TimedExecutor:
             response_s=self._state.response_s,
         )
 
-    def stop(self) -> None:
-        """Drop the active plan and decelerate the arm to rest."""
+    def _fault_refusal(self) -> str:
+        return (
+            f"the executor stopped after a fault ({self._fault}); call recover() (it waits "
+            "until the arm is at rest and re-arms the controller's watchdog) or reconnect"
+        )
+
+    @property
+    def stall_limit_s(self) -> float:
+        """The stall limit in force, s: no package for this long while streaming is a
+        fault (adapted to the stream's measured gaps unless fixed)."""
+        return self.staleness.stall_limit_s(self._period, self._state.jitter)
+
+    @property
+    def late_limit_s(self) -> float:
+        """The late limit in force, s: a package this much later than the fastest
+        packages is a fault."""
+        return self.staleness.late_limit_s(self._period, self._state.jitter)
+
+    @property
+    def _hold_s(self) -> float:
+        return self.staleness.command_hold_s(self._period)
+
+    def stop(
+        self,
+        *,
+        timeout_s: float | None = None,
+        rest_speed_rad_s: float = REST_SPEED_RAD_S,
+        rest_packages: int = REST_PACKAGES,
+    ) -> RobotState:
+        """Drop the active plan, decelerate the arm and return once it is at rest.
+
+        A zero ``speedj`` at the stop deceleration goes out on every package (it also
+        feeds the controller's watchdog, which a blocking ``speedStop`` would starve)
+        until every joint reports less than ``rest_speed_rad_s`` for ``rest_packages``
+        consecutive packages; then the driver's ``stop()`` ends speed mode.
+
+        Parameters
+        ----------
+        timeout_s : float, optional
+            Give up after this long, s (default: the fastest joint's speed over the
+            deceleration, plus 0.25 s and the rest packages).
+        rest_speed_rad_s : float
+            Reported speed below which a joint counts as at rest, rad/s.
+        rest_packages : int
+            Consecutive packages at rest required.
+
+        Returns
+        -------
+        RobotState
+            The first package of the run at rest.
+
+        Raises
+        ------
+        DriverError
+            The arm still moves when the timeout runs out (speed, joint and time named).
+        """
         self._plan = None
-        self.driver.stop(self._decel())
-        self._v_prev = np.zeros(6)
+        decel = self._decel()
+        last = self._state.last
+        reported = 0.0 if last is None else float(np.max(np.abs(last.qd)))
+        speed = max(float(np.max(np.abs(self._v_prev))), reported)
+        try:
+            state = wait_for_rest(
+                self.driver,
+                deceleration_rad_s2=decel,
+                hold_s=self._hold_s,
+                period_s=self._period,
+                clock=self.now,
+                speed_rad_s=speed,
+                timeout_s=timeout_s,
+                rest_speed_rad_s=rest_speed_rad_s,
+                rest_packages=rest_packages,
+                on_state=self._state.ingest,
+            )
+        finally:
+            self._v_prev = np.zeros(6)
+        self.watchdog.fed(self.now())
+        self.driver.stop(decel)
+        return state
+
+    def _stop_for_close(self) -> None:
+        self.stop()
+
+    def recover(self) -> RobotState:
+        """Clear a fault (a stale stream, a watchdog trip) once the arm is at rest: re-arm
+        the controller's watchdog (restarting the program where it stopped) and return the
+        newest package.
+
+        Raises
+        ------
+        DriverError
+            The arm still moves (see :meth:`stop`), or the program cannot be restarted.
+        """
+        self.watchdog.arm(self.now())
+        self._fault = None
+        self._plan = None
+        return self.stop()
 
     @property
     def fault(self) -> str | None:

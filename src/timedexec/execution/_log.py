@@ -31,15 +31,37 @@ class CycleLog:
     command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
     ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
     command went out from the estimate, the row repeats the previous package).
+    :meth:`work` gives the loop's own work per row (s; NaN where not measured).
+
+    Rows are written into preallocated arrays (capacity doubling from ``capacity``), so a
+    row costs no Python list, tuple or array allocation.
     """
 
-    def __init__(self) -> None:
-        self._rows: list[tuple[float, float, int, float, bool, bool]] = []
-        self._qd: list[FloatArray] = []
-        self._q: list[FloatArray] = []
+    def __init__(self, capacity: int = 4096) -> None:
+        self._n = 0
+        self._alloc(max(16, int(capacity)))
+
+    def _alloc(self, cap: int) -> None:
+        old = self.__dict__.get("_cols")
+        cols = {
+            "arrival_s": np.empty(cap),
+            "controller_s": np.empty(cap),
+            "sequence": np.empty(cap, np.int64),
+            "send_s": np.empty(cap),
+            "clipped": np.empty(cap, bool),
+            "coasted": np.empty(cap, bool),
+            "qd_cmd": np.empty((cap, 6)),
+            "q": np.empty((cap, 6)),
+            "work_s": np.empty(cap),
+        }
+        if old is not None:
+            for key, arr in cols.items():
+                arr[: self._n] = old[key][: self._n]
+        self._cols = cols
+        self._cap = cap
 
     def __len__(self) -> int:
-        return len(self._rows)
+        return self._n
 
     def add(
         self,
@@ -49,46 +71,43 @@ class CycleLog:
         clipped: bool,
         *,
         controller_s: float | None = None,
+        work_s: float = math.nan,
     ) -> None:
-        """Append a row (``controller_s``: the cycle commanded, default the package's)."""
+        """Append a row (``controller_s``: the cycle commanded, default the package's;
+        ``work_s``: the loop's own work for it, s)."""
+        i = self._n
+        if i >= self._cap:
+            self._alloc(2 * self._cap)
+        c = self._cols
         ctrl = state.controller_time_s if controller_s is None else controller_s
-        coasted = controller_s is not None and controller_s != state.controller_time_s
-        self._rows.append((state.host_time_s, ctrl, state.sequence, send_s, clipped, coasted))
-        self._qd.append(np.full(6, np.nan) if qd_cmd is None else qd_cmd)
-        self._q.append(state.q)
+        c["arrival_s"][i] = state.host_time_s
+        c["controller_s"][i] = ctrl
+        c["sequence"][i] = state.sequence
+        c["send_s"][i] = send_s
+        c["clipped"][i] = clipped
+        c["coasted"][i] = controller_s is not None and controller_s != state.controller_time_s
+        if qd_cmd is None:
+            c["qd_cmd"][i] = math.nan
+        else:
+            c["qd_cmd"][i] = qd_cmd
+        c["q"][i] = state.q
+        c["work_s"][i] = work_s
+        self._n = i + 1
 
     def clear(self) -> None:
         """Forget every row."""
-        self._rows.clear()
-        self._qd.clear()
-        self._q.clear()
+        self._n = 0
 
     def arrays(self, start: int = 0) -> dict[str, NDArray[Any]]:
-        """The log from row ``start`` on as arrays."""
-        rows = self._rows[start:]
-        if not rows:
-            z = np.zeros(0)
-            return {
-                "arrival_s": z,
-                "controller_s": z,
-                "sequence": np.zeros(0, np.int64),
-                "send_s": z,
-                "clipped": np.zeros(0, bool),
-                "coasted": np.zeros(0, bool),
-                "qd_cmd": np.zeros((0, 6)),
-                "q": np.zeros((0, 6)),
-            }
-        a = np.asarray([r[0] for r in rows])
-        return {
-            "arrival_s": a,
-            "controller_s": np.asarray([r[1] for r in rows]),
-            "sequence": np.asarray([r[2] for r in rows], dtype=np.int64),
-            "send_s": np.asarray([r[3] for r in rows]),
-            "clipped": np.asarray([r[4] for r in rows], dtype=bool),
-            "coasted": np.asarray([r[5] for r in rows], dtype=bool),
-            "qd_cmd": np.asarray(self._qd[start:]),
-            "q": np.asarray(self._q[start:]),
-        }
+        """The log from row ``start`` on as arrays (copies)."""
+        n = self._n
+        start = min(max(int(start), 0), n)
+        return {key: arr[start:n].copy() for key, arr in self._cols.items() if key != "work_s"}
+
+    def work(self, start: int = 0) -> FloatArray:
+        """The loop's own work per row from ``start`` on (package read to command handed to
+        the driver, without any wait for the send phase), s; NaN where nothing was sent."""
+        return np.asarray(self._cols["work_s"][start : self._n].copy())
 
     def timing(self, start: int = 0, *, window_s: float = 0.5) -> dict[str, Any]:
         """Send-time statistics of the loop.

@@ -4,20 +4,26 @@ A state package describes the robot as it was the predicted response delay befor
 arrived. :class:`StateTracker` keeps the newest package back-dated to that instant, the
 lower-envelope clock model (the smallest arrival minus controller time of the last
 :data:`ENVELOPE_S`: the host time of each controller cycle boundary plus the shortest
-sampling-to-arrival time) and the controller cycle numbering, and extrapolates the physical
-state to any host time (:class:`StateEstimate`).
+sampling-to-arrival time), the controller cycle numbering and the stream's measured jitter
+(:class:`StreamJitter`: recent inter-arrival gaps and lateness), and extrapolates the
+physical state to any host time (:class:`StateEstimate`).
 
-:class:`StalenessLimits` says when the state is too old to command from. Three limits, in
-controller periods, that :class:`~timedexec.execution.TimedExecutor`'s ``stale_periods``
-sets together unless ``stall_periods`` / ``late_periods`` are given:
+:class:`StalenessLimits` says when the state is too old to command from, judged by time and
+by the measured jitter of the stream:
 
-- ``stall_periods``: while streaming, no package for this long is a fault (a silent
-  stream; it also bounds how long the loop may coast on its estimate);
-- ``late_periods``: a package that arrives this much later than the fastest packages (the
-  clock model) is a fault (a congested or queued stream: the package is there but old);
-- ``command_hold_periods``: how long the controller keeps executing each speed command
-  without a new one, its own watchdog if the host dies: the stall limit plus
-  :data:`COMMAND_HOLD_MARGIN_PERIODS`, so the host's fault stop always comes first.
+- the **stall limit**: while streaming, no package for this long is a fault (a silent
+  stream; it also bounds how long the loop may coast on its estimate). Default
+  ``min(0.08 s, max(0.05 s, 2 x p99 of the last 1000 gaps))``;
+- the **late limit**: a package that arrives this much later than the fastest packages
+  (the clock model) is a fault (a congested or queued stream: the package is there but
+  old). The same rule on the packages' lateness.
+
+A stream whose packages arrive with 6-24 ms gaps at 500 Hz keeps the 50 ms floor (twice
+its largest gap: no false stop, also before any gap is measured; 2 x p99 = 48 ms); a quiet
+stream too; a stream jittering more gets up to the 80 ms ceiling, within which a dead
+stream is noticed whatever the jitter (and before the controller watchdog's default 0.1 s:
+while the loop waits for a package it sends nothing). The legacy fixed limits (``stale_periods``, ``stall_periods``, ``late_periods``
+of the executor, in controller periods) still work and replace the adaptive ones.
 """
 
 from __future__ import annotations
@@ -38,10 +44,16 @@ from timedexec.execution._plan import JointPlan
 __all__ = [
     "COMMAND_HOLD_MARGIN_PERIODS",
     "ENVELOPE_S",
+    "GAP_FACTOR",
+    "GAP_QUANTILE",
+    "GAP_WINDOW",
     "IDLE_READ_TIMEOUT_S",
+    "STALL_CEILING_S",
+    "STALL_FLOOR_S",
     "StalenessLimits",
     "StateEstimate",
     "StateTracker",
+    "StreamJitter",
     "read_fresh_state",
 ]
 
@@ -49,10 +61,26 @@ FloatArray = NDArray[np.float64]
 
 #: Window of the lower-envelope clock model (arrival minus controller time), s.
 ENVELOPE_S = 0.5
-#: Each speed command is held this many periods longer than the stall limit: the fault
-#: stop goes out within two periods of the limit, so it reaches the controller before the
-#: last regular command runs out.
+#: Each speed command is held this many periods longer than the longest stall limit: the
+#: fault stop goes out within two periods of the limit, so it reaches a controller that
+#: honours the duration before the last regular command runs out.
 COMMAND_HOLD_MARGIN_PERIODS = 2.0
+#: Default smallest stall / late limit, s: twice a 24 ms gap, before any gap is measured.
+STALL_FLOOR_S = 0.05
+#: Default largest stall / late limit, s: a dead stream is noticed within it, and the
+#: executor's own fault stop still goes out before the controller watchdog's default 0.1 s
+#: runs out (the loop sends nothing while it waits for a package).
+STALL_CEILING_S = 0.08
+#: Default multiple of the measured quantile.
+GAP_FACTOR = 2.0
+#: Default quantile of the recent gaps / lateness.
+GAP_QUANTILE = 0.99
+#: Default number of recent packages the quantiles look back over (2 s at 500 Hz).
+GAP_WINDOW = 1000
+#: Fewest samples before the measured quantile counts (below: the floor).
+MIN_JITTER_SAMPLES = 50
+#: The adaptive limits are never below this many controller periods.
+MIN_LIMIT_PERIODS = 3.0
 #: While idle at rest a read waits at least this long (gaps are the caller's, no fault), s.
 IDLE_READ_TIMEOUT_S = 0.5
 
@@ -104,10 +132,20 @@ class StateTracker:
     sample : tuple or None
         ``(t_phys, q, qd)`` of the newest package: the host time it describes (s), its
         joint positions (rad) and speeds (rad/s), (6,) each.
+    jitter : StreamJitter
+        The stream's recent gaps and lateness (gaps up to ``max_gap_s``, s).
     """
 
-    def __init__(self, *, envelope_s: float = ENVELOPE_S) -> None:
+    def __init__(
+        self,
+        *,
+        envelope_s: float = ENVELOPE_S,
+        jitter: StreamJitter | None = None,
+        max_gap_s: float = STALL_CEILING_S,
+    ) -> None:
         self.envelope_s = envelope_s
+        self.jitter = jitter if jitter is not None else StreamJitter()
+        self.max_gap_s = float(max_gap_s)
         self.response_s = 0.0
         self.last: RobotState | None = None
         self.last_arrival_s = math.nan
@@ -118,6 +156,7 @@ class StateTracker:
 
     def ingest(self, state: RobotState) -> None:
         """Take ``state`` as the newest package: update the clock model and back-date it."""
+        previous = self.last_arrival_s
         self.last = state
         self.last_arrival_s = state.host_time_s
         # Lower envelope of (arrival - controller time) over the last envelope_s: the
@@ -131,6 +170,11 @@ class StateTracker:
         while env[0][0] < state.host_time_s - self.envelope_s:
             env.popleft()
         self.offset_min_s = env[0][1]
+        gap = state.host_time_s - previous
+        # Gaps longer than the ceiling are the caller's (idle, not stepping), not the
+        # stream's: only the shorter ones teach the limits.
+        if gap <= self.max_gap_s:
+            self.jitter.add(gap, off - self.offset_min_s)
         if not math.isfinite(self.controller_ref_s):
             self.controller_ref_s = state.controller_time_s
         t_phys = state.host_time_s - self.response_s
@@ -205,87 +249,220 @@ class StateTracker:
 
 def _check_periods(name: str, value: float) -> float:
     if not value >= 1:
-        raise ConfigError(f"{name}={value!r} must be >= 1 controller period")
+        raise ConfigError(
+            f"{name}={value!r} must be >= 1 controller period; give e.g. 3, or leave it None "
+            "for the adaptive limits (StalenessLimits)"
+        )
     return float(value)
+
+
+class StreamJitter:
+    """The measured jitter of the state stream: recent inter-arrival gaps and lateness.
+
+    Two preallocated rings of the last ``window`` samples; their ``quantile`` is refreshed
+    every ``refresh`` samples (an in-place partition of a preallocated scratch array), so
+    adding a sample costs no allocation.
+
+    Parameters
+    ----------
+    window : int
+        Samples kept (1000: two seconds at 500 Hz).
+    quantile : float
+        The high quantile the limits scale (0.99).
+    refresh : int
+        Recompute the quantiles every this many samples.
+
+    Attributes
+    ----------
+    gap_q_s, late_q_s : float
+        The quantile of the inter-arrival gaps and of the lateness, s (0 until
+        :data:`MIN_JITTER_SAMPLES` samples).
+    """
+
+    def __init__(self, window: int = 1000, quantile: float = 0.99, refresh: int = 25) -> None:
+        if not window >= MIN_JITTER_SAMPLES:
+            raise ConfigError(f"window={window!r} must be >= {MIN_JITTER_SAMPLES} samples")
+        if not 0.5 <= quantile < 1:
+            raise ConfigError(f"quantile={quantile!r} outside [0.5, 1); use e.g. 0.99")
+        self.window = int(window)
+        self.quantile = float(quantile)
+        self.refresh = max(1, int(refresh))
+        self._gaps = np.zeros(self.window)
+        self._late = np.zeros(self.window)
+        self._scratch = np.empty(self.window)
+        self._n = 0
+        self._i = 0
+        self._since = 0
+        self.gap_q_s = 0.0
+        self.late_q_s = 0.0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, gap_s: float, late_s: float) -> None:
+        """One package's gap since the previous one and its lateness, s."""
+        i = self._i
+        self._gaps[i] = gap_s
+        self._late[i] = late_s
+        self._i = (i + 1) % self.window
+        if self._n < self.window:
+            self._n += 1
+        self._since += 1
+        if self._since >= self.refresh and self._n >= MIN_JITTER_SAMPLES:
+            self._since = 0
+            self.gap_q_s = self._q(self._gaps)
+            self.late_q_s = self._q(self._late)
+
+    def _q(self, ring: FloatArray) -> float:
+        n = self._n
+        k = min(n - 1, math.ceil(self.quantile * (n - 1)))
+        view = self._scratch[:n]
+        np.copyto(view, ring[:n])
+        view.partition(k)
+        return float(view[k])
 
 
 @dataclass(frozen=True, kw_only=True)
 class StalenessLimits:
     """When the reported state is too old to command from (see the module docstring).
 
+    By default the limits adapt to the stream: the stall limit (no package for that long
+    while streaming) is ``min(ceiling_s, max(floor_s, gap_factor · q))``, ``q`` the
+    ``quantile`` of the last ``window`` inter-arrival gaps, and the late limit (a package
+    that much later than the fastest packages) the same with the lateness of the last
+    ``window`` packages. ``floor_s`` keeps a quiet stream's limit above the jitter it has
+    not shown yet; ``ceiling_s`` bounds how long a dead or queued stream can go unnoticed.
+
     Attributes
     ----------
-    stall_periods : float
-        While streaming, no package for this many controller periods is a fault (>= 1).
-        Also how long the loop may coast on its estimate, and (at least
-        :data:`IDLE_READ_TIMEOUT_S`) how long an idle read waits.
-    late_periods : float
-        A package arriving this many periods later than the fastest packages is a fault
-        (>= 1).
+    floor_s : float
+        Smallest stall/late limit, s (default 0.05: twice a 24 ms gap, so such gaps pass
+        before any is measured; at least 3 controller periods at any rate).
+    ceiling_s : float
+        Largest stall/late limit, s (default 0.08: a dead stream is noticed within it
+        however jittery the stream was, and the fault stop goes out before the controller
+        watchdog's default 0.1 s runs out).
+    gap_factor : float
+        Multiple of the measured quantile (default 2).
+    quantile : float
+        Quantile of the recent gaps / lateness (default 0.99).
+    window : int
+        Packages the quantiles look back over (default 1000: 2 s at 500 Hz).
+    stall_periods, late_periods : float, optional
+        Legacy fixed limits in controller periods (>= 1); when given they replace the
+        adaptive stall / late limit (``TimedExecutor(stale_periods=...)``).
     """
 
-    stall_periods: float
-    late_periods: float
+    floor_s: float = STALL_FLOOR_S
+    ceiling_s: float = STALL_CEILING_S
+    gap_factor: float = GAP_FACTOR
+    quantile: float = GAP_QUANTILE
+    window: int = GAP_WINDOW
+    stall_periods: float | None = None
+    late_periods: float | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(
-            self, "stall_periods", _check_periods("stall_periods", self.stall_periods)
-        )
-        object.__setattr__(self, "late_periods", _check_periods("late_periods", self.late_periods))
+        if not 0 < self.floor_s <= self.ceiling_s:
+            raise ConfigError(
+                f"floor_s={self.floor_s!r} and ceiling_s={self.ceiling_s!r} must satisfy "
+                "0 < floor_s <= ceiling_s (s); e.g. 0.05 and 0.08"
+            )
+        if not self.gap_factor >= 1:
+            raise ConfigError(f"gap_factor={self.gap_factor!r} must be >= 1; e.g. 2")
+        if not 0.5 <= self.quantile < 1:
+            raise ConfigError(f"quantile={self.quantile!r} outside [0.5, 1); e.g. 0.99")
+        if not self.window >= MIN_JITTER_SAMPLES:
+            raise ConfigError(f"window={self.window!r} must be >= {MIN_JITTER_SAMPLES}")
+        for name in ("stall_periods", "late_periods"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _check_periods(name, value))
 
     @classmethod
     def from_stale_periods(
         cls,
-        stale_periods: float,
+        stale_periods: float | None = None,
         *,
         stall_periods: float | None = None,
         late_periods: float | None = None,
     ) -> StalenessLimits:
-        """The limits the ``stale_periods`` knob sets, each overridable."""
-        stale = _check_periods("stale_periods", stale_periods)
+        """The limits the legacy ``stale_periods`` knob sets (fixed, in controller periods),
+        each overridable; all None: the adaptive defaults."""
+        stale = None if stale_periods is None else _check_periods("stale_periods", stale_periods)
         return cls(
             stall_periods=stale if stall_periods is None else stall_periods,
             late_periods=stale if late_periods is None else late_periods,
         )
 
-    @property
-    def command_hold_periods(self) -> float:
-        """How long each speed command is held without a new one, periods: the stall
-        limit plus :data:`COMMAND_HOLD_MARGIN_PERIODS`."""
-        return self.stall_periods + COMMAND_HOLD_MARGIN_PERIODS
+    def jitter(self) -> StreamJitter:
+        """A jitter tracker with this window and quantile."""
+        return StreamJitter(self.window, self.quantile)
+
+    def _floor(self, period_s: float) -> float:
+        return max(self.floor_s, MIN_LIMIT_PERIODS * period_s)
+
+    def _ceiling(self, period_s: float) -> float:
+        return max(self.ceiling_s, self._floor(period_s))
+
+    def _adaptive(self, q_s: float, period_s: float) -> float:
+        return min(self._ceiling(period_s), max(self._floor(period_s), self.gap_factor * q_s))
+
+    def stall_limit_s(self, period_s: float, jitter: StreamJitter | None = None) -> float:
+        """The stall limit in force, s."""
+        if self.stall_periods is not None:
+            return self.stall_periods * period_s
+        return self._adaptive(0.0 if jitter is None else jitter.gap_q_s, period_s)
+
+    def late_limit_s(self, period_s: float, jitter: StreamJitter | None = None) -> float:
+        """The late limit in force, s."""
+        if self.late_periods is not None:
+            return self.late_periods * period_s
+        return self._adaptive(0.0 if jitter is None else jitter.late_q_s, period_s)
+
+    def max_stall_s(self, period_s: float) -> float:
+        """The longest the stall limit can become, s (the bound on noticing a dead stream)."""
+        if self.stall_periods is not None:
+            return self.stall_periods * period_s
+        return self._ceiling(period_s)
+
+    def command_hold_s(self, period_s: float) -> float:
+        """``speedj`` duration, s: the longest stall limit plus
+        :data:`COMMAND_HOLD_MARGIN_PERIODS`. Only a controller that honours the duration
+        uses it (the UR control script re-issues ``speedj`` until ``speedStop``: there the
+        controller watchdog is what stops a dead host)."""
+        return self.max_stall_s(period_s) + COMMAND_HOLD_MARGIN_PERIODS * period_s
 
     def idle_timeout_s(self, period_s: float) -> float:
         """How long a read waits while idle at rest (a timeout there is no fault), s."""
-        return max(self.stall_periods * period_s, IDLE_READ_TIMEOUT_S)
+        return max(self.max_stall_s(period_s), IDLE_READ_TIMEOUT_S)
 
-    def stall_deadline_s(self, last_arrival_s: float, since_s: float, period_s: float) -> float:
-        """Host time by which the next package must arrive, s: the stall limit after the
-        later of the last arrival and ``since_s`` (when streaming began)."""
-        return max(last_arrival_s, since_s) + self.stall_periods * period_s
+    def stall_deadline_s(self, last_arrival_s: float, since_s: float, limit_s: float) -> float:
+        """Host time by which the next package must arrive, s: ``limit_s`` after the later
+        of the last arrival and ``since_s`` (when streaming began)."""
+        return max(last_arrival_s, since_s) + limit_s
 
-    def silence_fault(self, silent_s: float, period_s: float) -> str:
+    def silence_fault(self, silent_s: float, limit_s: float) -> str:
         """Fault message: no package for ``silent_s`` (past the stall deadline already)."""
         return (
-            f"no state package for {silent_s * 1e3:.1f} ms "
-            f"(> {self.stall_periods:g} periods of {period_s * 1e3:g} ms); robot stopped"
+            f"no state package for {silent_s * 1e3:.1f} ms (> the stall limit of "
+            f"{limit_s * 1e3:.1f} ms); robot stopped"
         )
 
-    def stall_fault(self, period_s: float, reason: object) -> str:
+    def stall_fault(self, limit_s: float, reason: object) -> str:
         """Fault message: a read waited until the stall deadline and got nothing."""
         return (
-            f"the state stream stalled: no package within {self.stall_periods:g} periods "
-            f"({self.stall_periods * period_s * 1e3:.1f} ms) of the last one ({reason}); "
-            "robot stopped"
+            f"the state stream stalled: no package within the stall limit of "
+            f"{limit_s * 1e3:.1f} ms of the last one ({reason}); robot stopped"
         )
 
-    def late_fault(self, state: RobotState, lateness_s: float, period_s: float) -> str | None:
-        """Fault message if ``state`` arrived more than the late limit after the fastest
+    def late_fault(self, state: RobotState, lateness_s: float, limit_s: float) -> str | None:
+        """Fault message if ``state`` arrived more than ``limit_s`` after the fastest
         packages (``lateness_s``, :meth:`StateTracker.lateness_s`), else None."""
-        if math.isfinite(lateness_s) and lateness_s > self.late_periods * period_s:
+        if math.isfinite(lateness_s) and lateness_s > limit_s:
             return (
                 f"stale state: package of controller time {state.controller_time_s:.4f} s "
                 f"arrived {lateness_s * 1e3:.1f} ms later than the fastest packages "
-                f"(> {self.late_periods:g} periods); robot stopped"
+                f"(> the late limit of {limit_s * 1e3:.1f} ms); robot stopped"
             )
         return None
 
@@ -308,9 +485,9 @@ def read_fresh_state(
     driver : RobotDriver
         Where the package comes from.
     tracker : StateTracker
-        The packages so far (last arrival, clock model); not updated here.
+        The packages so far (last arrival, clock model, jitter); not updated here.
     limits : StalenessLimits
-        The stall and late limits.
+        The stall and late limits (adapted to ``tracker.jitter``).
     clock : callable
         The host clock the driver stamps with, s.
     period_s : float
@@ -330,11 +507,17 @@ def read_fresh_state(
         The package, or None when ``coast_at_s`` passed first.
     """
     last_arrival = tracker.last_arrival_s
-    deadline = limits.stall_deadline_s(last_arrival, streaming_since_s, period_s)
+    stall = limits.stall_limit_s(period_s, tracker.jitter)
+    deadline = limits.stall_deadline_s(last_arrival, streaming_since_s, stall)
     timeout = deadline - clock()
     if timeout <= 0:
-        fault(limits.silence_fault(clock() - last_arrival, period_s))
-    if coast_at_s is not None and coast_at_s < deadline:
+        # Past the deadline before reading (this host was busy): a package waiting now is
+        # judged by its lateness below; only an empty stream is a stall.
+        try:
+            state = driver.read_state(timeout_s=0.0)
+        except DriverTimeout:
+            fault(limits.silence_fault(clock() - last_arrival, stall))
+    elif coast_at_s is not None and coast_at_s < deadline:
         try:
             state = driver.read_state(timeout_s=max(coast_at_s - clock(), 0.0))
         except DriverTimeout:
@@ -343,8 +526,9 @@ def read_fresh_state(
         try:
             state = driver.read_state(timeout_s=timeout)
         except DriverTimeout as exc:
-            fault(limits.stall_fault(period_s, exc))
-    message = limits.late_fault(state, tracker.lateness_s(state), period_s)
+            fault(limits.stall_fault(stall, exc))
+    late = limits.late_limit_s(period_s, tracker.jitter)
+    message = limits.late_fault(state, tracker.lateness_s(state), late)
     if message is not None:
         fault(message)
     return state
