@@ -157,8 +157,13 @@ def check_stream(sess: Session) -> PreflightReport:
         t_b = st.host_time_s
         while st.host_time_s < t_b + STREAM_WINDOW_S:
             st = sess.state()
-        elapsed = st.host_time_s - t_b
-        n = len(sess.samples_since(t_b))
+        # The rate on the clock that stamps the samples: those that arrived in the last
+        # window before the newest one. Counted against the robot's package times instead,
+        # a simulated robot that runs behind the host clock (it computes its cycles no
+        # faster than real time on a slow machine) inflated the rate by its lag.
+        arrival = sess.samples().arrival_s
+        elapsed = STREAM_WINDOW_S
+        n = int(np.count_nonzero(arrival > arrival[-1] - elapsed)) if len(arrival) else 0
         rate = n / elapsed
         if lo * nominal <= rate <= hi * nominal or st.host_time_s >= settled:
             break
