@@ -103,7 +103,11 @@ def taken_commands(truth: Path, t0: float, span: tuple[float, float]) -> dict[st
 #: Tolerant limits for a timing benchmark on a shared two-core machine (as
 #: bench_executor.py's stale_periods=100): a stalled stream is then rare, not the figure.
 BENCH_STALENESS = StalenessLimits(floor_s=0.2, ceiling_s=0.2)
-BENCH_WATCHDOG_S = 0.3
+#: Long enough that preparing the next plan (GP predictions, Ruckig) between moves, when the
+#: loop does not step, never trips it: at 0.3 s it tripped at rest six times in 20 s and each
+#: re-arm (a script upload) made the next start late. The benchmark measures the loop's
+#: timing; the watchdog's own behaviour is tested in tests/test_execution_safety.py.
+BENCH_WATCHDOG_S = 2.0
 
 
 def run_executor(host: str, seconds: float, *, lock: bool = True) -> dict[str, Any]:
@@ -270,7 +274,12 @@ def main(argv: list[str] | None = None) -> int:
                 try:
                     for name, run in RUNS:
                         c0 = cpu_s(twin.pid)
-                        res = run(args.host, args.seconds)
+                        try:
+                            res = run(args.host, args.seconds)
+                        except (DriverError, ConfigError) as exc:
+                            # a phase that cannot run is reported, the others still measured
+                            out[f"{name}_{load}"] = {"error": str(exc)}
+                            continue
                         c1 = cpu_s(twin.pid)
                         span = res.pop("span")
                         time.sleep(0.1)  # the truth file is flushed every 10 ms
@@ -309,6 +318,9 @@ def report(out: dict[str, Any]) -> None:
     for load in ("quiet", "loaded"):
         for name, _ in RUNS:
             r = out[f"{name}_{load}"]
+            if "error" in r:
+                print(f"{name:9} {load:7} failed: {r['error']}")
+                continue
             t = r["twin"]
             ph = t.get("phase_before_boundary_ms", {})
             e = r["send_error_ms"]
@@ -328,7 +340,8 @@ def report(out: dict[str, Any]) -> None:
                 f"{t.get('phase_histogram')}"
             )
     for load in ("quiet", "loaded"):
-        ex, ur = out[f"executor_{load}"]["twin"], out[f"ur_rtde_{load}"]["twin"]
+        ex = out[f"executor_{load}"].get("twin", {})
+        ur = out[f"ur_rtde_{load}"].get("twin", {})
         if "missed_fraction" in ex and "missed_fraction" in ur:
             ratio = ur["missed_fraction"] / max(ex["missed_fraction"], 1e-9)
             print(f"{load}: missed cycles, ur_rtde / executor = {ratio:.2f}x")
