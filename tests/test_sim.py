@@ -303,7 +303,7 @@ def test_stepped_controller_takes_commands_at_their_own_boundary():
 
 def test_servoj_stream_from_rest_keeps_the_cycle_cost_flat():
     """A servoJ stream that crawls a joint from rest re-arms the onset watch every cycle;
-    the controller keeps one watch per joint (newer commands take it), so 1,500 commands
+    the controller checks its onset watch per joint, not per command, so 1,500 commands
     cost per cycle what the first 100 did. Before, the watch list grew by one entry per
     command and the cycle cost rose ~10x after 1,000 (the UR twin fell behind real time).
     The band (3x) is far below that growth and wide for a shared machine's timing noise;

@@ -238,12 +238,11 @@ class ControllerSim:
         self._next_id = 1
         self.truth: list[TruthEvent] = []
         self._truth_by_id: dict[int, TruthEvent] = {}
-        # Commands waiting for the onset of the joints they armed, with the joints each still
-        # watches: the bank has one onset slot per joint, so a newer command that arms a
-        # joint takes that joint's watch from the older ones (bounded by six entries: a
-        # servoJ stream from rest re-arms every cycle and used to grow this list by one
-        # entry per cycle, to 9.6 ms per cycle after 1,000 commands).
-        self._watch: list[tuple[TruthEvent, NDArray[np.bool_]]] = []
+        # Commands waiting for each joint's next onset, per joint: the onset goes to every
+        # command that armed the joint before it (as the bank has one onset slot per joint).
+        # Checked per joint, not per command: a servoJ stream from rest arms every cycle,
+        # and a list scanned per command grew the cycle cost 7x after 1,500 commands.
+        self._waiting: list[list[TruthEvent]] = [[] for _ in range(6)]
 
     # ------------------------------------------------------------------ state
     @property
@@ -381,7 +380,7 @@ class ControllerSim:
                     act.traj_linear_s = cmd.time_s
             if event is not None:
                 target = self._target_speed_hint(cmd, int(j))
-                if was_still[j] and abs(target) > 1e-9:
+                if was_still[j] and target != 0.0:
                     event.armed[j] = True
                     event.onset_s[j] = np.nan
         if event is not None:
@@ -391,24 +390,10 @@ class ControllerSim:
             mask[joints] = event.armed[joints]
             if mask.any():
                 self._bank.arm_onset(mask)
-                self._watch_onsets(event, mask)
-
-    def _watch_onsets(self, event: TruthEvent, mask: NDArray[np.bool_]) -> None:
-        """Watch ``mask``'s joints for ``event``'s onset, taking them from older events."""
-        kept: list[tuple[TruthEvent, NDArray[np.bool_]]] = []
-        mine = None
-        for other, watching in self._watch:
-            if other is event:
-                mine = watching
-            else:
-                watching &= ~mask
-            if other is event or watching.any():
-                kept.append((other, watching))
-        if mine is None:
-            kept.append((event, mask.copy()))
-        else:
-            mine |= mask
-        self._watch = kept
+                for j in np.flatnonzero(mask):
+                    waiting = self._waiting[j]
+                    if not waiting or waiting[-1] is not event:
+                        waiting.append(event)
 
     def _target_speed_hint(self, cmd: Command, j: int) -> float:
         if isinstance(cmd, SpeedJ):
@@ -515,12 +500,11 @@ class ControllerSim:
             # time (speedj is a velocity interface), and position commands start from here.
             self._ref_q = np.where(pos_mode, self._ref_q, bank.q)
             rates[i] = bank.v @ axes
-        if self._watch:
-            for event, watching in self._watch:
-                got = watching & ~np.isnan(bank.onset_s)
-                event.onset_s[got] = bank.onset_s[got]
-                watching &= ~got
-            self._watch = [(e, w) for e, w in self._watch if w.any()]
+        for j, waiting in enumerate(self._waiting):
+            if waiting and not math.isnan(bank.onset_s[j]):
+                for event in waiting:
+                    event.onset_s[j] = bank.onset_s[j]
+                waiting.clear()
         self.cycle_index = k + 1
         self.time_s = (k + 1) * period
         # Each rate is the joint speed at the end of its step.
