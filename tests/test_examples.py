@@ -49,6 +49,7 @@ def test_other_examples(name, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime_twin
 @pytest.mark.parametrize("name", sorted(SLOW))
 def test_slow_examples(name, tmp_path):
     """Example 05 talks to the UR twin through the real ur_rtde client and a pty gyro."""

@@ -504,6 +504,7 @@ def test_stop_through_ur_rtde_returns_at_rest(ur_twin: Any) -> None:
         assert 1.0 / decel <= took <= 1.0 / decel + 0.25 + 4 * PERIOD_S, took
 
 
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_jittery_ur_stream_for_a_minute_then_dead(ur_twin: Any) -> None:
     """60 s through ur_rtde with deliveries every 6-24 ms: no false stale stop; then the

@@ -79,6 +79,7 @@ def truth_records(twin: URTwin, keep, wait_s: float = 3.0) -> list[float]:  # ty
         time.sleep(0.05)
 
 
+@pytest.mark.realtime_twin
 def test_moves_a_joint_on_a_deadline_through_ur_rtde(twin: URTwin) -> None:
     """Through URDriver (robot inferred from the dashboard), plan_to_meet moves joint 2 by
     0.3 rad to arrive by a deadline 1 s ahead; the twin's true onset lies in the executor's

@@ -128,6 +128,7 @@ def check_against_truth(
 # ------------------------------------------------------------------------- live runs
 
 
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
     """20 trials through the real ``ur_rtde`` client (``ur://``) against the UR10 twin,
@@ -165,6 +166,7 @@ def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> None:
     """20 trials through the RSI driver (``rsi://PORT``) against the KR 5 RSI twin, with a

@@ -386,6 +386,7 @@ def test_follow_reads_only_new_rows() -> None:
 
 
 # ----------------------------------------------------------------------------- UR twin
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_ur_twin_run_without_drift(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Through the real ur_rtde client against the UR10e twin (its own process): 24

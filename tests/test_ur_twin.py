@@ -745,6 +745,7 @@ def _read_gyro(port: str, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @needs_ur_rtde
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_gyro_twin_measures_the_simulated_flange_rate(tmp_path: Path) -> None:
     """With ``imu_link`` the twin streams the physics' flange rate through the gyro twin:

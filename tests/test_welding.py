@@ -271,6 +271,7 @@ def test_evaluate_conveyor_json_layout_and_order(tmp_path) -> None:  # type: ign
     assert data["onset_strategies"]["model"]["across_mean_mm"] < -2.0
 
 
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
     """The weld through the real ur_rtde client against the UR10 twin (own process, real

@@ -1,0 +1,40 @@
+"""Shared test configuration: end-to-end tests that need a machine fast enough to run a
+protocol twin in real time."""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import pytest
+
+#: Largest cost of the UR10e twin's simulator (4 kHz physics) as a fraction of real time
+#: at which the real-time twin tests run. Above it the twin, the real client and the gyro
+#: twin saturate two cores: measured on a VM at 0.48, the UR10e twin used 1.3-2.4 cores,
+#: even ur_rtde's own servo pattern missed 46 % of cycles, response delays reached 29 ms
+#: and a P loop on the lagging states diverged. Those runs measure the machine, not the
+#: code; the tests are skipped there with the measured figure in the reason.
+MAX_TWIN_COST = 0.35
+
+
+@functools.cache
+def twin_cost() -> float:
+    """Seconds of CPU per second of controller time of the UR10e twin's simulator."""
+    from timedexec.sim import ControllerSim
+
+    sim = ControllerSim("ur10e", physics_rate_hz=4000.0)
+    for _ in range(20):
+        sim.cycle()
+    n = 250
+    t0 = time.perf_counter()
+    for _ in range(n):
+        sim.cycle()
+    return (time.perf_counter() - t0) / n / sim.period_s
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    if item.get_closest_marker("realtime_twin") is not None and twin_cost() > MAX_TWIN_COST:
+        pytest.skip(
+            f"this machine runs the UR10e twin's simulator at {twin_cost():.2f} of real time "
+            f"(> {MAX_TWIN_COST}): a real-time twin end to end would measure the machine"
+        )
