@@ -368,6 +368,7 @@ def test_unreachable_movel_is_refused_without_motion(clients) -> None:  # type: 
     assert ctrl.isProgramRunning()
 
 
+@pytest.mark.realtime_twin
 def test_speedl_moves_the_tcp_at_the_commanded_speed(clients) -> None:  # type: ignore[no-untyped-def]
     """speedL(0.05 m/s along y, a=0.5 m/s²): once the 0.1 s ramp is over the TCP moves at
     the commanded tool speed along y, without turning, and keeps going until stopped."""

@@ -535,7 +535,11 @@ def ur10_clients(ur10_twin: URTwin):  # type: ignore[no-untyped-def]
 
 @needs_ur_rtde
 @pytest.mark.parametrize(
-    ("robot", "host", "period_s"), [("ur10", "127.0.0.22", 0.008), ("ur10e", "127.0.0.23", 0.002)]
+    ("robot", "host", "period_s"),
+    [
+        ("ur10", "127.0.0.22", 0.008),
+        pytest.param("ur10e", "127.0.0.23", 0.002, marks=pytest.mark.realtime_twin),
+    ],
 )
 def test_receive_interface_streams_at_the_controller_rate(
     robot: str, host: str, period_s: float
