@@ -486,6 +486,7 @@ def test_killed_or_paused_host_process_stops_the_twin_arm(ur_twin: Any, sig: int
 
 
 @pytest.mark.slow
+@pytest.mark.realtime_twin
 def test_stop_through_ur_rtde_returns_at_rest(ur_twin: Any) -> None:
     """stop() mid-cruise on the twin returns when the reported speed is zero; an
     independent receiver confirms the arm is still at rest; it took at least the ramp."""
