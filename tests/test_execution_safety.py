@@ -444,6 +444,23 @@ def watch_rest(host: str, since_s: float, span_s: float) -> float:
         recv.disconnect()
 
 
+def _cruising_host(host: str) -> tuple[subprocess.Popen[str], str | None]:
+    """Start a host process (CHILD) cruising through ur_rtde against ``host``; return it
+    and None once it says CRUISING, or it (ended) and the tail of its stderr."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD, host, str(CRUISE_RAD_S)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+    assert child.stdout is not None
+    if "CRUISING" in child.stdout.readline():
+        return child, None
+    child.wait(10)
+    return child, (child.stderr.read() if child.stderr is not None else "")[-400:]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["SIGKILL", "SIGSTOP"])
 def test_killed_or_paused_host_process_stops_the_twin_arm(ur_twin: Any, sig: int) -> None:
@@ -453,22 +470,12 @@ def test_killed_or_paused_host_process_stops_the_twin_arm(ur_twin: Any, sig: int
     loop settling, 3 packages) + 60 ms (the last command's age at the signal, the
     observer's polling and, on a loaded two-core machine, a late twin or observer
     wake-up): 0.335 s."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     failures = []
     for _attempt in range(3):  # a host stall before the cruise is not what this tests
-        child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, ur_twin.host, str(CRUISE_RAD_S)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
-        )
+        child, failure = _cruising_host(ur_twin.host)
         try:
-            assert child.stdout is not None
-            line = child.stdout.readline()
-            if "CRUISING" not in line:
-                child.wait(10)
-                failures.append(child.stderr.read()[-300:] if child.stderr else "")
+            if failure is not None:
+                failures.append(failure)
                 continue
             time.sleep(0.3)
             t_signal = time.monotonic()
@@ -547,22 +554,11 @@ def test_killed_or_paused_host_stops_the_independent_peer_arm(sig: int) -> None:
     pytest.importorskip("rtde_receive")
     pytest.importorskip("rtde_control")
     peer_mod = pytest.importorskip("independent_ur_peer")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     with peer_mod.run_peer("127.0.0.44", model="UR10", version="5.11.1") as peer:
-        child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, peer.host, str(CRUISE_RAD_S)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
-        )
+        child, failure = _cruising_host(peer.host)
         try:
-            assert child.stdout is not None
-            line = child.stdout.readline()
-            if "CRUISING" not in line:
-                child.wait(10)
-                err = child.stderr.read() if child.stderr is not None else ""
-                pytest.fail(f"the host never reached the cruise: {err[-400:]}")
+            if failure is not None:
+                pytest.fail(f"the host never reached the cruise: {failure}")
             time.sleep(0.3)
             t_signal = peer.to_peer_time(time.monotonic())
             os.kill(child.pid, sig)
