@@ -73,20 +73,37 @@ def test_read_state_returns_each_package_once_with_host_time(
     # for a test process descheduled for milliseconds at a time on a loaded two-core machine
     # (0.51 was seen at load 5). Stream completeness is measured by bench_ur_twin.py.
     assert len(states) / (seq[-1] - seq[0] + 1) > 0.3
-    sim = ControllerSim("ur10e", seed=5)
-    send = twin.t0_monotonic_s + ts + np.array([sim.packing_phase_s(t) for t in ts])
-    latency = host - send
+    latency = host - send_times(twin, ts)
     # Host stamp is never before the send (small negative margin: float mapping of the
-    # shared monotonic clock) and its median stays below 1 ms (client thread polls every
-    # 100 µs, the driver every 50 µs; typically 0.1-0.5 ms).
+    # shared monotonic clock), whatever the twin's pace.
     assert latency.min() > -0.1e-3
-    assert np.median(latency) < 1e-3
     assert states[0].q.shape == (6,)
     assert states[0].qd.shape == (6,)
     host_time, controller_time, q, qd = states[-1]  # unpacks like a tuple
     assert (host_time, controller_time) == (states[-1].host_time_s, ts[-1])
     assert np.array_equal(q, states[-1].q)
     assert np.array_equal(qd, states[-1].qd)
+
+
+def send_times(twin: URTwin, controller_times_s: np.ndarray) -> np.ndarray:
+    """Host monotonic times at which the twin's simulator put these packages on the wire."""
+    sim = ControllerSim("ur10e", seed=5)
+    phase = np.array([sim.packing_phase_s(t) for t in controller_times_s])
+    return twin.t0_monotonic_s + controller_times_s + phase
+
+
+@pytest.mark.realtime_twin
+def test_read_state_host_time_within_a_millisecond_of_the_send(
+    twin: URTwin, driver: URDriver
+) -> None:
+    """The host stamp's median stays below 1 ms after the simulated send (client thread
+    polls every 100 µs, the driver every 50 µs; typically 0.1-0.5 ms). A claim about the
+    real-time path: a twin that lags real time (seen on CI: 1.1x) sends late and the
+    latency measures its backlog (median 127 ms there), hence the machine gate."""
+    states = [driver.read_state(timeout_s=0.1) for _ in range(500)]
+    ts = np.array([s.controller_time_s for s in states])
+    host = np.array([s.host_time_s for s in states])
+    assert np.median(host - send_times(twin, ts)) < 1e-3
 
 
 def test_speedj_moves_one_joint_after_the_actuation_delay(twin: URTwin, driver: URDriver) -> None:
