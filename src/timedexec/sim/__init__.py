@@ -32,7 +32,7 @@ from timedexec.sim._gyro import (
     sine_rate_source,
     step_rate_source,
 )
-from timedexec.sim._physics import JointBank, JointParams, pulse_profile
+from timedexec.sim._physics import JointBank, JointChain, JointParams, pulse_profile
 from timedexec.sim._settings import (
     GyroModel,
     ServoSettings,
@@ -52,6 +52,7 @@ __all__ = [
     "GyroFrameSource",
     "GyroModel",
     "JointBank",
+    "JointChain",
     "JointParams",
     "MoveJ",
     "RateSource",

@@ -22,7 +22,7 @@ from timedexec._validation import check_joint_array
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, check_configuration, get_robot, joint_axis_in_tool
-from timedexec.sim._physics import JointBank, joint_params
+from timedexec.sim._physics import JointChain, joint_params
 from timedexec.sim._settings import SimSettings, default_settings
 
 __all__ = [
@@ -159,6 +159,7 @@ class _Active:
     traj_dq: FloatArray = field(default_factory=lambda: np.zeros(6))
     traj_time: tuple[float, float, float] = (0.0, 0.0, 0.0)  # accel time, cruise time, peak speed
     traj_linear_s: float = 0.0  # servoj: reach the target linearly over this time
+    traj_dist: float = 0.0  # movej: distance of the leading joint, rad
 
 
 class ControllerSim:
@@ -219,7 +220,7 @@ class ControllerSim:
         self._offset_s = (
             np.asarray(offsets.offsets_s) if offsets is not None else np.zeros(6)  # type: ignore[attr-defined]
         )
-        self._bank = JointBank(
+        self._bank = JointChain(
             self._params(q0), q0, self.dt_s, self.settings.servo.onset_threshold_rad_s
         )
         self._params_q = q0.copy()
@@ -368,7 +369,7 @@ class ControllerSim:
                 act.traj_q0 = self._ref_q.copy()
                 act.traj_dq = np.asarray(cmd.q_rad) - self._ref_q
                 if isinstance(cmd, MoveJ):
-                    dist = float(np.abs(act.traj_dq).max())
+                    dist = act.traj_dist = float(np.abs(act.traj_dq).max())
                     v, a = cmd.speed_rad_s, cmd.acceleration_rad_s2
                     if dist <= v * v / a:  # triangular profile
                         t_acc = math.sqrt(dist / a) if dist > 0 else 0.0
@@ -402,34 +403,27 @@ class ControllerSim:
             return float(cmd.q_rad[j] - self._ref_q[j])
         return 0.0
 
-    def _reference(self, t_s: float) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-        """Advance the reference by one substep; return (ref_q, ref_v, position_mode)."""
+    def _reference(
+        self, j: int, t_s: float, q_rad: float, v_rad_s: float
+    ) -> tuple[float, float, bool]:
+        """Advance joint ``j``'s reference (now ``q_rad``, ``v_rad_s``) by the substep that
+        starts at ``t_s``; returns (ref_q, ref_v, position_mode)."""
         dt = self.dt_s
-        pos_mode = np.zeros(6, dtype=bool)
-        new_v = self._ref_v.copy()
-        new_q = self._ref_q.copy()
-        for j, act in enumerate(self._active):
-            if act.mode == "speed":
-                target = act.target_v[j] if t_s < act.deadline_s else 0.0
-                step = act.accel[j] * dt
-                new_v[j] = min(max(target, self._ref_v[j] - step), self._ref_v[j] + step)
-                new_q[j] = self._ref_q[j] + 0.5 * (self._ref_v[j] + new_v[j]) * dt
-            else:
-                pos_mode[j] = True
-                tau = t_s + dt - act.traj_start_s
-                dq = act.traj_dq[j]
-                if act.traj_linear_s > 0:
-                    frac = min(1.0, tau / act.traj_linear_s)
-                    new_q[j] = act.traj_q0[j] + frac * dq
-                    new_v[j] = dq / act.traj_linear_s if frac < 1.0 else 0.0
-                else:
-                    s, sd = _trapezoid(tau, *act.traj_time)
-                    dist = float(np.abs(act.traj_dq).max())
-                    scale = dq / dist if dist > 0 else 0.0
-                    new_q[j] = act.traj_q0[j] + scale * s
-                    new_v[j] = scale * sd
-        self._ref_q, self._ref_v = new_q, new_v
-        return new_q, new_v, pos_mode
+        act = self._active[j]
+        if act.mode == "speed":
+            target = float(act.target_v[j]) if t_s < act.deadline_s else 0.0
+            step = float(act.accel[j]) * dt
+            new_v = min(max(target, v_rad_s - step), v_rad_s + step)
+            return q_rad + 0.5 * (v_rad_s + new_v) * dt, new_v, False
+        tau = t_s + dt - act.traj_start_s
+        dq = float(act.traj_dq[j])
+        q0 = float(act.traj_q0[j])
+        if act.traj_linear_s > 0:
+            frac = min(1.0, tau / act.traj_linear_s)
+            return q0 + frac * dq, (dq / act.traj_linear_s if frac < 1.0 else 0.0), True
+        s, sd = _trapezoid(tau, *act.traj_time)
+        scale = dq / act.traj_dist if act.traj_dist > 0 else 0.0
+        return q0 + scale * s, scale * sd, True
 
     # ------------------------------------------------------------------ the cycle
     def peek_packet(self) -> StatePacket:
@@ -481,29 +475,42 @@ class ControllerSim:
         axes = self._axes
         kpos = self.settings.servo.position_gain_1_s
         times = (t_boundary + np.arange(self.n_sub) * self.dt_s).astype(np.float64)
-        rates = np.empty((self.n_sub, 3))
-        for i, t in enumerate(times):
+        # Joint by joint in floats (the joints are independent drives; see JointChain).
+        ref_q, ref_v = self._ref_q.tolist(), self._ref_v.tolist()
+        speeds: list[list[float]] = []
+        for t in times.tolist():
             if self._activations:
+                self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)  # _activate reads
                 still: list[tuple[FloatArray, Command, int, NDArray[np.bool_]]] = []
                 for starts, cmd, cid, left in self._activations:
                     due = left & (starts <= t + 1e-12)
                     if due.any():
-                        self._activate(due, cmd, cid, float(t))
+                        self._activate(due, cmd, cid, t)
                         left = left & ~due
                     if left.any():
                         still.append((starts, cmd, cid, left))
                 self._activations = still
-            ref_q, ref_v, pos_mode = self._reference(float(t))
-            v_cmd = np.where(pos_mode, ref_v + kpos * (ref_q - bank.q), ref_v)
-            bank.step(v_cmd, float(t))
-            # In speed mode the reference position follows the joint: no catch-up of lost
-            # time (speedj is a velocity interface), and position commands start from here.
-            self._ref_q = np.where(pos_mode, self._ref_q, bank.q)
-            rates[i] = bank.v @ axes
+            row = [0.0] * 6
+            for j in range(6):
+                q_j, v_j, pos_mode = self._reference(j, t, ref_q[j], ref_v[j])
+                ref_v[j] = v_j
+                if pos_mode:
+                    ref_q[j] = q_j
+                    row[j] = bank.step_joint(j, v_j + kpos * (q_j - bank.angle(j)), t)
+                else:
+                    # In speed mode the reference position follows the joint: no catch-up of
+                    # lost time (speedj is a velocity interface), and position commands
+                    # start from here.
+                    row[j] = bank.step_joint(j, v_j, t)
+                    ref_q[j] = bank.angle(j)
+            speeds.append(row)
+        self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)
+        rates = np.array([np.array(row) @ axes for row in speeds])
+        onsets = bank.onset_s
         for j, waiting in enumerate(self._waiting):
-            if waiting and not math.isnan(bank.onset_s[j]):
+            if waiting and not math.isnan(onsets[j]):
                 for event in waiting:
-                    event.onset_s[j] = bank.onset_s[j]
+                    event.onset_s[j] = onsets[j]
                 waiting.clear()
         self.cycle_index = k + 1
         self.time_s = (k + 1) * period
