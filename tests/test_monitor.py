@@ -453,6 +453,7 @@ def test_ur_twin_run_without_drift(tmp_path) -> None:  # type: ignore[no-untyped
         )
         for j in (1, 2, 3)
     }
+    sent = np.flatnonzero(np.isfinite(log["send_s"]))
     diffs = []
     for st in mon.states():
         for send, lag in zip(st.send_s, st.lag_s, strict=True):
@@ -460,12 +461,17 @@ def test_ur_twin_run_without_drift(tmp_path) -> None:  # type: ignore[no-untyped
             if not on:
                 continue
             near = (log["arrival_s"] > on[0]) & (log["arrival_s"] < on[0] + 0.03)
-            i = int(np.searchsorted(log["send_s"], send))
-            v = np.abs(log["qd_cmd"][i : i + 30, st.joint - 1])
+            # the 30 commands from this move's first: rows of the log that sent one (the
+            # idle rows have NaN send times, which a search over all rows would land on)
+            first = int(np.searchsorted(log["send_s"][sent], send))
+            rows = sent[first : first + 30]
+            v = np.abs(log["qd_cmd"][rows, st.joint - 1])
             # host instant the commanded speed reached the 10 % onset level (0.04 rad/s)
             k = int(np.argmax(v >= 0.04))
             v_before = v[k - 1] if k > 0 else 0.0
-            t_level = log["send_s"][i + k] + 0.002 * (0.04 - v_before) / max(v[k] - v_before, 1e-9)
+            t_level = log["send_s"][rows[k]] + 0.002 * (0.04 - v_before) / max(
+                v[k] - v_before, 1e-9
+            )
             diffs.append(lag - (on[0] + float(np.median(age[near])) - t_level))
     diffs = np.array(diffs) * 1e3
     assert len(diffs) >= 30, len(diffs)
