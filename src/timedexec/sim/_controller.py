@@ -236,6 +236,7 @@ class ControllerSim:
         self._pending: list[tuple[float, Command, int]] = []
         self._pipeline: deque[tuple[int, Command, int]] = deque()
         self._activations: list[tuple[FloatArray, Command, int, NDArray[np.bool_]]] = []
+        self._next_activation_s = math.inf  # earliest start among the joints left to activate
         self._next_id = 1
         self.truth: list[TruthEvent] = []
         self._truth_by_id: dict[int, TruthEvent] = {}
@@ -436,8 +437,8 @@ class ControllerSim:
             cycle=self.cycle_index,
             sample_time_s=t,
             send_time_s=t + self.packing_phase_s(t) + self._extra_s,
-            q_rad=bank.q.copy(),
-            qd_rad_s=bank.v.copy(),
+            q_rad=bank.q,  # fresh arrays (JointChain)
+            qd_rad_s=bank.v,
             q_target_rad=self._ref_q.copy(),
             qd_target_rad_s=self._ref_v.copy(),
             moving=bool(np.any(np.abs(self._ref_v) > 1e-9) or not np.all(bank.stuck)),
@@ -464,6 +465,7 @@ class ControllerSim:
             _, cmd, cid = self._pipeline.popleft()
             starts = t_boundary + self._offset_s
             self._activations.append((starts, cmd, cid, np.ones(6, dtype=bool)))
+            self._next_activation_s = min(self._next_activation_s, float(starts.min()))
         if (
             np.abs(bank.q - self._params_q).max() > self.REFRESH_RAD
             or t_boundary - self._params_time_s > 10.0  # thermal drift is slow
@@ -479,7 +481,7 @@ class ControllerSim:
         ref_q, ref_v = self._ref_q.tolist(), self._ref_v.tolist()
         speeds: list[list[float]] = []
         for t in times.tolist():
-            if self._activations:
+            if t + 1e-12 >= self._next_activation_s:
                 self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)  # _activate reads
                 still: list[tuple[FloatArray, Command, int, NDArray[np.bool_]]] = []
                 for starts, cmd, cid, left in self._activations:
@@ -490,6 +492,9 @@ class ControllerSim:
                     if left.any():
                         still.append((starts, cmd, cid, left))
                 self._activations = still
+                self._next_activation_s = min(
+                    (float(starts[left].min()) for starts, _, _, left in still), default=math.inf
+                )
             row = [0.0] * 6
             for j in range(6):
                 q_j, v_j, pos_mode = self._reference(j, t, ref_q[j], ref_v[j])

@@ -122,12 +122,19 @@ def _scalar_sign(x: float) -> float:
 #: step). Both give bit-identical results (IEEE float64, same operations in the same order;
 #: ``math.cos`` and ``np.cos`` agree bit for bit, checked by tests/test_sim.py).
 _ARRAY_OPS = SimpleNamespace(
-    cos=np.cos, sin=np.sin, clip=np.clip, where=np.where, sign=np.sign, not_=np.logical_not
+    cos=np.cos,
+    sin=np.sin,
+    clip=np.clip,
+    maximum=np.maximum,
+    where=np.where,
+    sign=np.sign,
+    not_=np.logical_not,
 )
 _FLOAT_OPS = SimpleNamespace(
     cos=math.cos,
     sin=math.sin,
     clip=lambda x, lo, hi: min(max(x, lo), hi),
+    maximum=max,
     where=lambda cond, a, b: a if cond else b,
     sign=_scalar_sign,
     not_=operator.not_,
@@ -168,10 +175,7 @@ def _drive_step(ops: Any, c: _Coefficients, dt: float, q, v, tau_m, integ, stuck
 def _crossing_time(ops: Any, v, v_new, t_s, threshold: float, dt: float):  # type: ignore[no-untyped-def]
     """When within a step that started at ``t_s`` the speed crossed ``threshold`` (linear)."""
     a0, a1 = abs(v), abs(v_new)
-    if ops is _ARRAY_OPS:
-        frac = (threshold - a0) / np.maximum(a1 - a0, 1e-300)
-    else:
-        frac = (threshold - a0) / max(a1 - a0, 1e-300)
+    frac = (threshold - a0) / ops.maximum(a1 - a0, 1e-300)
     return t_s + ops.clip(frac, 0.0, 1.0) * dt
 
 
