@@ -8,9 +8,14 @@ Three layers:
   named as one effect, main effects kept only where they add, a step in time on one
   joint named as time x joint, noise named as nothing;
 * the workflow end to end on a fixed subset of the randomised family (fast suite, about
-  30 s), and on the whole family of 60 cases (``slow``, about 2-4 min on two shared cores):
-  fully right >= 90 % overall, interaction and time-beside-load cases >= 85 % each
-  (issue 17).
+  30 s), and on the rest of the family of 60 cases (``slow``, two worker processes, about
+  1 min on two cores; every case with ``TIMEDEXEC_FULL_TESTS=1``): fully right >= 90 %
+  overall, interaction and time-beside-load cases >= 85 % each (issue 17).
+
+Every analysis runs with BLAS on one thread (:func:`_run`), as the model fits do
+(``timedexec.learning._threads``): OpenBLAS's two threads spinning for a core that another
+process holds made one case 4-5x slower in wall time on a shared two-core VM (c003: 67 s
+against 15 s; 1.5x the CPU), for the same result.
 """
 
 from __future__ import annotations
@@ -22,8 +27,10 @@ from collections import defaultdict
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 import discrepancy_cases as dc
+from conftest import full_or_bounded
 from discrepancy_cases import (
     FORMS,
     KINDS,
@@ -242,8 +249,19 @@ def test_noise_selects_nothing(synthetic, seed):
 
 # ------------------------------------------------------------------ the workflow
 def _run(case: Case):
-    result = analyse_discrepancy(case.table(), start=case.start_effects)
+    with threadpool_limits(limits=1, user_api="blas"):
+        result = analyse_discrepancy(case.table(), start=case.start_effects)
     return result, judge(case, result)
+
+
+def _outcome(case_id: str) -> tuple[str, str, bool, str]:
+    """Run one case of the family in a worker process: (kind, description, fully right,
+    what a miss named and why). Takes the case's id (a case holds closures, which do not
+    pickle); the worker draws the same seeded family."""
+    case = next(c for c in case_family(FAMILY_SIZE, seed=FAMILY_SEED) if c.case_id == case_id)
+    result, verdict = _run(case)
+    why = f"{result.added_effects}: {verdict.reasons}"
+    return case.kind, case.describe(), verdict.fully_right, why
 
 
 FAST = [c.case_id for c in fast_subset(case_family(FAMILY_SIZE, seed=FAMILY_SEED), per_kind=2)]
@@ -324,17 +342,34 @@ def test_report_of_an_interaction_case_has_evidence_size_and_gap(family):
 def test_family_rates(family):
     """The randomised family of 60 independent cases (issue 17): fully right >= 90 %
     overall, >= 85 % of the interaction and of the time-beside-load cases; the misses are
-    listed in the failure message."""
+    listed in the failure message.
+
+    Bounded form (CI): the 48 cases outside the fast subset, at the same thresholds. The 12
+    of the fast subset are each asserted fully right by test_fixed_subset_is_fully_right in
+    the fast tier, which .ci/run runs first and which stops it on a failure; running them
+    again here repeated a quarter of the work (43 of 170 CPU-s on a shared VM). The bound
+    carries over to the family: at most 4 misses in the 48 (>= 90 %) and 0 in the 12 is
+    >= 56/60 = 93 % overall; at most 1 miss in a kind's 8 (>= 85 %: 7/8) and 0 in its 2 is
+    >= 9/10 per kind, and a null case must be right in both. With TIMEDEXEC_FULL_TESTS=1
+    all 60 run here. The cases run in two worker processes (the same analysis, each on one
+    BLAS thread), as the learning tests' sweeps and CV do with jobs=2."""
+    from joblib import Parallel, delayed
+
+    fast = set(FAST)
+    cases = [c.case_id for c in family if full_or_bounded(True, c.case_id not in fast)]
+    # one case per task: case costs range from 1 to 15 s, so batches would unbalance
+    outcomes = Parallel(n_jobs=2, batch_size=1)(delayed(_outcome)(c) for c in cases)
     per_kind: dict[str, list[bool]] = defaultdict(list)
     misses = []
-    for case in family:
-        result, verdict = _run(case)
-        per_kind[case.kind].append(verdict.fully_right)
-        if not verdict.fully_right:
-            misses.append(f"{case.describe()} -> {result.added_effects}: {verdict.reasons}")
+    for kind, described, right, why in outcomes:
+        per_kind[kind].append(right)
+        if not right:
+            misses.append(f"{described} -> {why}")
+    assert set(per_kind) == set(KINDS)
     rate = {k: sum(v) / len(v) for k, v in per_kind.items()}
-    overall = sum(sum(v) for v in per_kind.values()) / len(family)
-    detail = f"overall {overall:.2f}, per kind {rate}; misses:\n" + "\n".join(misses)
+    overall = sum(sum(v) for v in per_kind.values()) / len(cases)
+    detail = f"{len(cases)} cases: overall {overall:.2f}, per kind {rate}; misses:\n"
+    detail += "\n".join(misses)
     assert overall >= 0.90, detail
     assert rate["interaction"] >= 0.85, detail
     assert rate["time_beside_load"] >= 0.85, detail

@@ -153,26 +153,37 @@ def test_simulate_with_workers_on_a_full_disk_resumes_to_the_same_recording(
 
 
 @pytest.mark.slow
-def test_calibrate_on_a_full_disk_exits_2_then_resumes(disk: SmallDisk) -> None:
+def test_calibrate_on_a_full_disk_exits_2_then_resumes(disk: SmallDisk, tmp_path: Path) -> None:
     """`calibrate --robot-url sim://ur10` on a 1 MiB disk (the still recording and a few
     trials fit): exit 2 with the message and the resume command; on a disk with room the
     printed command records every planned trial exactly once, in a second session. Slow:
-    two runs of the simulated robot (about 10 s each on the development VM)."""
+    two runs of the simulated robot (start-up, the move to the start configuration and the
+    pre-flight each, about 5 s on the development VM).
+
+    6 planned trials (it was 12): the disk takes the still recording and 4 trials
+    (fixed-size records: the same 4 on every run), which leaves 2 for the resume instead of
+    8. The plan, that of ``--trials 6 --seed 2``, is a ``--plan`` file (off the small disk):
+    drawing it imports scipy.stats, ~1.5 s of each run's start-up."""
+    from timedexec.recording import SweepPlan
+
     disk.mount("1m")
     out = disk.path / "cal.h5"
-    args = ["--robot-url", "sim://ur10", "--trials", "12", "--seed", "2", "--out", str(out)]
+    n = 6
+    plan = tmp_path / "plan.npz"
+    np.savez(plan, **SweepPlan.generate("ur10", n, seed=2).to_arrays())
+    args = ["--robot-url", "sim://ur10", "--plan", str(plan), "--seed", "2", "--out", str(out)]
     resume = assert_clean_exit_2(timedexec("calibrate", *args, "--quiet"), "calibrate")
     assert Path(str(out) + ".journal").exists()
     with RecordingReader(out) as r:
         assert r.has_static("still_gyro_raw")
         first = r.n_trials
-    assert 0 < first < 12
+    assert 0 < first < n
     disk.resize("32m")
     second = timedexec("calibrate", *resume)
     assert second.returncode == 0, second.stderr
-    assert f"recorded {12 - first} trials (12 planned)" in second.stdout
+    assert f"recorded {n - first} trials ({n} planned)" in second.stdout
     with RecordingReader(out) as r:
-        np.testing.assert_array_equal(np.sort(r.read("trial")), np.arange(12))
+        np.testing.assert_array_equal(np.sort(r.read("trial")), np.arange(n))
         assert set(r.read("session").tolist()) == {0, 1}
 
 

@@ -12,6 +12,7 @@ import pytest
 from scipy.optimize import check_grad
 from sklearn.base import clone
 
+from conftest import full_or_bounded
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, ModelError
 from timedexec.learning import (
@@ -696,9 +697,20 @@ def test_bundled_models_load_and_meet_the_targets(name: str) -> None:
 
 @pytest.mark.slow
 def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> None:
-    """A fresh simulated UR10 sweep (8,000 trials, ground-truth delays; about a minute on
-    two cores): on every joint and combined, every learned model beats the median on the
-    actuation delay, and the GP is within 10 % of the noise floor."""
+    """A fresh simulated UR10 sweep (8,000 trials, ground-truth delays; about 20 s on two
+    cores): on every joint and combined, every learned model beats the median on the
+    actuation delay, and the GP is within 10 % of the noise floor.
+
+    Bounded form (CI): 5-fold CV; the published 10 folds with TIMEDEXEC_FULL_TESTS=1 (the
+    shipped bundles' recorded 10-fold scores are checked in the fast tier,
+    test_bundled_models_load_and_meet_the_targets). The CV took 39 of the test's 42 s at 10
+    folds and 16 s at 5 (jobs=2). Every trial is still held out exactly once, so each score
+    is an RMS over the same 8,000 held-out predictions (~2,000 per joint) and its sampling
+    noise is unchanged; only the training sets shrink from 90 % to 80 % of the 100
+    configurations, which raises the learned models' errors in expectation: the assertions
+    get harder to pass, not easier. Measured on this sweep, 10 -> 5 folds: GP /
+    floor 1.025-1.044 -> 1.027-1.047 (bound 1.10), worst learned / median 0.984 -> 0.980
+    (joint 5; bound 1), response delay / floor <= 1.0040 -> 1.0029 (bound 1.03)."""
     from timedexec.recording import SweepPlan
     from timedexec.sim import simulate_delays
 
@@ -707,7 +719,8 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
         "ur10", plan.q_start_rad, plan.joint, plan.direction, np.arange(8000) * 1.05,
         seed=11, jobs=2,
     )  # fmt: skip
-    cv = cross_validate(table, folds=10, jobs=2, random_state=0)
+    folds = full_or_bounded(10, 5)
+    cv = cross_validate(table, folds=folds, jobs=2, random_state=0)
     act = cv.to_dict()["actuation_delay"]
     floor = cv.noise_floor_ms["actuation_delay"]
     for key in ("1", "2", "3", "5", "combined"):
@@ -717,7 +730,8 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
     # response delay carries no pose signal in the simulator: every model sits at the floor
     resp = cv.to_dict()["response_delay"]
     for m in METHODS:
-        # within 3 % of the replicate scatter (10-fold CV noise on ~2,000 trials per joint)
+        # within 3 % of the replicate scatter (CV noise on ~2,000 held-out trials per joint,
+        # whatever the number of folds)
         assert resp[m]["combined"] <= 1.03 * cv.noise_floor_ms["response_delay"]["combined"]
 
 

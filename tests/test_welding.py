@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import full_or_bounded
 from timedexec.drivers import SimDriver
 from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
@@ -248,15 +249,28 @@ def test_evaluate_conveyor_refuses_bad_input() -> None:
 
 @pytest.mark.slow
 def test_evaluate_conveyor_json_layout_and_order(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """`timedexec evaluate --task conveyor` (one work point, two phases): the JSON of the
-    issue ({robot, task, seam, speed_m_s, strategies: {none..oracle: {torch_mean_mm,
+    """`timedexec evaluate --task conveyor` (one work point): the JSON of the issue
+    ({robot, task, seam, speed_m_s, strategies: {none..oracle: {torch_mean_mm,
     torch_rms_mm, torch_max_mm}}}); compensation is > 12x better than none on the KR 5 and
-    the tracking strategies are within 3 mm (the phase floor on two phases)."""
+    the tracking strategies are within 3 mm (the phase floor on two phases).
+
+    Bounded form (CI): ``--runs 1``, 14 welds (3 calibration, 1 oracle draw, 10 strategies)
+    instead of the 25 of ``--runs 2`` (TIMEDEXEC_FULL_TESTS=1); the welds are the test's
+    whole cost. One evaluated phase: the publisher phase puts one weld's torch up to
+    ±2.3 mm off on the KR 5 (docs/welding.md, "The oracle"), the shifts measured from the
+    calibration welds add a few tenths, so constant, median and model keep the 3 mm
+    (and none / 12, none being ~40 mm) bound of a single weld, as in the fast test above.
+    The oracle is then one uncompensated draw: its shift carries that draw's phase too, so
+    two independent phases of the KR 5's 9 ms range separate it from the evaluated run:
+    up to 0.5 m/s x 9 ms = 4.5 mm, bound 5 mm (none / 8). Measured with ``--runs 1`` at
+    seeds 20261 (this test), 1 and 2: constant/median/model 0.27-2.01 mm, oracle
+    1.43-2.31 mm, none 38.5-40.7 mm, onset model across -5.0 to -7.3 mm."""
     from timedexec.cli import main
 
     out = tmp_path / "weld.json"
+    runs = full_or_bounded(2, 1)
     code = main(["evaluate", "--task", "conveyor", "--robot", "kr5", "--cells", "1",
-                 "--runs", "2", "--quiet", "--json", str(out)])  # fmt: skip
+                 "--runs", str(runs), "--quiet", "--json", str(out)])  # fmt: skip
     assert code == 0
     data = json.loads(out.read_text())
     assert (data["task"], data["robot"], data["seam"]) == ("conveyor", "kr5", "straight")
@@ -265,8 +279,10 @@ def test_evaluate_conveyor_json_layout_and_order(tmp_path) -> None:  # type: ign
     for s in data["strategies"].values():
         assert {"torch_mean_mm", "torch_rms_mm", "torch_max_mm"} <= set(s)
     none = data["strategies"]["none"]["torch_mean_mm"]
-    for name in ("constant", "median", "model", "oracle"):
+    for name in ("constant", "median", "model"):
         assert data["strategies"][name]["torch_mean_mm"] < min(3.0, none / 12)
+    oracle_bound = min(3.0, none / 12) if runs > 1 else min(5.0, none / 8)
+    assert data["strategies"]["oracle"]["torch_mean_mm"] < oracle_bound
     # Shifted by the onset delay the torch leads the seam (negative across: it runs ahead).
     assert data["onset_strategies"]["model"]["across_mean_mm"] < -2.0
 
