@@ -338,8 +338,7 @@ def test_joint_chain_steps_bit_identical_to_the_joint_bank(robot: str) -> None:
     onsets), through breakaway, reversals, torque saturation, rest and onset watches. A joint
     left at rest is skipped by the chain, so this also checks that skipping is exact."""
     from timedexec.effects import default_effects
-    from timedexec.sim import JointBank, JointChain
-    from timedexec.sim._physics import joint_params
+    from timedexec.sim import JointBank, JointChain, joint_params
 
     spec = get_robot(robot)
     settings = default_settings(spec)

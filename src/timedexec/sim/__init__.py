@@ -1,6 +1,7 @@
 """timedexec.sim: the simulated robots (simulation only: no sockets, no pseudo-terminals).
 
-Joint physics (:class:`JointBank`), the control box's timing (:class:`ControllerSim`, stepped
+Joint physics (:class:`JointBank` for a batch, :class:`JointChain` for one arm, parameters from
+:func:`joint_params`), the control box's timing (:class:`ControllerSim`, stepped
 cycle by cycle, behind the protocol twins of :mod:`timedexec.twins`), the simulated gyro
 (:class:`GyroFrameSource` and its rate sources), the settings calibrated to the published
 statistics (:func:`default_settings`) and the vectorised batch sweep
@@ -32,7 +33,7 @@ from timedexec.sim._gyro import (
     sine_rate_source,
     step_rate_source,
 )
-from timedexec.sim._physics import JointBank, JointChain, JointParams, pulse_profile
+from timedexec.sim._physics import JointBank, JointChain, JointParams, joint_params, pulse_profile
 from timedexec.sim._settings import (
     GyroModel,
     ServoSettings,
@@ -70,6 +71,7 @@ __all__ = [
     "constant_rate_source",
     "default_settings",
     "device_frames",
+    "joint_params",
     "pulse_profile",
     "simulate_block",
     "simulate_delays",
