@@ -28,11 +28,17 @@ def full_or_bounded(full: T, bounded: T) -> T:
 
 #: Largest cost of the UR10e twin's simulator (4 kHz physics, all joints moving) as a
 #: fraction of real time at which the real-time twin tests run. Above it the twin, the real
-#: client and the gyro twin saturate two cores: measured on a VM at 0.48, the UR10e twin used 1.3-2.4 cores,
-#: even ur_rtde's own servo pattern missed 46 % of cycles, response delays reached 29 ms
+#: client and the gyro twin saturate two cores: on a VM where the vectorised simulator cost
+#: 0.48 at rest, the UR10e twin used 1.3-2.4 cores, even ur_rtde's own servo pattern missed 46 % of cycles, response delays reached 29 ms
 #: and a P loop on the lagging states diverged. Those runs measure the machine, not the
 #: code; the tests are skipped there with the measured figure in the reason.
-MAX_TWIN_COST = 0.35
+#: 0.18, not the 0.35 it was when the simulator was vectorised over the six joints: stepped
+#: in floats it costs 0.5-0.6 of what it did (moving, against the old cost at rest, same
+#: machine), while the twin's protocol side did not get cheaper; on this VM (0.22-0.26
+#: moving now, 0.43-0.57 at rest before) three of the gated tests failed when run (live
+#: UR and RSI calibration, the 60 s jittery stream), as the old gate had foreseen. 0.18
+#: keeps the old gate's decisions.
+MAX_TWIN_COST = 0.18
 
 
 @functools.cache
