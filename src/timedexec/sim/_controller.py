@@ -510,6 +510,7 @@ class ControllerSim:
                     ref_q[j] = bank.angle(j)
             speeds.append(row)
         self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)
+        # row by row: one (n_sub, 6) @ (6, 3) product sums in another order (other bits)
         rates = np.array([np.array(row) @ axes for row in speeds])
         onsets = bank.onset_s
         for j, waiting in enumerate(self._waiting):
