@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -73,20 +74,31 @@ def cruise(ex: TimedExecutor, speed_rad_s: float = CRUISE_RAD_S) -> None:
     raise AssertionError("the cruise speed was never reached")
 
 
-def first_rest(driver: SimDriver, after_s: float, span_s: float) -> float:
-    """Host time of the first of three packages at rest read straight from the driver
-    (no command, no kick: the host is gone)."""
+def first_of_rest_run(samples: Iterable[tuple[float, Any]]) -> float:
+    """Time of the first of three consecutive ``(time_s, qd)`` samples with every joint
+    below 0.01 rad/s (NaN if the samples end first)."""
     run, first = 0, math.nan
-    while driver.clock() < after_s + span_s:
-        state = driver.read_state(timeout_s=1.0)
-        if np.max(np.abs(state.qd)) < 0.01:
-            first = state.host_time_s if run == 0 else first
+    for time_s, qd in samples:
+        if np.max(np.abs(qd)) < 0.01:
+            first = time_s if run == 0 else first
             run += 1
             if run >= 3:
                 return first
         else:
             run = 0
     return math.nan
+
+
+def first_rest(driver: SimDriver, after_s: float, span_s: float) -> float:
+    """Host time of the first of three packages at rest read straight from the driver
+    (no command, no kick: the host is gone)."""
+
+    def states() -> Iterator[tuple[float, Any]]:
+        while driver.clock() < after_s + span_s:
+            state = driver.read_state(timeout_s=1.0)
+            yield state.host_time_s, state.qd
+
+    return first_of_rest_run(states())
 
 
 # ---------------------------------------------------------------------------- watchdog
@@ -423,23 +435,19 @@ def watch_rest(host: str, since_s: float, span_s: float) -> float:
     import rtde_receive
 
     recv = rtde_receive.RTDEReceiveInterface(host)
-    try:
-        run, first, last_ts = 0, math.nan, None
+
+    def packages() -> Iterator[tuple[float, Any]]:
+        last_ts = None
         while time.monotonic() < since_s + span_s:
             ts = recv.getTimestamp()
             if ts == last_ts:
                 time.sleep(2e-4)
                 continue
             last_ts = ts
-            now = time.monotonic()
-            if np.max(np.abs(recv.getActualQd())) < 0.01:
-                first = now if run == 0 else first
-                run += 1
-                if run >= 3:
-                    return first
-            else:
-                run = 0
-        return math.nan
+            yield time.monotonic(), recv.getActualQd()
+
+    try:
+        return first_of_rest_run(packages())
     finally:
         recv.disconnect()
 
