@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+import tty
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -39,8 +40,15 @@ def assert_nothing_written(folder: Path) -> None:
 
 @pytest.fixture
 def pty() -> Iterator[tuple[int, str]]:
-    """A pseudo-terminal: (master fd, slave path); nobody writes to it unless told."""
+    """A pseudo-terminal: (master fd, slave path); nobody writes to it unless told.
+
+    The slave is raw (no echo, no line editing) and the master non-blocking, as the gyro
+    twin makes its own: in the default cooked mode with echo, bytes written before the port
+    is opened fill the line buffer and the echo queue nobody reads, the writer blocks, and
+    on the CI machine the reader then saw 0 bytes in 3 s."""
     master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
     try:
         yield master, os.ttyname(slave)
     finally:
@@ -88,7 +96,10 @@ def test_garbage_port_fails_naming_it_and_what_arrived(
     def garbage() -> None:
         rng = np.random.default_rng(0)
         while not stop.is_set():
-            os.write(master, rng.bytes(1760))  # 20 ms of 8 kHz x 11-byte frames
+            try:
+                os.write(master, rng.bytes(1760))  # 20 ms of 8 kHz x 11-byte frames
+            except BlockingIOError:
+                pass  # nobody reads yet and the pty's buffer is full: a real port drops too
             time.sleep(0.02)
 
     writer = threading.Thread(target=garbage, daemon=True)
