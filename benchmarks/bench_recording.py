@@ -122,8 +122,11 @@ def write_recording(path: str, codec: str, n: int, batch: int, pool: list) -> fl
     return time.perf_counter() - t0
 
 
-def write_plain(path: str, codec: str, n: int, batch: int, pool: list) -> float:
-    """The obvious alternative: one h5py file kept open, no journal, no fsync."""
+def write_plain(
+    path: str, codec: str, n: int, batch: int, pool: list, fletcher32: bool = True
+) -> float:
+    """The obvious alternative: one h5py file kept open, no journal, no fsync (with the
+    recording's per-chunk Fletcher-32 checksum unless ``fletcher32=False``)."""
     t0 = time.perf_counter()
     with h5py.File(path, "w") as f:
         dsets = {}
@@ -134,6 +137,7 @@ def write_plain(path: str, codec: str, n: int, batch: int, pool: list) -> float:
                 fld.np_dtype,
                 maxshape=(None, *fld.shape),
                 chunks=(64, *fld.shape),
+                fletcher32=fletcher32,
                 **h5_args(codec),
             )
         rows = 0
@@ -143,6 +147,20 @@ def write_plain(path: str, codec: str, n: int, batch: int, pool: list) -> float:
                 ds.resize(rows + k, axis=0)
                 ds[rows : rows + k] = b[name]
             rows += k
+    return time.perf_counter() - t0
+
+
+def write_plain_unchecked(path: str, codec: str, n: int, batch: int, pool: list) -> float:
+    """Plain h5py without the per-chunk checksum: what the checksum costs."""
+    return write_plain(path, codec, n, batch, pool, fletcher32=False)
+
+
+def read_plain(path: str) -> float:
+    t0 = time.perf_counter()
+    with h5py.File(path, "r") as f:
+        for name in f:
+            for a in range(0, f[name].shape[0], 1024):
+                f[name][a : a + 1024]
     return time.perf_counter() - t0
 
 
@@ -168,13 +186,17 @@ def bench(args: argparse.Namespace) -> None:
     work = tempfile.mkdtemp(prefix="bench_recording_", dir=args.dir)
     try:
         print(
-            f"{'writer':<22}{'codec':<8}{'write MB/s':>11}{'file MB':>9}{'ratio':>7}"
+            f"{'writer':<26}{'codec':<8}{'write MB/s':>11}{'file MB':>9}{'ratio':>7}"
             f"{'read MB/s':>10}{'full sweep: s':>15}{'GB':>7}"
         )
         results: dict[tuple[str, str], float] = {}
         for codec in args.codecs.split(","):
-            for kind, fn in (("RecordingWriter", write_recording), ("plain h5py", write_plain)):
-                if kind == "plain h5py" and codec != args.codecs.split(",")[0]:
+            for kind, fn in (
+                ("RecordingWriter", write_recording),
+                ("plain h5py", write_plain),
+                ("plain h5py, no checksum", write_plain_unchecked),
+            ):
+                if kind.startswith("plain h5py") and codec != args.codecs.split(",")[0]:
                     continue
                 path = os.path.join(work, f"{kind.split()[0]}_{codec}.h5")
                 dt, t_read = np.inf, np.inf
@@ -182,13 +204,14 @@ def bench(args: argparse.Namespace) -> None:
                     for p in glob.glob(path + "*"):
                         os.remove(p)
                     dt = min(dt, fn(path, codec, n, batch, pool))
-                    if kind == "RecordingWriter":
-                        t_read = min(t_read, read_all(path))
+                    reader = read_all if kind == "RecordingWriter" else read_plain
+                    t_read = min(t_read, reader(path))
                 size = os.path.getsize(path)
-                rd = f"{raw_mb / t_read:10.0f}" if kind == "RecordingWriter" else " " * 10
+                rd = f"{raw_mb / t_read:10.0f}"
                 results[(kind, codec)] = dt
+                results[(kind + " read", codec)] = t_read
                 print(
-                    f"{kind:<22}{codec:<8}{raw_mb / dt:11.0f}{size / 1e6:9.1f}"
+                    f"{kind:<26}{codec:<8}{raw_mb / dt:11.0f}{size / 1e6:9.1f}"
                     f"{n * ROW_BYTES / size:7.2f}{rd}{dt * scale:15.1f}{size * scale / 1e9:7.2f}"
                 )
                 os.remove(path)
@@ -197,6 +220,14 @@ def bench(args: argparse.Namespace) -> None:
         print(
             f"crash-safe RecordingWriter / plain h5py write time ({first}): {ratio:.2f}x "
             "(journal with fsync per batch + checkpoints; plain h5py is not crash-safe)"
+        )
+        w_ck = results[("plain h5py", first)] / results[("plain h5py, no checksum", first)]
+        r_ck = (
+            results[("plain h5py read", first)] / results[("plain h5py, no checksum read", first)]
+        )
+        print(
+            f"per-chunk Fletcher-32 checksum, plain h5py with / without ({first}): write "
+            f"{w_ck:.2f}x, read {r_ck:.2f}x (what detecting a damaged chunk costs)"
         )
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -670,6 +670,36 @@ def test_truncated_file(tmp_path: Path, keep: str) -> None:
         RecordingWriter(path, resume=True)
 
 
+@pytest.mark.parametrize("compression", ["lzf", "gzip", "none"])
+def test_damaged_chunk_is_named_not_read_wrong(tmp_path: Path, compression: str) -> None:
+    """Bytes overwritten inside one stored chunk after the file was written (media, a bad
+    copy): every chunk carries a Fletcher-32 checksum, so reading those rows raises a
+    RecordingError naming the field and the rows (without it, 30 of 30 seeded overwrites of
+    an LZF chunk read back as wrong numbers with no error); the other chunks still read."""
+    path = tmp_path / "r.h5"
+    with RecordingWriter(path, header=HEADER, fields=FIELDS, compression=compression) as w:
+        w.append(make_batch(range(200)))
+    with h5py.File(path, "r") as f:
+        ds = f["trials/gyro"]
+        assert ds.fletcher32
+        tpc = ds.chunks[0]
+        info = ds.id.get_chunk_info(1)  # rows tpc .. 2 tpc - 1
+    rng = np.random.default_rng(7)
+    with open(path, "r+b") as fh:
+        fh.seek(info.byte_offset + info.size // 3)
+        fh.write(rng.bytes(64))
+    with RecordingReader(path) as r:
+        with pytest.raises(RecordingError) as exc:
+            r.read("gyro")
+        msg = str(exc.value)
+        assert "/trials/gyro" in msg
+        assert str(path) in msg
+        assert f"rows {tpc}-{2 * tpc - 1} (append order) fail their checksum" in msg
+        good = np.r_[0:tpc, 2 * tpc : 200]
+        assert np.array_equal(r.read("gyro", good), make_batch(good)["gyro"])
+        assert np.array_equal(r.read("trial"), np.arange(200))  # other fields are intact
+
+
 def test_foreign_files(tmp_path: Path) -> None:
     """A plain HDF5 file or a non-HDF5 file is not a recording: RecordingError naming it."""
     foreign = tmp_path / "foreign.h5"

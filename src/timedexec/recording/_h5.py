@@ -428,7 +428,8 @@ def create_static(
     doc: str,
     compression: Compression,
 ) -> None:
-    """Write the array ``/static/<name>``; 64 KiB and more are chunked and compressed."""
+    """Write the array ``/static/<name>``; 64 KiB and more are chunked, compressed and
+    checksummed (Fletcher-32 per chunk)."""
     kwargs: dict[str, Any] = {}
     if data.ndim >= 1 and data.nbytes >= _STATIC_COMPRESS_BYTES and compression[0]:
         kwargs = {
@@ -436,6 +437,7 @@ def create_static(
             "compression": compression[0],
             "compression_opts": compression[1],
             "shuffle": True,
+            "fletcher32": True,
         }
     ds = group.create_dataset(name, data=data, **kwargs)
     ds.attrs["unit"] = unit
@@ -492,6 +494,10 @@ def create_recording_file(
                 compression=compression[0],
                 compression_opts=compression[1],
                 shuffle=compression[0] is not None,
+                # A checksum per chunk, checked before decompression: a chunk damaged
+                # after writing (disk, copy) is an error naming its rows, not numbers that
+                # are silently wrong or an LZF decoder fed garbage.
+                fletcher32=True,
             )
             ds.attrs["unit"] = fld.unit
             ds.attrs["doc"] = fld.doc

@@ -8,6 +8,7 @@ any instant, without modifying anything. Plain h5py sees ``P`` as of the last ch
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import time
@@ -298,12 +299,43 @@ class RecordingReader:
         return self._h5
 
     def _read_h5(self, f: h5py.File, fld: Field, sel: slice | NDArray[np.int64]) -> NDArray[Any]:
+        ds = f["trials"][fld.name]
         try:
-            return np.asarray(f["trials"][fld.name][sel])
+            return np.asarray(ds[sel])
         except OSError as exc:
+            bad = self._damaged_rows(ds, sel)
+            where = (
+                f"rows {', '.join(f'{a}-{b - 1}' for a, b in bad)} (append order) fail "
+                "their checksum or do not decompress"
+                if bad
+                else "it cannot be read"
+            )
             raise RecordingError(
-                f"cannot read /trials/{fld.name} of {self.path} ({exc}); the file is damaged"
+                f"cannot read /trials/{fld.name} of {self.path}: {where} ({exc}). The file "
+                "was damaged after it was written (disk, copy, transfer): restore it from "
+                "its source, or record the sweep again; `timedexec check` lists every "
+                "damaged field"
             ) from exc
+
+    @staticmethod
+    def _damaged_rows(ds: h5py.Dataset, sel: slice | NDArray[np.int64]) -> list[tuple[int, int]]:
+        """The chunks (row ranges) of ``ds`` under ``sel`` that cannot be read, one by one."""
+        if isinstance(sel, slice):
+            lo, hi = sel.start or 0, sel.stop if sel.stop is not None else ds.shape[0]
+        else:
+            lo, hi = int(np.min(sel)), int(np.max(sel)) + 1
+        tpc = ds.chunks[0] if ds.chunks else max(hi - lo, 1)
+        bad: list[tuple[int, int]] = []
+        for a in range(lo // tpc * tpc, hi, tpc):
+            b = min(a + tpc, ds.shape[0])
+            try:
+                ds[a:b]
+            except OSError:
+                if bad and bad[-1][1] == a:
+                    bad[-1] = (bad[-1][0], b)
+                else:
+                    bad.append((a, b))
+        return bad
 
     def _read_range(self, f: h5py.File, fld: Field, start: int, stop: int) -> NDArray[Any]:
         parts: list[NDArray[Any]] = []
@@ -335,9 +367,11 @@ class RecordingReader:
         if in_h5.any():
             uniq = np.unique(idx[in_h5])
             lo, hi = int(uniq[0]), int(uniq[-1]) + 1
+            data = None
             if uniq.size * 4 >= hi - lo:  # dense: one contiguous read is faster
-                data = self._read_h5(f, fld, slice(lo, hi))[uniq - lo]
-            else:
+                with contextlib.suppress(RecordingError):  # unless it spans a damaged chunk
+                    data = self._read_h5(f, fld, slice(lo, hi))[uniq - lo]
+            if data is None:
                 data = self._read_h5(f, fld, uniq)
             out[in_h5] = data[np.searchsorted(uniq, idx[in_h5])]
         rest = np.flatnonzero(~in_h5)
