@@ -12,6 +12,7 @@ from __future__ import annotations
 import filecmp
 import json
 import logging
+import math
 import os
 import re
 import signal
@@ -452,6 +453,55 @@ def test_discrepancy_on_cluster_matches_local(
         doc.pop("measured", None)
         doc.get("simulations", {}).pop("seconds", None)
     assert a == b
+
+
+def _close(a: Any, b: Any, rel: float) -> bool:
+    """Same JSON documents, numbers to ``rel`` relative (absolute near zero)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k], rel) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_close(x, y, rel) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=rel, abs_tol=rel) or (a != a and b != b)
+    return bool(a == b)
+
+
+def test_simulate_evaluate_and_monitor_on_cluster_match_local(
+    reference: Path, cluster: Any, tmp_path: Path
+) -> None:
+    """`simulate --scheduler` (simulation blocks as tasks, the recording written here),
+    `evaluate --scheduler` and `monitor --scheduler` (one task each) give what they give on
+    this machine: the same ground truth and the same recorded data, the same evaluation
+    (to 1e-9 relative: the workers' BLAS runs one thread, this process may run two, and the
+    GP's sums then add in another order: 1e-15 measured) and the same monitor state."""
+    addr = cluster.scheduler_address
+    sim = ["simulate", "--robot", "kr5", "--trials", "120", "--seed", "4", "--quiet"]
+    for side, where in (("local", ""), ("remote", addr)):
+        out, truth = tmp_path / f"{side}.h5", tmp_path / f"{side}-truth.csv"
+        cmd = [*sim, "--out", str(out), "--truth", str(truth), "--scheduler", where]
+        assert main(cmd) == 0
+    assert filecmp.cmp(tmp_path / "local-truth.csv", tmp_path / "remote-truth.csv", False)
+    from timedexec.recording import RecordingReader
+
+    with RecordingReader(tmp_path / "local.h5") as a, RecordingReader(tmp_path / "remote.h5") as b:
+        assert list(a.fields) == list(b.fields)
+        for name in a.fields:  # every recorded value, bit for bit
+            assert a.read(name).tobytes() == b.read(name).tobytes(), name
+
+    ev = ["evaluate", "--robot", "ur10", "--model", "ur10-sim", "--configs", "8"]
+    ev += ["--draws", "3", "--seed", "2", "--quiet", "--json"]
+    rec = str(reference / "robots" / "ur10-a" / "recording.h5")
+    mon = ["monitor", rec, "--json"]
+    for cmd, rel in ((ev, 1e-9), (mon, 0.0)):
+        docs = []
+        for side, where in (("local", ""), ("remote", addr)):
+            out = tmp_path / f"{cmd[0]}-{side}.json"
+            assert main([*cmd, str(out), "--scheduler", where]) == 0
+            doc = json.loads(out.read_text(encoding="utf-8"))
+            for key in ("runtime_s", "elapsed_s"):  # wall times
+                doc.pop(key, None)
+            docs.append(doc)
+        assert _close(*docs, rel=rel), cmd[0]
 
 
 def test_scheduler_without_dask_says_how_to_install(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from timedexec.cli._common import (
     int_arg,
     note,
 )
+from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
 
 __all__ = ["EXIT_ALARM", "add_parser", "run"]
 
@@ -84,6 +86,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--fail-on-alarm", action="store_true", help=f"exit {EXIT_ALARM} when an alarm fired"
     )
+    add_scheduler(p, what="the monitor (as one task)")
     add_json(p, "the monitor state {settings, joints, alerts}")
     p.set_defaults(func=run)
 
@@ -119,15 +122,53 @@ def _text(summary: dict[str, Any], source: str) -> str:
     return "\n".join(lines)
 
 
+def watch(
+    path: str,
+    model: str | None,
+    *,
+    every_trial: bool,
+    warmup: int,
+    arl0: float,
+    k: float,
+    sweep_time: bool,
+) -> tuple[Any, str, bool]:
+    """Read INPUT and run the monitor over every move in it: one task on a cluster.
+
+    Returns the fed ``DelayMonitor``, the model it compared with, and whether that model
+    was chosen from the input's robot (no ``--model``).
+    """
+    from timedexec.errors import ConfigError
+    from timedexec.monitoring import DelayMonitor, load_cycle_log, moves_from_recording
+
+    if Path(path).suffix.lower() == ".npz":
+        arrays, meta = load_cycle_log(path)
+        robot, period, moves = str(meta.get("robot", "")), float(meta["period_s"]), None
+    else:
+        moves, meta = moves_from_recording(path, collapse_repeats=not every_trial)
+        robot, period = meta["robot"], meta["period_s"]
+    defaulted = model is None
+    if model is None:
+        if not robot:
+            raise ConfigError(f"{path} does not name its robot; give --model NAME_OR_DIR")
+        model = f"{robot}-sim"
+    mon = DelayMonitor(
+        model,
+        warmup_moves=warmup,
+        arl0_moves=arl0,
+        reference_k=k,
+        sweep_time=sweep_time,
+        period_s=period,
+    )
+    if moves is None:
+        mon.feed_log(arrays)
+    else:
+        mon.update(moves)
+    return mon, model, defaulted
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``monitor``; 0 (alarm or not), or 4 on an alarm with --fail-on-alarm."""
-    from timedexec.errors import ConfigError
-    from timedexec.monitoring import (
-        DelayMonitor,
-        load_cycle_log,
-        monitor_figure,
-        moves_from_recording,
-    )
+    from timedexec.monitoring import monitor_figure
 
     outputs = {"--figure": args.figure} if args.figure else {}
     check_files(args, "monitor", inputs={"INPUT": args.input}, outputs=outputs)
@@ -136,31 +177,24 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(
             f"{path}: no such file; give a recording (.h5) or a cycle log (.npz)"
         )
-    if path.suffix.lower() == ".npz":
-        arrays, meta = load_cycle_log(path)
-        robot, period, moves = str(meta.get("robot", "")), float(meta["period_s"]), None
-    else:
-        moves, meta = moves_from_recording(path, collapse_repeats=not args.every_trial)
-        robot, period = meta["robot"], meta["period_s"]
-    model = args.model
-    if model is None:
-        if not robot:
-            raise ConfigError(f"{path} does not name its robot; give --model NAME_OR_DIR")
-        model = f"{robot}-sim"
+    with cluster(args, "monitor") as client:
+        model = args.model
+        if client is not None and model is not None and os.path.exists(model):
+            model = worker_path(model, client)  # a folder; a shipped model's name stays
+        mon, model, defaulted = submit(
+            client,
+            watch,
+            worker_path(path, client),
+            model,
+            every_trial=args.every_trial,
+            warmup=args.warmup,
+            arl0=args.arl0,
+            k=args.k,
+            sweep_time=args.sweep_time,
+        )
+    if defaulted:
         note("monitor", f"no --model: using the bundled {model}")
-    mon = DelayMonitor(
-        model,
-        warmup_moves=args.warmup,
-        arl0_moves=args.arl0,
-        reference_k=args.k,
-        sweep_time=args.sweep_time,
-        period_s=period,
-    )
-    if moves is None:
-        mon.feed_log(arrays)
-    else:
-        mon.update(moves)
-    summary = mon.summary() | {"input": str(path), "model": str(model)}
+    summary = mon.summary() | {"input": str(path), "model": str(args.model or model)}
     if args.figure:
         monitor_figure(mon, args.figure)
     text = _text(summary, str(path))
