@@ -62,6 +62,7 @@ from timedexec.errors import ConfigError
 from timedexec.extraction._check import REQUIRED_FIELDS, Contract, read_contract
 from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
+    RESPONSE_SMOOTH_S,
     _parabolic_peak,
     _robust_sigma,
     _row_nanmedian,
@@ -598,6 +599,7 @@ def _extract_chunk_inner(
         resp, resp_se = response_increments(
             t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
             np.full(n, 0.6 * ctx.period_s),
+            smooth_samples=2 * round(RESPONSE_SMOOTH_S * ctx.fs_hz / 2) + 1,  # odd
         )  # fmt: skip
         missing_onset = on["missing"]
         n_cols = {
