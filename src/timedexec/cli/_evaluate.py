@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from typing import Any
 
 from timedexec.cli._common import (
@@ -18,7 +17,12 @@ from timedexec.cli._common import (
     int_arg,
     warn,
 )
-from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
+from timedexec.cli._scheduler import (
+    add_scheduler,
+    cluster,
+    submit,
+    worker_model,
+)
 
 __all__ = ["add_parser", "run"]
 
@@ -124,9 +128,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_files(args, "evaluate", inputs={"--model": args.model})
     with cluster(args, "evaluate") as client:
-        model = args.model
-        if client is not None and model is not None and os.path.exists(model):
-            model = worker_path(model, client)  # a folder; a shipped model's name stays
+        model = worker_model(args.model, client)
         progress = not args.quiet and client is None
         if args.task == "conveyor":
             from timedexec.welding import evaluate_conveyor

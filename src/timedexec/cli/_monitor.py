@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +15,13 @@ from timedexec.cli._common import (
     int_arg,
     note,
 )
-from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
+from timedexec.cli._scheduler import (
+    add_scheduler,
+    cluster,
+    submit,
+    worker_model,
+    worker_path,
+)
 
 __all__ = ["EXIT_ALARM", "add_parser", "run"]
 
@@ -178,9 +183,7 @@ def run(args: argparse.Namespace) -> int:
             f"{path}: no such file; give a recording (.h5) or a cycle log (.npz)"
         )
     with cluster(args, "monitor") as client:
-        model = args.model
-        if client is not None and model is not None and os.path.exists(model):
-            model = worker_path(model, client)  # a folder; a shipped model's name stays
+        model = worker_model(args.model, client)
         mon, model, defaulted = submit(
             client,
             watch,

@@ -29,6 +29,7 @@ __all__ = [
     "cluster_jobs",
     "scheduler_address",
     "submit",
+    "worker_model",
     "worker_path",
 ]
 
@@ -105,6 +106,14 @@ def worker_path(path: str | os.PathLike[str], client: Any) -> str:
     """``path`` as workers must see it: absolute on a cluster (their working folder is not
     ours), as given on this machine."""
     return os.path.abspath(path) if client is not None else os.fspath(path)
+
+
+def worker_model(model: str | None, client: Any) -> str | None:
+    """A ``--model`` as workers must see it: a bundle folder absolute on a cluster; a
+    shipped model's name (or None) as given."""
+    if client is not None and model is not None and os.path.exists(model):
+        return worker_path(model, client)
+    return model
 
 
 def submit(client: Any, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
