@@ -27,6 +27,7 @@ when the robot does not move (exit 3: a robot fault).
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -134,8 +135,18 @@ def check_stream(sess: Session) -> PreflightReport:
     sess.catch_up()  # windows in the robot's present time, not in a queue's past
     sess.discard_gyro()  # what queued up since the port was opened is no measure
     t_a = sess.state().host_time_s
+    w_a = time.monotonic()
     st = sess.state()
-    while not len(sess.samples_since(t_a)) and st.host_time_s < t_a + STARTUP_S:
+    # A sensor boots in real time: wait STARTUP_S of it too. A virtual robot's time can run
+    # ahead of the host clock (a simulated robot with a real port, to check the wiring):
+    # hold it back meanwhile, or its 3 s passed in a tenth of one and a booting sensor, or
+    # one that sends garbage every 20 ms, had sent nothing yet.
+    while not len(sess.samples_since(t_a)) and (
+        st.host_time_s < t_a + STARTUP_S or time.monotonic() < w_a + STARTUP_S
+    ):
+        ahead = (st.host_time_s - t_a) - (time.monotonic() - w_a)
+        if ahead > 0:
+            time.sleep(min(ahead, 0.02))
         st = sess.state()
     if not len(sess.samples_since(t_a)):
         waited = st.host_time_s - t_a
