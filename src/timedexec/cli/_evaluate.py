@@ -17,12 +17,7 @@ from timedexec.cli._common import (
     int_arg,
     warn,
 )
-from timedexec.cli._scheduler import (
-    add_scheduler,
-    cluster,
-    submit,
-    worker_model,
-)
+from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_model
 
 __all__ = ["add_parser", "run"]
 

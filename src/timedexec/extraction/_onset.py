@@ -79,10 +79,10 @@ _SE_SLOPE_S = 0.002
 #: 8 kHz). Measured on the independent recordings (benchmarks/bench_extract_robustness.py,
 #: 300 trials each; response RMSE and 95 % coverage of its standard error, without -> with):
 #: UR10 clean 0.051 -> 0.047 ms, 10x noise 0.298 -> 0.149 ms (coverage 78 -> 98 %), 20x
-#: 0.966 -> 0.265 ms (35 -> 94 %); clean UR10e 0.145 -> 0.042 ms; UR10e (2 ms packages) 10x 0.436 ms with a one-period
-#: (2 ms) average, 0.254 with 4 ms, 0.171 with 12 ms (68 / 93 / 99.7 % coverage). Longer
-#: (20 ms) gained little more and excludes more of each trial's ends; an even length
-#: shifted the estimate by half a sample (63 µs).
+#: 0.966 -> 0.265 ms (35 -> 94 %); clean UR10e 0.145 -> 0.042 ms. The width: on the UR10e
+#: (2 ms packages) at 10x noise one period (2 ms) gave 0.436 ms, 4 ms 0.254 ms, 12 ms
+#: 0.171 ms (68 / 93 / 99.7 % coverage); 20 ms gained little more and excludes more of each
+#: trial's ends. An even length shifted the estimate by half a sample (63 µs).
 RESPONSE_SMOOTH_S = 0.012
 _SCALE = 0.005  # s: the polynomial's abscissa unit (keeps the normal equations well scaled)
 

@@ -313,8 +313,8 @@ class RecordingReader:
             raise RecordingError(
                 f"cannot read /trials/{fld.name} of {self.path}: {where} ({exc}). The file "
                 "was damaged after it was written (disk, copy, transfer): restore it from "
-                "its source, or record the sweep again; `timedexec check` lists every "
-                "damaged field"
+                "its source, or record the sweep again (`timedexec check` reports it "
+                "too)"
             ) from exc
 
     @staticmethod
