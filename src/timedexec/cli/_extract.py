@@ -13,6 +13,7 @@ from timedexec.cli._common import (
     check_files,
     emit,
     float_arg,
+    warn,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs, worker_path
 
@@ -93,8 +94,15 @@ def run(args: argparse.Namespace) -> int:
             max_se_s=MAX_SE_S if args.max_se is None else args.max_se * 1e-3,
             progress=not args.quiet,
         )
-    result.table.to_csv(args.out)
     info = {**result.summary(), "out": args.out, "method": args.method}
+    if info.get("damaged_rows"):
+        warn(
+            "extract",
+            f"{info['damaged_rows']} trials of {args.recording} lie in damaged chunks (they "
+            "fail their checksum): flagged 'damaged', the others extracted; `timedexec check "
+            f"{args.recording}` names the field",
+        )
+    result.table.to_csv(args.out)
     table = result.table
     text = (
         f"extracted {len(table):,} trials ({info['flagged']} flagged) with method "

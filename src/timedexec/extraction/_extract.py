@@ -41,12 +41,14 @@ each step assumes of the recording):
 7. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
    delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
    needs), ``package_gap``, ``no_motion``, ``no_onset``, ``gain`` (implausible gyro gain),
-   ``response_fit``, ``uncertain`` (standard error above ``max_se_s``).
+   ``response_fit``, ``uncertain`` (standard error above ``max_se_s``), ``damaged`` (the
+   trial's rows lie in a chunk of the file that fails its checksum: the rest is extracted).
 """
 
 from __future__ import annotations
 
-import itertools
+import dataclasses
+import math
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -58,8 +60,13 @@ from scipy import signal
 from timedexec._progress import Progress
 from timedexec._signal import ONSET_FRACTION
 from timedexec.delays import DelayTable
-from timedexec.errors import ConfigError
-from timedexec.extraction._check import REQUIRED_FIELDS, Contract, read_contract
+from timedexec.errors import ConfigError, RecordingError
+from timedexec.extraction._check import REQUIRED_FIELDS
+from timedexec.extraction._context import (
+    SweepContext,
+    open_rows,
+    sweep_context,
+)
 from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
     RESPONSE_SMOOTH_S,
@@ -69,22 +76,15 @@ from timedexec.extraction._onset import (
     onset_adaptive,
     response_increments,
 )
-from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
-from timedexec.recording import RecordingReader
+from timedexec.extraction._stationary import StillAnalysis
+from timedexec.recording import DamagedChunkError, RecordingReader
 from timedexec.sensors import (
-    DriftingClockFit,
-    fit_clock_drifting,
-    fit_clock_lower_envelope,
     relative_counter_rows,
 )
 
 __all__ = ["METHODS", "ExtractionResult", "extract_recording"]
 
 METHODS = ("fit", "extrema")
-#: Segments per trial whose lowest block arrival enters the clock fits: at least this many,
-#: more for short sweeps (about _ENVELOPE_POINTS points in all).
-_ENVELOPE_SEGMENTS = 8
-_ENVELOPE_POINTS = 200_000
 #: Trials pooled (centred, same session) for the zero-rate: 31 trials span ~40 s, over which
 #: an MPU-class bias drifts by < 0.01 °/s, while the pooled mean's noise falls 5.6x.
 _BIAS_POOL = 31
@@ -97,43 +97,12 @@ MAX_SE_S = 0.002
 #: of the out pulse (the gain and the response integrate it).
 _MAX_MISSING_ONSET = 0.3
 _MAX_MISSING_PULSE = 0.2
-#: Rows per read of the sweep-wide scan (counters and pre-command samples).
-_SCAN_ROWS = 2048
 #: Every so many samples enter the covariance that finds the principal axis of the motion.
 _COV_STRIDE = 4
 #: Samples between the points at which the sensor clock model is evaluated for each row;
 #: linear in between (the model's curvature makes that exact to < 1 ns).
 _CLOCK_NODE_STEP = 64
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class _Context:
-    """Sweep-wide facts every chunk needs."""
-
-    contract: Contract
-    taps: FloatArray
-    clocks: dict[int, DriftingClockFit]  # per session
-    n_first: FloatArray  # unwrapped index of each recorded row's first sample
-    time_order: NDArray[np.int64]  # rows sorted by session, then by t0
-    time_rank: NDArray[np.int64]  # (n_rows,) each row's position in time_order
-    session_span: NDArray[np.int64]  # (n_rows, 2) its session's [start, stop) in time_order
-
-    @property
-    def robot(self) -> str:
-        return self.contract.robot
-
-    @property
-    def period_s(self) -> float:
-        return self.contract.period_s
-
-    @property
-    def profile(self) -> dict[str, float]:
-        return self.contract.profile
-
-    @property
-    def fs_hz(self) -> float:
-        return self.contract.fs_hz
 
 
 @dataclass(frozen=True)
@@ -147,6 +116,9 @@ class ExtractionResult:
     still: StillAnalysis
     n_flagged: int
     clock: dict[str, Any] | None = None
+    #: Rows (trials) in chunks that fail their checksum: left out of the extraction, in
+    #: the table flagged ``damaged`` when their plan index can still be read.
+    damaged_rows: int = 0
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe summary."""
@@ -167,29 +139,14 @@ class ExtractionResult:
         }
         if self.clock is not None:
             out["gyro_clock"] = self.clock
+        if self.damaged_rows:
+            out["damaged_rows"] = self.damaged_rows
         for name in ("actuation_delay_se", "response_delay_se"):
             if name in self.table:
                 v = self.table[name]
                 v = v[np.isfinite(v)]
                 out[f"{name}_median_ms"] = float(np.median(v) * 1e3) if v.size else None
         return out
-
-
-def _unwrap_rows(
-    first_counter: NDArray[np.int64],
-    first_time: FloatArray,
-    start_index: int,
-    start_time: float,
-    rate_hz: float,
-) -> NDArray[np.int64]:
-    """Unwrapped index of each row's first sample: rows are in time order; the host time
-    elapsed since the previous row decides how many 65536 wraps lie in between."""
-    prev_c = np.r_[start_index % 65536, first_counter[:-1]]
-    prev_t = np.r_[start_time, first_time[:-1]]
-    dc = (first_counter - prev_c) % 65536
-    expected = (first_time - prev_t) * rate_hz
-    wraps = np.round((expected - dc) / 65536.0)
-    return start_index + np.cumsum(dc + 65536 * wraps).astype(np.int64)
 
 
 def _pre_stats(
@@ -243,151 +200,6 @@ def _pool_bias(
     return out, out_n
 
 
-_Scan = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]
-
-
-def _scan_rows(
-    reader: RecordingReader, start: int, stop: int, rows_b: NDArray[np.int64]
-) -> _Scan:
-    """What the sweep-wide clock fit needs of rows ``start:stop``: each row's first counter,
-    and the position and kept state of each block's last row."""
-    c = reader.read("gyro_counter", slice(start, stop))
-    k = len(c)
-    c16 = c if c.dtype == np.uint16 else (c.astype(np.int64) % 65536).astype(np.uint16)
-    clean = np.all(np.diff(c16, axis=1) == 1, axis=1)
-    pos_block = np.broadcast_to(rows_b, (k, rows_b.size)).copy()
-    keep_block = np.ones((k, rows_b.size), dtype=bool)
-    dirty = np.flatnonzero(~clean)
-    if dirty.size:  # lost, duplicated or out-of-order frames: positions from the counter
-        pos, keep = relative_counter_rows(c[dirty])
-        pos_block[dirty] = pos[:, rows_b]
-        keep_block[dirty] = keep[:, rows_b]
-    return np.asarray(c[:, 0], dtype=np.int64), pos_block, keep_block
-
-
-def _scan_path(path: str, start: int, stop: int, rows_b: NDArray[np.int64]) -> _Scan:
-    with RecordingReader(path) as reader:
-        return _scan_rows(reader, start, stop, rows_b)
-
-
-def _context(
-    reader: RecordingReader, *, clock_window_s: float | None, numtaps: int, jobs: int = 1
-) -> tuple[_Context, StillAnalysis, float, float, dict[str, Any]]:
-    con = read_contract(reader)
-    fs, block = con.fs_hz, con.block
-    rate_scale = con.scale["gyro_raw"]
-
-    # Still recording: zero-rate and noise PSD; its counter anchors the unwrap.
-    still_raw = reader.static("still_gyro_raw")
-    still = analyse_still(np.asarray(still_raw, dtype=np.float64) * rate_scale, fs)
-    still_counter = reader.static("still_gyro_counter")
-    still_blocks = reader.static("still_gyro_block_host_time_s").astype(np.float64)
-    still_blocks = still_blocks * con.scale["gyro_block_host_time_s"]
-    s_pos, s_keep = relative_counter_rows(np.asarray(still_counter)[None, :])
-    n_still = int(still_counter[0]) + s_pos[0]
-    s_rows = np.arange(block - 1, len(n_still), block)[: len(still_blocks)]
-    s_ok = s_keep[0, s_rows] & np.isfinite(still_blocks[: len(s_rows)])
-    still_fit = fit_clock_lower_envelope(
-        n_still[s_rows][s_ok], still_blocks[: len(s_rows)][s_ok], nominal_rate_hz=fs
-    )
-
-    # One pass over the per-trial stream: counters (positions, kept frames) and the
-    # pre-command samples (zero-rate).
-    t0 = reader.read("t0_s").astype(np.float64) * con.scale["t0_s"]
-    n = len(t0)
-    session = reader.read("session") if "session" in reader.fields else np.zeros(n, np.int64)
-    session = np.asarray(session, dtype=np.int64)
-    blocks = reader.read("gyro_block_host_time_s").astype(np.float64)
-    blocks *= con.scale["gyro_block_host_time_s"]
-    n_blocks = blocks.shape[1]
-    rows_b = np.arange(n_blocks) * block + block - 1
-    spans = [(a, min(a + _SCAN_ROWS, n)) for a in range(0, n, _SCAN_ROWS)]
-    if jobs == 1 or len(spans) == 1:
-        parts = [_scan_rows(reader, a, b, rows_b) for a, b in spans]
-    else:
-        from joblib import Parallel, delayed
-
-        parts = Parallel(n_jobs=jobs)(
-            delayed(_scan_path)(reader.path, a, b, rows_b) for a, b in spans
-        )
-    first_counter = np.concatenate([p[0] for p in parts])
-    pos_block = np.concatenate([p[1] for p in parts])
-    keep_block = np.concatenate([p[2] for p in parts]) & np.isfinite(blocks)
-    # Time order within each session: the zero-rate of a row pools its neighbours in time.
-    time_order = np.lexsort((t0, session)).astype(np.int64)
-    time_rank = np.empty(n, dtype=np.int64)
-    time_rank[time_order] = np.arange(n)
-    sess_sorted = session[time_order]
-    bounds = np.searchsorted(sess_sorted, [session, session + 1], side="left").T
-    session_span = np.asarray(bounds, dtype=np.int64)
-
-    # Unwrap every row's first sample, per session (a resumed run is a new gyro stream and
-    # host clock), in time order; the still recording anchors session 0. The arrival of
-    # a row's first kept block dates its first sample.
-    b_first = np.argmax(keep_block, axis=1)
-    r = np.arange(n)
-    first_time = t0 + blocks[r, b_first] - pos_block[r, b_first] / still_fit.rate_hz
-    n_first = np.empty(n, dtype=np.int64)
-    for sess in np.unique(session):
-        rows = np.flatnonzero(session == sess)
-        rows = rows[np.argsort(t0[rows])]
-        if sess == session.min():
-            anchor_n = int(n_still[-1])
-            anchor_t = float(still_fit.to_host_time(n_still[-1])[()])
-        else:  # a new stream: its first trial anchors it
-            anchor_n, anchor_t = int(first_counter[rows[0]]), float(first_time[rows[0]])
-        n_first[rows] = _unwrap_rows(
-            first_counter[rows], first_time[rows], anchor_n, anchor_t, still_fit.rate_hz
-        )
-
-    # Clock points: each trial's lowest block arrival in each of a few segments, relative to
-    # the still recording's line (only the lowest can lie on a lower envelope).
-    block_n = n_first[:, None] + pos_block
-    block_t = t0[:, None] + blocks
-    resid = block_t - (still_fit.t_ref_s + (block_n - still_fit.n_ref) * still_fit.period_s)
-    resid = np.where(keep_block, resid, np.inf)
-    segments = int(np.clip(_ENVELOPE_POINTS // max(n, 1), _ENVELOPE_SEGMENTS, n_blocks))
-    edges_b = np.linspace(0, n_blocks, segments + 1).astype(int)
-    pick = np.stack(
-        [lo + np.argmin(resid[:, lo:hi], axis=1) for lo, hi in itertools.pairwise(edges_b)],
-        axis=1,
-    )
-    ok = np.isfinite(np.take_along_axis(resid, pick, axis=1))
-    pn = np.take_along_axis(block_n, pick, axis=1)
-    pt = np.take_along_axis(block_t, pick, axis=1)
-    pg = np.broadcast_to(r[:, None], pick.shape)
-    clocks: dict[int, DriftingClockFit] = {}
-    for sess in np.unique(session):
-        sel = (session == sess)[:, None] & ok
-        cn, ct, cg = pn[sel], pt[sel], pg[sel]
-        if sess == session.min():
-            cn = np.r_[n_still[s_rows][s_ok], cn]
-            ct = np.r_[still_blocks[: len(s_rows)][s_ok], ct]
-            cg = np.r_[np.full(int(s_ok.sum()), -1), cg]
-        clocks[int(sess)] = fit_clock_drifting(
-            cn, ct, cg, nominal_rate_hz=fs, window_s=clock_window_s
-        )
-    main = clocks[int(session.min())]
-    rate = float(np.mean(1.0 / main.period_s))
-    clock_info = {str(k): v.to_dict() for k, v in clocks.items()}
-
-    # Filter from the PSDs (a few trials' motion against the still noise).
-    sample_rows = np.unique(np.linspace(0, n - 1, min(32, n)).astype(int))
-    raw = reader.read("gyro_raw", rows=sample_rows).astype(np.float64) * rate_scale
-    motion = np.linalg.norm(raw - still.bias_rad_s, axis=2)
-    taps, cutoff = design_lowpass(still, motion, fs, numtaps=numtaps)
-    ctx = _Context(
-        contract=con,
-        taps=taps,
-        clocks=clocks,
-        n_first=n_first.astype(np.float64),
-        time_order=time_order,
-        time_rank=time_rank,
-        session_span=session_span,
-    )
-    return ctx, still, cutoff, rate, clock_info
-
-
 def _grid(
     raw: NDArray[Any], counters: NDArray[Any]
 ) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
@@ -417,7 +229,7 @@ def _grid(
 
 
 def _sample_times(
-    ctx: _Context, rows: NDArray[np.int64], t0: FloatArray, g: int, session: NDArray[np.int64]
+    ctx: SweepContext, rows: NDArray[np.int64], t0: FloatArray, g: int, session: NDArray[np.int64]
 ) -> FloatArray:
     """Trial time of every grid position's sample (the physical instant it describes).
 
@@ -470,7 +282,7 @@ def _filter_cols(y: FloatArray, taps: FloatArray, cols: slice) -> FloatArray:
 
 
 def _extract_chunk_inner(
-    ctx: _Context,
+    ctx: SweepContext,
     chunk: dict[str, NDArray[Any]],
     rows: NDArray[np.int64],
     method: str,
@@ -656,15 +468,15 @@ def _windows() -> tuple[tuple[float, float], ...]:
 
 
 def _run_rows(
-    path: str, ctx: _Context, rows: NDArray[np.int64], method: str, max_se_s: float = MAX_SE_S
+    path: str, ctx: SweepContext, rows: NDArray[np.int64], method: str, max_se_s: float = MAX_SE_S
 ) -> dict[str, NDArray[Any]]:
-    with RecordingReader(path) as reader:
+    with open_rows(path, ctx.keep) as reader:
         chunk = _read_chunk(reader, rows, ctx)
     return _extract_chunk(ctx, chunk, rows, method, max_se_s=max_se_s)
 
 
 def _read_chunk(
-    reader: RecordingReader, rows: NDArray[np.int64], ctx: _Context
+    reader: RecordingReader, rows: NDArray[np.int64], ctx: SweepContext
 ) -> dict[str, NDArray[Any]]:
     """The fields extraction needs for ``rows`` (``session`` where the recording has it),
     times, angles and speeds converted to SI (gyro rates stay as stored: see _grid), and
@@ -703,7 +515,7 @@ def _read_chunk(
 
 
 def _extract_chunk(
-    ctx: _Context,
+    ctx: SweepContext,
     chunk: dict[str, NDArray[Any]],
     rows: NDArray[np.int64],
     method: str,
@@ -728,7 +540,7 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
     path = os.fspath(path)
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
     with RecordingReader(path) as reader:
-        ctx, still, cutoff, _, _ = _context(reader, clock_window_s=None, numtaps=161)
+        ctx, still, cutoff, _, _ = sweep_context(reader, clock_window_s=None, numtaps=161)
         chunk = _read_chunk(reader, rows, ctx)
         truth = {
             k: reader.read(f"true_{k}_s", rows=rows)
@@ -805,10 +617,69 @@ def extract_recording(
     if isinstance(jobs, bool) or not isinstance(jobs, int) or (jobs < 1 and jobs != -1):
         raise ConfigError(f"jobs={jobs!r} must be a positive integer, or -1 for every worker")
     path = os.fspath(path)
-    with RecordingReader(path) as reader:
-        ctx, still, cutoff, rate, clock_info = _context(
+    kw: dict[str, Any] = {
+        "method": method,
+        "jobs": jobs,
+        "chunk_trials": chunk_trials,
+        "clock_window_s": clock_window_s,
+        "numtaps": numtaps,
+        "max_se_s": max_se_s,
+        "progress": progress,
+    }
+    try:
+        return _extract(path, None, **kw)
+    except DamagedChunkError:
+        # Say it per trial: leave the damaged chunks' rows out, flag those trials.
+        with RecordingReader(path) as reader:
+            damaged = np.flatnonzero(reader.damaged_rows())
+            n = reader.n_trials
+        if damaged.size == 0 or damaged.size == n:
+            raise
+        return _extract(path, damaged, **kw)
+
+
+def _lost_trials(
+    reader: RecordingReader, rows: NDArray[np.int64], t0_scale: float
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """Plan index and start time (s; NaN if unreadable) of the damaged ``rows`` whose plan
+    index can still be read; rows whose ``trial`` chunk is damaged too are left out."""
+    trials: list[int] = []
+    starts: list[float] = []
+    for r in rows.tolist():
+        try:
+            trials.append(int(reader.read("trial", np.array([r]))[0]))
+        except RecordingError:
+            continue
+        try:
+            starts.append(float(reader.read("t0_s", np.array([r]))[0]) * t0_scale)
+        except RecordingError:
+            starts.append(math.nan)
+    return np.array(trials, dtype=np.int64), np.array(starts, dtype=np.float64)
+
+
+def _extract(
+    path: str,
+    damaged: NDArray[np.int64] | None,
+    *,
+    method: str,
+    jobs: int,
+    chunk_trials: int,
+    clock_window_s: float | None,
+    numtaps: int,
+    max_se_s: float,
+    progress: bool,
+) -> ExtractionResult:
+    """:func:`extract_recording` of the rows not in ``damaged`` (all when None); the
+    damaged rows whose trial can be identified are in the table, flagged ``damaged``."""
+    keep = None
+    if damaged is not None:
+        with RecordingReader(path) as whole:
+            keep = np.setdiff1d(np.arange(whole.n_trials), damaged)
+    with open_rows(path, keep) as reader:
+        ctx, still, cutoff, rate, clock_info = sweep_context(
             reader, clock_window_s=clock_window_s, numtaps=numtaps, jobs=jobs
         )
+        ctx = dataclasses.replace(ctx, keep=keep)
         n = reader.n_trials
         trial = reader.read("trial")
         t0 = reader.read("t0_s") * ctx.contract.scale["t0_s"]
@@ -820,6 +691,8 @@ def extract_recording(
             for k in ("actuation_delay", "response_delay")
             if f"true_{k}_s" in reader.fields
         }
+        if damaged is not None:
+            lost, lost_t0 = _lost_trials(reader.whole, damaged, ctx.contract.scale["t0_s"])
     chunks = [np.arange(s, min(s + chunk_trials, n)) for s in range(0, n, chunk_trials)]
     bar = Progress(n, f"extract ({method})", enabled=progress)
     if jobs == 1:
@@ -859,11 +732,25 @@ def extract_recording(
               "onset_window_s", "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
+    if damaged is not None and lost.size:
+        known = {
+            "trial": lost,
+            "joint": plan_joint[lost],
+            "direction": plan_dir[lost],
+            **{f"q{i + 1}": plan_q[lost, i] for i in range(6)},
+            "t_start": lost_t0,
+            "flag": np.full(lost.size, "damaged"),
+        }
+        for k, v in cols.items():
+            if isinstance(v, np.ndarray):
+                add = known.get(k, np.full(lost.size, np.nan))
+                cols[k] = np.concatenate([v, np.asarray(add, dtype=np.result_type(v, add))])
+        trial = cols["trial"]
     order = np.argsort(trial)
     table = DelayTable(
         {k: (v[order] if isinstance(v, np.ndarray) else v) for k, v in cols.items()}, source=path
     )
-    n_flagged = int(np.sum(res["flag"] != ""))
+    n_flagged = int(np.sum(cols["flag"] != ""))
     return ExtractionResult(
         table=table,
         cutoff_hz=cutoff,
@@ -872,4 +759,5 @@ def extract_recording(
         still=still,
         n_flagged=n_flagged,
         clock=clock_info,
+        damaged_rows=0 if damaged is None else int(damaged.size),
     )

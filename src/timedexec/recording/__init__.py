@@ -20,7 +20,7 @@ from timedexec.recording._plan import (
     calibration_ranges,
 )
 from timedexec.recording._protocol import FORMAT_NAME, FORMAT_VERSION
-from timedexec.recording._reader import RecordingReader
+from timedexec.recording._reader import DamagedChunkError, RecordingReader
 from timedexec.recording._schema import GyroHeader, TrialLayout, trial_fields, trial_layout
 from timedexec.recording._writer import RecordingWriter
 
@@ -28,6 +28,7 @@ __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "FULL_SWEEP_TRIALS",
+    "DamagedChunkError",
     "Field",
     "GyroHeader",
     "RecordingReader",

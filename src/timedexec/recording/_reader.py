@@ -34,7 +34,13 @@ from timedexec.recording._journal import (
 )
 from timedexec.recording._protocol import JOURNAL
 
-__all__ = ["RecordingReader"]
+__all__ = ["DamagedChunkError", "RecordingReader"]
+
+
+class DamagedChunkError(RecordingError):
+    """Rows of a per-trial field cannot be read: a chunk fails its checksum or does not
+    decompress (the file changed after it was written). :meth:`RecordingReader.damaged_rows`
+    finds every such row."""
 
 
 def _inode(path: str) -> tuple[int, int]:
@@ -245,6 +251,26 @@ class RecordingReader:
                 )
         return self._read_index(f, fld, idx)
 
+    def damaged_rows(self, names: Sequence[str] | None = None) -> NDArray[np.bool_]:
+        """Which rows cannot be read: a chunk of one of ``names`` (all per-trial fields if
+        None) fails its checksum or does not decompress. Reads every such chunk once.
+
+        Returns
+        -------
+        ndarray of bool, shape (n_trials,)
+            True for the rows (append order) of the damaged chunks.
+        """
+        f = self._open()
+        names = list(self.fields) if names is None else list(names)
+        out = np.zeros(self.n_trials, dtype=bool)
+        for nm in names:
+            if nm not in self.fields:
+                raise ConfigError(f"no per-trial field {nm!r}; fields: {list(self.fields)}")
+            ds = f["trials"][nm]
+            for a, b in self._damaged_rows(ds, slice(0, self._h5_rows)):
+                out[a:b] = True
+        return out
+
     def iter_chunks(
         self, chunk_trials: int = 1024, names: Sequence[str] | None = None
     ) -> Iterator[dict[str, NDArray[Any]]]:
@@ -310,7 +336,7 @@ class RecordingReader:
                 if bad
                 else "it cannot be read"
             )
-            raise RecordingError(
+            raise (DamagedChunkError if bad else RecordingError)(
                 f"cannot read /trials/{fld.name} of {self.path}: {where} ({exc}). The file "
                 "was damaged after it was written (disk, copy, transfer): restore it from "
                 "its source, or record the sweep again (`timedexec check` reports it "
