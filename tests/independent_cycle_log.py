@@ -64,6 +64,12 @@ delay is the median age (arrival minus sampling instant) of the packages that ar
 the 0.2 s after the first send. ``true_lag_s`` is their sum, the quantity the monitor's
 lag estimates up to a constant of the method.
 
+The host wander shows in the lag only through the controller's cycle: the arrival and send
+stamps both carry the host's read delay, so it cancels in ``arrival - t*(d)`` except where
+it moves the command past an intake boundary; then the whole plan's lag jumps by a period
+(UR10: 8 ms, when the wander is large; UR10e: 2 ms, often), for every joint of the plan and,
+through the AR(1), for neighbouring plans too.
+
 A step change: ``Conditions(step_joint=2, step_s=0.002, step_from_move=150)`` adds 2 ms of
 dead time to joint 2 from its 150th move (0-based count of the moves this generator made
 of that joint) on.
@@ -626,57 +632,56 @@ class IndependentCycleLog:
         if nr:
             self.last_arrival = float(arrival[-1])
 
-        # ---- truth per move
-        truth: dict[str, list[Any]] = {k: [] for k in (
-            "episode", "joint", "direction", "send_s", "row", "true_actuation_s",
-            "true_response_s", "true_lag_s", "stepped", "joint_move", "peak_speed_rad_s",
-            "joints_in_plan", "wander_s", "q_start")}  # fmt: skip
-        s_lo = np.searchsorted(sep, np.arange(E), side="left")
-        s_hi = np.searchsorted(sep, np.arange(E), side="right")
-        r_lo = np.searchsorted(ep, np.arange(E), side="left")
-        r_hi = np.searchsorted(ep, np.arange(E), side="right")
-        for e in range(E):
-            for s in range(S):
-                if not used[e, s]:
-                    continue
-                vs = v_slot[s_lo[e] : s_hi[e], s] * P["sgn"][e, s]
-                nz = np.flatnonzero(vs != 0)
-                if not len(nz) or not math.isfinite(onset_local[e, s]):
-                    continue
-                i0 = int(nz[0])
-                sd = send[s_lo[e] : s_hi[e]]
-                t_knot = np.r_[sd[i0], sd[i0:] + T]
-                v_knot = np.r_[0.0, vs[i0:]]
-                lv = level[e, s]
-                kk = int(np.argmax(v_knot >= lv))
-                ta, tb = t_knot[kk - 1], t_knot[kk]
-                va, vb = v_knot[kk - 1], v_knot[kk]
-                t_cmd = ta + (lv - va) / (vb - va) * (tb - ta) if vb > va else tb
-                t_on = b[r_lo[e]] + onset_local[e, s]  # local time 0 = the block's first boundary
-                rr = slice(r_lo[e], r_hi[e])
-                arr = arrival[rr]
-                win = (~lost[rr]) & (arr >= sd[i0]) & (arr <= sd[i0] + RESPONSE_WINDOW_S)
-                resp = float(np.median(arr[win] - sample_t[rr][win]))
-                act = t_on - t_cmd
-                truth["episode"].append(self.episodes + e)
-                truth["joint"].append(int(jt[e, s]) + 1)
-                truth["direction"].append(int(P["sgn"][e, s]))
-                truth["send_s"].append(float(sd[i0]))
-                truth["row"].append(int(row_of[srow[s_lo[e] + i0]]))
-                truth["true_actuation_s"].append(act)
-                truth["true_response_s"].append(resp)
-                truth["true_lag_s"].append(act + resp)
-                truth["stepped"].append(bool(P["stepped"][e, s]))
-                truth["joint_move"].append(int(P["move_idx"][e, s]))
-                truth["peak_speed_rad_s"].append(float(peak_cmd[e, s]))
-                truth["joints_in_plan"].append(int(used[e].sum()))
-                truth["wander_s"].append(float(P["h"][e]))
-                truth["q_start"].append(P["q0"][e])
+        # ---- truth per move (each used slot whose joint was commanded and moved)
+        age = np.where(lost, np.nan, arrival - sample_t)
+        n_w = round(RESPONSE_WINDOW_S / T)
+        parts = []
+        for s in range(S):
+            vs = v_slot[:, s] * P["sgn"][sep, s]  # commanded speed in the move's direction
+            pos = np.flatnonzero(vs > 0)
+            e_m, first = np.unique(sep[pos], return_index=True)
+            i0 = pos[first]  # streamed row of each move's first command
+            lv_row = level[sep, s]
+            cr = np.flatnonzero((vs >= lv_row) & (vs > 0))
+            e_c, first_c = np.unique(sep[cr], return_index=True)
+            kk = cr[first_c][np.searchsorted(e_c, e_m)]  # first command at the onset level
+            ok = used[e_m, s] & np.isfinite(onset_local[e_m, s])
+            e_m, i0, kk = e_m[ok], i0[ok], kk[ok]
+            lv = level[e_m, s]
+            tb, vb = send[kk] + T, vs[kk]
+            at_first = kk == i0
+            ta = np.where(at_first, send[i0], send[np.maximum(kk - 1, 0)] + T)
+            va = np.where(at_first, 0.0, vs[np.maximum(kk - 1, 0)])
+            t_cmd = ta + (lv - va) / (vb - va) * (tb - ta)
+            t_on = b[np.searchsorted(ep, e_m)] + onset_local[e_m, s]  # local 0: first boundary
+            send0 = send[i0]
+            w0 = np.searchsorted(arrival, send0, side="left")
+            widx = np.minimum(w0[:, None] + np.arange(n_w)[None, :], nr - 1)
+            inwin = arrival[widx] <= send0[:, None] + RESPONSE_WINDOW_S
+            resp = np.nanmedian(np.where(inwin, age[widx], np.nan), axis=1)
+            act = t_on - t_cmd
+            parts.append({
+                "episode": self.episodes + e_m,
+                "slot": np.full(len(e_m), s),
+                "joint": jt[e_m, s] + 1,
+                "direction": P["sgn"][e_m, s].astype(np.int64),
+                "send_s": send0,
+                "row": row_of[srow[i0]],
+                "true_actuation_s": act,
+                "true_response_s": resp,
+                "true_lag_s": act + resp,
+                "stepped": P["stepped"][e_m, s],
+                "joint_move": P["move_idx"][e_m, s],
+                "peak_speed_rad_s": peak_cmd[e_m, s],
+                "joints_in_plan": used[e_m].sum(axis=1),
+                "wander_s": P["h"][e_m],
+                "q_start": P["q0"][e_m],
+            })  # fmt: skip
+        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        order = np.lexsort((out.pop("slot"), out["episode"]))
+        out = {k: v[order] for k, v in out.items()}
         self.episodes += E
         self.rows += int(keep.sum())
-        out = {k: np.asarray(v) for k, v in truth.items()}
-        if not len(out["q_start"]):
-            out["q_start"] = np.zeros((0, 6))
         return rows, out
 
 
