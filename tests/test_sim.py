@@ -301,6 +301,39 @@ def test_stepped_controller_takes_commands_at_their_own_boundary():
     assert by_id[second].intake_s == pytest.approx(2 * period)
 
 
+@pytest.mark.parametrize("reissue", [False, True])
+def test_a_joint_offset_delays_that_joint_only_under_a_multi_joint_speedj(reissue: bool):
+    """``joint_offset``: each drive takes the setpoint later. Three joints started together
+    by speedj, the control script's way (the same speedj re-issued every cycle) or once:
+    +2 ms on joint 2 moves joint 2's true onset by 2 ms and the others not at all. Before,
+    each joint's share of a command was activated late and speedj's lead axis was recomputed
+    at each activation from the others' current references: re-issued, joint 2 lagging made
+    it the lead and joints 1 and 3 ramped slower (+0.26 / +0.29 ms); through the UR twin
+    about half of joint 2's offset was undone. Tolerance: one 8 kHz physics substep
+    (0.125 ms) is the resolution of the onset and of the delay line."""
+    from timedexec.effects import JointOffset
+
+    def onsets(extra_s: float) -> np.ndarray:
+        eff = default_effects("ur10e")
+        off = list(eff.get("joint_offset").offsets_s)  # type: ignore[union-attr]
+        off[1] += extra_s
+        c = ControllerSim("ur10e", effects=eff.with_effect(JointOffset(offsets_s=tuple(off))), seed=1)
+        for _ in range(20):
+            c.cycle()
+        first = None
+        for k in range(150):
+            if reissue or k == 0:
+                cid = c.submit(SpeedJ((0.3, 0.3, 0.3, 0, 0, 0), 2.0, 0.0))
+                first = first or cid
+            c.cycle()
+        event = next(e for e in c.truth if e.id == first)
+        return np.asarray(event.onset_s[:3])
+
+    shift_ms = (onsets(0.002) - onsets(0.0)) * 1e3
+    assert shift_ms[1] == pytest.approx(2.0, abs=0.13), shift_ms
+    assert np.abs(shift_ms[[0, 2]]).max() < 0.05, shift_ms
+
+
 def test_servoj_stream_from_rest_keeps_the_cycle_cost_flat():
     """A servoJ stream that crawls a joint from rest re-arms the onset watch every cycle;
     the controller checks its onset watch per joint, not per command, so 1,500 commands

@@ -3,7 +3,8 @@
 The protocol twins (UR RTDE, KUKA RSI) drive the same joint physics as the batch sweep
 through this class: commands arrive at a controller time, are taken at the next cycle
 boundary (like a register sampled once per cycle: of two commands within one cycle only the
-last is seen), act after the controller's pipeline (plus each joint's drive offset), and the
+last is seen), act after the controller's pipeline (each joint's drive takes the reference its offset
+later), and the
 state sampled at each boundary is put on the wire after the packing phase (plus whole
 periods with ``response_extra_cycle``). Ground truth is kept per command.
 """
@@ -223,6 +224,13 @@ class ControllerSim:
         self._bank = JointChain(
             self._params(q0), q0, self.dt_s, self.settings.servo.onset_threshold_rad_s
         )
+        # Each joint's drive takes the interpolator's reference ``offsets_s[j]`` later (the
+        # effect's meaning): one reference for the arm, computed once (so speedj's lead axis
+        # sees every joint's undelayed reference), and per joint a delay line of whole
+        # substeps (q, v, position mode) between it and the drive.
+        self._delay_n = [math.ceil(o / self.dt_s - 1e-9) for o in self._offset_s.tolist()]
+        self._lines = [deque([(float(q), 0.0, False)] * n) for q, n in zip(q0.tolist(), self._delay_n)]
+        self._lines_busy_until_s = 0.0  # a non-zero reference is in some delay line until then
         self._params_q = q0.copy()
         self._params_time_s = 0.0
         self._axes = joint_axis_in_tool(self.spec, np.broadcast_to(q0, (6, 6)), _JOINTS)
@@ -265,6 +273,7 @@ class ControllerSim:
             and not self._activations
             and not self._pending
             and np.all(np.abs(self._ref_v) < 1e-9)
+            and self.time_s >= self._lines_busy_until_s
         )
 
     def packing_phase_s(self, t_s: float) -> float:
@@ -463,7 +472,7 @@ class ControllerSim:
             self._pipeline.append((k + self.settings.timing.pipeline_cycles, cmd, cid))
         while self._pipeline and self._pipeline[0][0] <= k:
             _, cmd, cid = self._pipeline.popleft()
-            starts = t_boundary + self._offset_s
+            starts = np.full(6, t_boundary)
             self._activations.append((starts, cmd, cid, np.ones(6, dtype=bool)))
             self._next_activation_s = min(self._next_activation_s, float(starts.min()))
         if (
@@ -480,6 +489,8 @@ class ControllerSim:
         # Joint by joint in floats (the joints are independent drives; see JointChain).
         ref_q, ref_v = self._ref_q.tolist(), self._ref_v.tolist()
         speeds: list[list[float]] = []
+        delay_n, lines, dt = self._delay_n, self._lines, self.dt_s
+        busy_until = self._lines_busy_until_s
         for t in times.tolist():
             if t + 1e-12 >= self._next_activation_s:
                 self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)  # _activate reads
@@ -501,15 +512,25 @@ class ControllerSim:
                 ref_v[j] = v_j
                 if pos_mode:
                     ref_q[j] = q_j
-                    row[j] = bank.step_joint(j, v_j + kpos * (q_j - bank.angle(j)), t)
+                drive_q, drive_v, drive_pos = q_j, v_j, pos_mode
+                if delay_n[j]:
+                    line = lines[j]
+                    line.append((q_j, v_j, pos_mode))
+                    drive_q, drive_v, drive_pos = line.popleft()
+                    if v_j != 0.0:
+                        busy_until = t + delay_n[j] * dt
+                if drive_pos:
+                    row[j] = bank.step_joint(j, drive_v + kpos * (drive_q - bank.angle(j)), t)
                 else:
+                    row[j] = bank.step_joint(j, drive_v, t)
+                if not pos_mode:
                     # In speed mode the reference position follows the joint: no catch-up of
                     # lost time (speedj is a velocity interface), and position commands
                     # start from here.
-                    row[j] = bank.step_joint(j, v_j, t)
                     ref_q[j] = bank.angle(j)
             speeds.append(row)
         self._ref_q, self._ref_v = np.array(ref_q), np.array(ref_v)
+        self._lines_busy_until_s = busy_until
         # row by row: one (n_sub, 6) @ (6, 3) product sums in another order (other bits)
         rates = np.array([np.array(row) @ axes for row in speeds])
         onsets = bank.onset_s
