@@ -23,6 +23,7 @@ from timedexec.errors import ConfigError, RecordingError
 from timedexec.execution import CycleLog, predict_delays
 from timedexec.learning import DelayModel
 from timedexec.monitoring import (
+    SCORE_CLIP,
     DelayMonitor,
     Move,
     MoveExtractor,
@@ -184,7 +185,7 @@ def test_false_alarm_rate_on_the_simulated_residuals(pool) -> None:  # type: ign
         z = np.empty((60, 10_000))
         for c in range(60):
             warm = np.sort(rng.choice(res, WARMUP))
-            z[c] = np.interp(rng.choice(res, 10_000), warm, scores)
+            z[c] = np.clip(np.interp(rng.choice(res, 10_000), warm, scores), -SCORE_CLIP, SCORE_CLIP)
         rl = run_lengths(z, mon.threshold, mon.reference_k)
         alarms += int(np.isfinite(rl).sum())
         exposure += float(np.where(np.isfinite(rl), rl, 10_000).sum())

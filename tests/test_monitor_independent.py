@@ -150,10 +150,12 @@ def test_detects_a_2ms_step_on_the_right_joint(models) -> None:  # type: ignore[
 
 
 # ----------------------------------------------------------------------------- false alarms
-def _false_alarms(model: Any, cond: Conditions, seed: int, plans: int) -> tuple[int, int]:
-    """(alarms, monitored moves after the warm-up) of a no-step UR10 log; alarmed joints
+def _false_alarms(
+    model: Any, cond: Conditions, seed: int, plans: int, robot: str = "ur10"
+) -> tuple[int, int]:
+    """(alarms, monitored moves after the warm-up) of a no-step log; alarmed joints
     re-baselined."""
-    gen = IndependentCycleLog("ur10", cond, seed=seed)
+    gen = IndependentCycleLog(robot, cond, seed=seed)
     mon = DelayMonitor(model, warmup_moves=WARMUP)
     alarms, exposure = 0, 0
     for _ in range(plans // CHUNK):
@@ -166,21 +168,21 @@ def _false_alarms(model: Any, cond: Conditions, seed: int, plans: int) -> tuple[
     return alarms, exposure
 
 
-def test_false_alarms_with_a_steady_host(models) -> None:  # type: ignore[no-untyped-def]
-    """No step, the host's read-time wander off (its per-package jitter, stalls and lost
-    packages stay): at most one alarm in ~2,500 monitored UR10 moves (this seed: 1 in
-    2,483).
+def test_false_alarms_with_the_host_wandering(models) -> None:  # type: ignore[no-untyped-def]
+    """No step, the generator's default host (read-time wander common to a plan, AR(1)
+    over plans; per-package jitter, stalls, lost packages) on the UR10e, whose 2 ms period
+    the wander crosses often: at most one alarm in ~2,600 monitored moves.
 
-    Benchmark, same conditions: 17 alarms in 72,093 moves (2.4 per 10,000); with 30 more
-    logs 33 in 207,000 (1.6 per 10,000; the same residuals shuffled, 1.15), against the
-    design's 1. At 1.6 per 10,000 this test expects 0.4 alarms and passes (<= 1) with
-    probability 0.94 for a random seed (0.97 at the design rate); a monitor at ten times
-    the design rate fails with probability 0.71, at twenty times 0.96. It cannot confirm
-    "<= 1 per 10,000" (that takes the benchmark's ~100,000 moves); it catches a monitor
-    gone far off. With the default host wander the rate is higher (benchmark: UR10 3.2,
-    UR10e 10.5 per 10,000): not asserted here, reported.
+    The wander correlates consecutive residuals of a joint and pushes whole plans past the
+    controller's intake (a period later) in bursts. Before the monitor clipped its scores
+    and scaled them by their long-run variance this made 3.2 (UR10) and 10.5 (UR10e)
+    false alarms per 10,000 moves against the design's 1 (docs/monitor.md, "Measured on
+    logs we did not write"). Seeds 31, 32, 33 of this bounded form: 1, 3, 10 alarms
+    before, 0, 0, 1 now; this test runs seed 32. At the design rate it expects 0.26 alarms
+    and passes (<= 1) with probability 0.97; a monitor at ten times the rate fails with
+    probability 0.73. It cannot confirm "<= 1 per 10,000" (the benchmark's ~100,000 moves
+    do); it catches a monitor gone far off.
     """
-    cond = FAST.replace(wander_std_s=0.0)
-    alarms, exposure = _false_alarms(models["ur10"], cond, seed=31, plans=1000)
+    alarms, exposure = _false_alarms(models["ur10e"], FAST, seed=32, plans=1000, robot="ur10e")
     assert exposure >= 2_400
     assert alarms <= 1, f"{alarms} false alarms in {exposure} moves"

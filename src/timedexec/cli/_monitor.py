@@ -72,8 +72,13 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument(
         "--k",
-        type=float_arg(0.0, 3.0, low_open=True, fix=" (0.5: fastest for a one-sigma shift)"),
-        default=0.5,
+        type=float_arg(
+            0.0,
+            1.0,
+            low_open=True,
+            fix=" (0.4 by default: fastest for a 0.8-sd shift; scores are clipped at 1.5 sd)",
+        ),
+        default=0.4,
         help="CUSUM reference, standardized units",
     )
     p.add_argument(

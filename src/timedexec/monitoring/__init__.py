@@ -19,7 +19,14 @@ from timedexec.monitoring._cusum import (
     threshold_for_arl,
 )
 from timedexec.monitoring._figure import monitor_figure
-from timedexec.monitoring._monitor import Alert, DelayMonitor, JointState, RecalibrationPlan
+from timedexec.monitoring._monitor import (
+    LRV_LAGS,
+    SCORE_CLIP,
+    Alert,
+    DelayMonitor,
+    JointState,
+    RecalibrationPlan,
+)
 from timedexec.monitoring._moves import (
     HIGH_FRACTION,
     LOG_FORMAT,
@@ -38,6 +45,8 @@ __all__ = [
     "HIGH_FRACTION",
     "LOG_FORMAT",
     "LOW_FRACTION",
+    "LRV_LAGS",
+    "SCORE_CLIP",
     "Alert",
     "DelayMonitor",
     "JointState",

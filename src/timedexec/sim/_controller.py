@@ -282,6 +282,25 @@ class ControllerSim:
         frac = (t_s / PHASE_DRIFT_PERIOD_S + self._phase0) % 1.0
         return lo + (hi - lo) * (1.0 - abs(2.0 * frac - 1.0))
 
+    def set_joint_offsets(self, offsets_s: ArrayLike) -> None:
+        """Change each drive's offset (``joint_offset``) from now on, s (each in [0, 0.05]):
+        a drive that changes in service (firmware, filter, wear), for drift studies. A longer
+        delay holds the drive's oldest setpoint for the added substeps; a shorter one drops
+        the oldest."""
+        from timedexec.effects import JointOffset
+
+        offsets = np.asarray(JointOffset(offsets_s=tuple(np.asarray(offsets_s, float))).offsets_s)
+        for j, o in enumerate(offsets.tolist()):
+            n = math.ceil(o / self.dt_s - 1e-9)
+            line = self._lines[j]
+            while len(line) > n:
+                line.popleft()
+            if n > len(line):
+                oldest = line[0] if line else (float(self._ref_q[j]), float(self._ref_v[j]), False)
+                line.extendleft([oldest] * (n - len(line)))
+            self._delay_n[j] = n
+        self._offset_s = offsets
+
     def _params(self, q: FloatArray):  # type: ignore[no-untyped-def]
         rows = np.broadcast_to(q, (6, 6))
         params, _, _ = joint_params(
