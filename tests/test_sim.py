@@ -334,6 +334,29 @@ def test_a_joint_offset_delays_that_joint_only_under_a_multi_joint_speedj(reissu
     assert np.abs(shift_ms[[0, 2]]).max() < 0.05, shift_ms
 
 
+def test_set_joint_offsets_changes_a_drive_in_service():
+    """A drive that changes while the controller runs (the monitor's drift studies):
+    +2 ms on joint 2 from now moves joint 2's next onset by 2 ms (one 8 kHz substep of
+    resolution) and leaves the others; out-of-range offsets are refused."""
+
+    def onsets(extra_s: float) -> np.ndarray:
+        c = ControllerSim("ur10e", seed=1)
+        for _ in range(20):
+            c.cycle()
+        if extra_s:
+            c.set_joint_offsets(np.asarray(c._offset_s) + np.array([0, extra_s, 0, 0, 0, 0]))
+        cid = c.submit(SpeedJ((0.3, 0.3, 0.3, 0, 0, 0), 2.0, 0.0))
+        for _ in range(100):
+            c.cycle()
+        return np.asarray(next(e for e in c.truth if e.id == cid).onset_s[:3])
+
+    shift_ms = (onsets(0.002) - onsets(0.0)) * 1e3
+    assert shift_ms[1] == pytest.approx(2.0, abs=0.13), shift_ms
+    assert np.abs(shift_ms[[0, 2]]).max() < 0.05, shift_ms
+    with pytest.raises(ConfigError, match="offsets_s"):
+        ControllerSim("ur10e").set_joint_offsets([0, 0.1, 0, 0, 0, 0])
+
+
 def test_servoj_stream_from_rest_keeps_the_cycle_cost_flat():
     """A servoJ stream that crawls a joint from rest re-arms the onset watch every cycle;
     the controller checks its onset watch per joint, not per command, so 1,500 commands
