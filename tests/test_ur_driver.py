@@ -10,6 +10,7 @@ read-only drivers or kill the twin.
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -263,6 +264,46 @@ def test_long_stall_drops_the_link_after_the_client_timeout() -> None:
         assert "lost" in message
         # ur_rtde gives up after its 2.5 s deadline (plus our 0.2 s polling).
         assert 2.3 < time.monotonic() - tic < 4.0
+
+
+class _StaleRunningOnce:
+    """The client's control interface, except that its first ``isProgramRunning`` answers
+    True: the instant of a connect right after another session's close, when that
+    session's program is still seen running and stops before the next call."""
+
+    def __init__(self, ctrl: Any) -> None:
+        self._ctrl, self._lied = ctrl, False
+
+    def isProgramRunning(self) -> bool:
+        if not self._lied:
+            self._lied = True
+            return True
+        return bool(self._ctrl.isProgramRunning())
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._ctrl, name)
+
+
+def test_arm_watchdog_when_the_program_stops_under_it() -> None:
+    """The program stopped for real (``stopScript``) while the driver still saw it running:
+    setWatchdog is refused by the stopped script; arm_watchdog starts the program and arms
+    it (before: "did not accept setWatchdog: the control script is not running", seen when
+    a benchmark connected right after another session's close). Then a command works."""
+    with URTwin("ur10e", "127.0.0.37") as t, URDriver(t.host) as drv:
+        drv.read_state()
+        ctrl = drv._control()
+        ctrl.stopScript()
+        end = time.monotonic() + 2.0
+        while ctrl.isProgramRunning() and time.monotonic() < end:
+            time.sleep(0.01)
+        assert not ctrl.isProgramRunning()
+        drv._ctrl = _StaleRunningOnce(ctrl)
+        try:
+            assert drv.arm_watchdog(0.1) == pytest.approx(0.1)
+        finally:
+            drv._ctrl = ctrl
+        assert ctrl.isProgramRunning()
+        drv.speedj([0.0] * 6, 1.0, 0.0)
 
 
 def test_watchdog_trip_is_a_clear_driver_error_and_rearming_recovers() -> None:

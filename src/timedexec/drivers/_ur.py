@@ -461,7 +461,16 @@ class URDriver(RobotDriver):
             )
         self._restart_program()
         self._watchdog_s = None
-        self._call("setWatchdog", self._control().setWatchdog, 1.0 / float(timeout_s))
+        try:
+            self._call("setWatchdog", self._control().setWatchdog, 1.0 / float(timeout_s))
+        except DriverError:
+            # A connect right after another session's close can find that session's
+            # program still running and see it stop between the check and the call: the
+            # script refuses; start ours and try once more (a real refusal raises again).
+            if self._control().isProgramRunning():
+                raise
+            self._restart_program()
+            self._call("setWatchdog", self._control().setWatchdog, 1.0 / float(timeout_s))
         self._watchdog_s = float(timeout_s)
         return self._watchdog_s
 
