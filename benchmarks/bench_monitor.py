@@ -18,13 +18,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from statistics import NormalDist
 
 import numpy as np
 
 from timedexec.effects import EffectSet, JointOffset, default_effects
 from timedexec.learning import DelayModel
-from timedexec.monitoring import DelayMonitor, false_alarm_rate, moves_from_trials, run_lengths
+from timedexec.monitoring import (
+    DelayMonitor,
+    false_alarm_rate,
+    moves_from_trials,
+    run_lengths,
+    standardize,
+    warmup_reference,
+)
 from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot
 from timedexec.sim import default_settings, simulate_block, sweep_clock
@@ -76,9 +82,8 @@ class NaiveMonitor:
         n = self.mon.warmup_moves
         if len(r) <= n:
             return False
-        warm = np.sort(r[:n])
-        scores = np.array([NormalDist().inv_cdf((i + 0.5) / n) for i in range(n)])
-        z = np.interp(np.array(r[n:]), warm, scores)
+        warm, lrv = warmup_reference(r[:n])
+        z = standardize(r[n:], warm, lrv)
         up = down = 0.0
         k = self.mon.reference_k
         fired = False
@@ -168,20 +173,21 @@ def false_alarms(p: dict, chains: int) -> None:  # type: ignore[type-arg]
     mon.update(p["all"])
     rng = np.random.default_rng(3)
     n = mon.warmup_moves
-    scores = np.array([NormalDist().inv_cdf((i + 0.5) / n) for i in range(n)])
     alarms, exposure = 0, 0.0
     for j in JOINTS:
         res = mon.history(j)["residual_ms"]
         z = np.empty((chains, 10_000))
         for c in range(chains):
-            z[c] = np.interp(rng.choice(res, 10_000), np.sort(rng.choice(res, n)), scores)
+            warm, lrv = warmup_reference(rng.choice(res, n))
+            z[c] = standardize(rng.choice(res, 10_000), warm, lrv)
         rl = run_lengths(z, mon.threshold, mon.reference_k)
         alarms += int(np.isfinite(rl).sum())
         exposure += float(np.where(np.isfinite(rl), rl, 10_000).sum())
-    print(f"false alarms at the operating threshold h = {mon.threshold:.2f} (k 0.5, warm-up 100):")
+    k = mon.reference_k
+    print(f"false alarms at the operating threshold h = {mon.threshold:.2f} (k {k}, warm-up {n}):")
     print(
         f"  design (Siegmund, averaged over the warm-up's error): 1 per {mon.arl0_moves:,.0f}; "
-        f"nominal with a known warm-up: 1 per {1 / false_alarm_rate(mon.threshold, 0.5):,.0f}"
+        f"nominal with a known warm-up: 1 per {1 / false_alarm_rate(mon.threshold, k):,.0f}"
     )
     print(
         f"  simulated on resampled residuals: {alarms} alarms in {exposure:,.0f} moves = "

@@ -235,8 +235,8 @@ def main() -> None:
 
     print()
     print(
-        "DelayMonitor on the independent generator (warm-up 100, arl0 10,000, k 0.5, "
-        f"+2 ms step, poses {args.poses})"
+        "DelayMonitor on the independent generator (warm-up 100, arl0 10,000, "
+        f"k {DelayMonitor.__init__.__kwdefaults__['reference_k']}, +2 ms step, poses {args.poses})"
     )
     hdr = (
         "| robot | runs | detected <= 200 moves | moves to detection median / p90 / max | "

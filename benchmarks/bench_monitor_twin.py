@@ -11,7 +11,7 @@ change (false), the first alarm after it (joint, moves of that joint since the c
 the estimated shift and its 95 % interval), and the residual spread per joint. With
 ``--step-ms 0`` the run measures false alarms only.
 
-    nice -n 5 python benchmarks/bench_monitor_twin.py [--runs 3] [--warmup 25] [--after 60]
+    nice -n 5 python benchmarks/bench_monitor_twin.py [--runs 3] [--warmup 42] [--after 80]
         [--step-ms 2] [--joint 2]
 
 A real-time twin on a shared two-core VM: the executor's send times wander with the load,
@@ -60,7 +60,8 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     from timedexec.drivers import URDriver
     from timedexec.effects import EffectSet, default_effects
     from timedexec.errors import ConfigError
-    from timedexec.execution import DelayModel, TimedExecutor, predict_delays
+    from timedexec.execution import TimedExecutor, predict_delays
+    from timedexec.learning import DelayModel
     from timedexec.monitoring import DelayMonitor
     from timedexec.robots import get_robot
     from timedexec.twins import URTwin
@@ -78,45 +79,71 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     model = DelayModel.load("ur10e-sim")
     for d in (1, -1):  # build the GP predictors before connecting (the watchdog)
         predict_delays(model, [1, 2, 3], [d] * 3, np.tile(q0, (3, 1)))
-    mon = DelayMonitor(model, warmup_moves=20)
+    mon = DelayMonitor(model, warmup_moves=args.warmup_moves, reference_k=args.k)
     moves_at_step: dict[int, int] = {}
     false_before: list[str] = []
     first_after = None
-    with URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim):
-        with TimedExecutor(URDriver(host), model, stale_periods=50, watchdog_timeout_s=1.0) as ex:
-            start = ex.estimate().q_rad
-            for k in range(args.warmup + args.after):
-                if k == args.warmup:
-                    mon.follow(ex)
-                    moves_at_step = {s.joint: s.moves for s in mon.states()}
-                    flag.touch()
-                    ex.idle(ex.now() + 0.2)  # the twin checks the flag every 50 cycles
-                target = start.copy()
-                target[:3] += 0.05 if k % 2 == 0 else 0.0
-                ex.idle(ex.now() + 0.35)
-                try:
-                    ex.execute(ex.plan(target), start_time_s=ex.now() + 0.5)
-                except ConfigError as exc:  # the VM stalled past the start time
-                    if "too soon" not in str(exc):
-                        raise
-                    continue
-                for a in mon.follow(ex):
-                    if not moves_at_step:
-                        false_before.append(a.message())
-                        mon.rebaseline(a.joint)
-                    elif first_after is None:
-                        first_after = a
-                if first_after is not None and not args.full:
-                    break
-            ex.idle(ex.now() + 0.5)
+    with (
+        URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim),
+        TimedExecutor(URDriver(host), model, stale_periods=200, watchdog_timeout_s=1.0) as ex,
+    ):
+        start = ex.estimate().q_rad
+        for k in range(args.warmup + args.after):
+            if k == args.warmup:
+                mon.follow(ex)
+                moves_at_step = {s.joint: s.moves for s in mon.states()}
+                flag.touch()
+                ex.idle(ex.now() + 0.2)  # the twin checks the flag every 50 cycles
+            target = start.copy()
+            target[:3] += 0.05 if k % 2 == 0 else 0.0
+            ex.idle(ex.now() + 0.35)
+            try:
+                ex.execute(ex.plan(target), start_time_s=ex.now() + 0.5)
+            except ConfigError as exc:  # the VM stalled past the start time
+                if "too soon" not in str(exc):
+                    raise
+                continue
             for a in mon.follow(ex):
-                if moves_at_step and first_after is None:
+                if not moves_at_step:
+                    false_before.append(a.message())
+                    mon.rebaseline(a.joint)
+                elif first_after is None:
                     first_after = a
+            if first_after is not None and not args.full:
+                break
+        ex.idle(ex.now() + 0.5)
+        for a in mon.follow(ex):
+            if moves_at_step and first_after is None:
+                first_after = a
     spread = {
         s.joint: float(1.4826 * np.median(np.abs(np.diff(s.residual_s))) / np.sqrt(2) * 1e3)
         for s in mon.states()
     }
-    out: dict[str, Any] = {"seed": seed, "false_before": false_before, "spread_ms": spread}
+    shifts = {}
+    for st in mon.states():
+        n0 = moves_at_step.get(st.joint, st.moves)
+        r = np.array(st.residual_s) * 1e3
+        contrast = []  # against the median of the other joints moved in the same execution
+        others = {o.joint: dict(zip(o.send_s, o.residual_s, strict=True)) for o in mon.states()}
+        for i, (send, res) in enumerate(zip(st.send_s, st.residual_s, strict=True)):
+            peers = [others[j][send] for j in others if j != st.joint and send in others[j]]
+            if peers:
+                contrast.append((i >= n0, res - float(np.median(peers))))
+        c = np.array([x[1] for x in contrast]) * 1e3
+        after = np.array([x[0] for x in contrast], bool)
+        shifts[st.joint] = (
+            float(np.median(r[n0:]) - np.median(r[:n0])) if len(r) > n0 else float("nan"),
+            float(np.median(c[after]) - np.median(c[~after])) if after.any() else float("nan"),
+            st.lrv,
+            float(max(max(st.up_hist), max(st.down_hist))),
+        )
+    out: dict[str, Any] = {
+        "seed": seed,
+        "false_before": false_before,
+        "spread_ms": spread,
+        "shifts": shifts,
+        "threshold": mon.threshold,
+    }
     if first_after is not None:
         out.update(
             joint=first_after.joint,
@@ -130,8 +157,12 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--warmup", type=int, default=25, help="executions before the change")
-    ap.add_argument("--after", type=int, default=60, help="executions after it (at most)")
+    ap.add_argument("--warmup", type=int, default=42, help="executions before the change")
+    ap.add_argument("--after", type=int, default=80, help="executions after it (at most)")
+    ap.add_argument("--warmup-moves", type=int, default=40, help="monitor warm-up per joint")
+    ap.add_argument(
+        "--k", type=float, default=0.5, help="CUSUM reference (h = 12.5 for 40 warm-up moves)"
+    )
     ap.add_argument("--step-ms", type=float, default=2.0)
     ap.add_argument("--joint", type=int, default=2)
     ap.add_argument("--full", action="store_true", help="run every execution after an alarm")
@@ -152,6 +183,12 @@ def main() -> None:
         else:
             print("    no alarm after the change")
         print(f"    move-to-move residual spread (ms, robust): {spread}")
+        for j, (raw, con, lrv, cmax) in sorted(r["shifts"].items()):
+            print(
+                f"    joint {j}: median residual after - before {raw:+.2f} ms, against the "
+                f"other joints of the move {con:+.2f} ms; long-run variance factor {lrv:.2f}; "
+                f"largest CUSUM {cmax:.1f} (threshold {r['threshold']:.1f})"
+            )
     print(f"wall time {time.perf_counter() - t0:.0f} s")
 
 

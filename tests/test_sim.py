@@ -317,7 +317,9 @@ def test_a_joint_offset_delays_that_joint_only_under_a_multi_joint_speedj(reissu
         eff = default_effects("ur10e")
         off = list(eff.get("joint_offset").offsets_s)  # type: ignore[union-attr]
         off[1] += extra_s
-        c = ControllerSim("ur10e", effects=eff.with_effect(JointOffset(offsets_s=tuple(off))), seed=1)
+        c = ControllerSim(
+            "ur10e", effects=eff.with_effect(JointOffset(offsets_s=tuple(off))), seed=1
+        )
         for _ in range(20):
             c.cycle()
         first = None

@@ -26,6 +26,8 @@ from timedexec.monitoring._monitor import (
     DelayMonitor,
     JointState,
     RecalibrationPlan,
+    standardize,
+    warmup_reference,
 )
 from timedexec.monitoring._moves import (
     HIGH_FRACTION,
@@ -64,5 +66,7 @@ __all__ = [
     "moves_from_trials",
     "run_lengths",
     "save_cycle_log",
+    "standardize",
     "threshold_for_arl",
+    "warmup_reference",
 ]

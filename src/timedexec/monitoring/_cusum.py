@@ -25,6 +25,7 @@ __all__ = [
     "SIEGMUND_CORRECTION",
     "arl_one_sided",
     "arl_two_sided",
+    "check_arl0",
     "false_alarm_rate",
     "run_lengths",
     "threshold_for_arl",
@@ -69,6 +70,16 @@ def false_alarm_rate(h: float, k: float, warmup_moves: int | None = None) -> flo
     return float(np.sum(w / arl_two_sided(h, k, mu)) / math.sqrt(2.0 * math.pi))
 
 
+def check_arl0(arl0_moves: float) -> float:
+    """``arl0_moves`` if it is a number of moves >= 10, else a ConfigError naming it."""
+    if not (isinstance(arl0_moves, int | float) and math.isfinite(arl0_moves) and arl0_moves >= 10):
+        raise ConfigError(
+            f"arl0_moves={arl0_moves!r} is out of range; use a number of moves >= 10 "
+            "(e.g. 10000: one false alarm per 10,000 moves)"
+        )
+    return float(arl0_moves)
+
+
 def threshold_for_arl(arl0_moves: float, k: float, warmup_moves: int | None = None) -> float:
     """The threshold ``h`` whose (expected) false-alarm rate is ``1 / arl0_moves`` per move.
 
@@ -77,11 +88,7 @@ def threshold_for_arl(arl0_moves: float, k: float, warmup_moves: int | None = No
     ConfigError
         ``arl0_moves`` below 10 or ``k`` not in (0, 3].
     """
-    if not (math.isfinite(arl0_moves) and arl0_moves >= 10):
-        raise ConfigError(
-            f"arl0_moves={arl0_moves!r} is out of range; use a number of moves >= 10 "
-            "(e.g. 10000: one false alarm per 10,000 moves)"
-        )
+    check_arl0(arl0_moves)
     if not (math.isfinite(k) and 0 < k <= 3):
         raise ConfigError(
             f"reference k={k!r} is out of range; use 0 < k <= 3 (half the standardized "

@@ -26,19 +26,28 @@ each made false alarms 3-10x more frequent than the design rate:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.monitoring._cusum import false_alarm_rate, threshold_for_arl
+from timedexec.monitoring._cusum import check_arl0, false_alarm_rate, threshold_for_arl
 from timedexec.monitoring._moves import Move, MoveExtractor
 
-__all__ = ["Alert", "DelayMonitor", "JointState", "RecalibrationPlan"]
+__all__ = [
+    "Alert",
+    "Cusum",
+    "DelayMonitor",
+    "JointState",
+    "RecalibrationPlan",
+    "standardize",
+    "warmup_reference",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -115,6 +124,15 @@ class Alert:
         model's actuation + response (offsets of the method included).
     recalibrate : RecalibrationPlan
         What to sweep to re-fit it.
+    test : str
+        Which CUSUM crossed: "level" (the joint's residuals) or "contrast" (its residuals
+        minus the median of the joints moved with it: a change of this joint against the
+        others, blind to one they share). For "contrast", the shift, the interval and
+        ``moves_since_change`` are of the contrast (moves with other joints only).
+    crossed_joint : int
+        The joint whose CUSUM crossed. A contrast alarm goes to the joint whose contrast
+        moved most (one joint's change moves the others' contrasts too), which may not be
+        the one that crossed first.
     """
 
     joint: int
@@ -129,13 +147,22 @@ class Alert:
     arl0_moves: float
     gap_to_model_ms: float
     recalibrate: RecalibrationPlan
+    test: str = "level"
+    crossed_joint: int = 0
 
     def message(self) -> str:
         """One line for people."""
         lo, hi = self.ci_ms
+        against = " than the joints moved with it" if self.test == "contrast" else ""
+        which = (
+            f"{self.test} CUSUM"
+            if self.crossed_joint in (0, self.joint)
+            else f"joint {self.crossed_joint}'s {self.test} CUSUM"
+        )
         return (
-            f"joint {self.joint}: lag {self.side} by {self.shift_ms:+.2f} ms "
-            f"(95 % CI {lo:+.2f} .. {hi:+.2f}) — CUSUM {self.statistic:.1f} > {self.threshold:.1f} "
+            f"joint {self.joint}: lag {self.side}{against} by {self.shift_ms:+.2f} ms "
+            f"(95 % CI {lo:+.2f} .. {hi:+.2f}) — {which} {self.statistic:.1f} > "
+            f"{self.threshold:.1f} "
             f"after {self.moves_since_change} moves since the change (move {self.move}); "
             f"threshold set for 1 false alarm per {self.arl0_moves:,.0f} moves; "
             f"recalibrate: {self.recalibrate.command}"
@@ -150,26 +177,75 @@ class Alert:
 
 
 @dataclass
+class Cusum:
+    """One two-sided CUSUM on standardized residuals, with the warm-up that standardizes
+    them (module docstring). ``n`` counts its residuals, warm-up included."""
+
+    n: int = 0
+    warm: FloatArray | None = None  # sorted warm-up residuals, s
+    lrv: float = 1.0  # long-run variance factor of the warm-up's scores (serial correlation)
+    up: float = 0.0
+    down: float = 0.0
+    up_zero: int = 0  # residual count at which `up` was last zero
+    down_zero: int = 0
+    residual_s: list[float] = field(default_factory=list)
+    up_hist: list[float] = field(default_factory=list)
+    down_hist: list[float] = field(default_factory=list)
+
+    def step(self, r: float, warmup: int, k: float, h: float) -> str | None:
+        """Add residual ``r`` (s); "later"/"earlier" when a side is above ``h``."""
+        self.n += 1
+        self.residual_s.append(r)
+        if self.warm is None:
+            self.up_hist.append(0.0)
+            self.down_hist.append(0.0)
+            if self.n >= warmup:
+                self.warm, self.lrv = warmup_reference(self.residual_s[-warmup:])
+                self.up_zero = self.down_zero = self.n
+            return None
+        z = float(standardize(r, self.warm, self.lrv))
+        self.up = max(0.0, self.up + z - k)
+        self.down = max(0.0, self.down - z - k)
+        if self.up == 0.0:
+            self.up_zero = self.n
+        if self.down == 0.0:
+            self.down_zero = self.n
+        self.up_hist.append(self.up)
+        self.down_hist.append(self.down)
+        if max(self.up, self.down) <= h:
+            return None
+        return "later" if self.up > h else "earlier"
+
+    def since_change(self, side: str) -> int:
+        """Residuals since the side's statistic was last zero."""
+        return self.n - (self.up_zero if side == "later" else self.down_zero)
+
+
+@dataclass
 class JointState:
-    """The monitor's state of one joint (see :meth:`DelayMonitor.states`)."""
+    """The monitor's state of one joint (see :meth:`DelayMonitor.states`): the CUSUM of its
+    residuals (``level``) and of its contrasts with the joints moved with it
+    (``contrast``)."""
 
     joint: int
     moves: int = 0
     skipped: int = 0
-    warm: FloatArray | None = None  # sorted warm-up residuals, s
-    scores: FloatArray | None = None  # their normal scores
-    lrv: float = 1.0  # long-run variance factor of the warm-up's scores (serial correlation)
-    up: float = 0.0
-    down: float = 0.0
-    up_zero: int = 0  # move index at which `up` was last zero
-    down_zero: int = 0
+    level: Cusum = field(default_factory=Cusum)
+    contrast: Cusum = field(default_factory=Cusum)
     alarm: Alert | None = None
-    residual_s: list[float] = field(default_factory=list)
     lag_s: list[float] = field(default_factory=list)
     send_s: list[float] = field(default_factory=list)
-    up_hist: list[float] = field(default_factory=list)
-    down_hist: list[float] = field(default_factory=list)
     act_std_s: list[float] = field(default_factory=list)
+
+    @property
+    def residual_s(self) -> list[float]:
+        """Residuals (lag minus the model's prediction) per move, s."""
+        return self.level.residual_s
+
+    @property
+    def warm(self) -> FloatArray | None:
+        """Sorted warm-up residuals, s (None during the warm-up)."""
+        return self.level.warm
 
     @property
     def status(self) -> str:
@@ -179,11 +255,28 @@ class JointState:
         return "warm-up" if self.warm is None else "ok"
 
 
+@functools.cache
 def _normal_scores(n: int) -> FloatArray:
     from statistics import NormalDist
 
     nd = NormalDist()
     return np.array([nd.inv_cdf((i + 0.5) / n) for i in range(n)])
+
+
+def standardize(residuals: ArrayLike, warm_sorted: FloatArray, lrv: float = 1.0) -> FloatArray:
+    """The CUSUM's scores of ``residuals`` against a warm-up (module docstring): the
+    quantile map of the sorted warm-up residuals to normal scores, clipped at
+    ``SCORE_CLIP``, divided by ``sqrt(lrv)``."""
+    z = np.interp(np.asarray(residuals, dtype=float), warm_sorted, _normal_scores(len(warm_sorted)))
+    return np.asarray(np.clip(z, -SCORE_CLIP, SCORE_CLIP) / math.sqrt(lrv))
+
+
+def warmup_reference(residuals_in_order: ArrayLike) -> tuple[FloatArray, float]:
+    """``(sorted residuals, long-run variance factor)`` of a warm-up given in the order
+    the moves ran (the factor from their clipped scores, Bartlett over ``LRV_LAGS``)."""
+    x = np.asarray(residuals_in_order, dtype=float)
+    warm = np.sort(x)
+    return warm, _long_run_variance(standardize(x, warm), LRV_LAGS)
 
 
 def _long_run_variance(z: FloatArray, lags: int) -> float:
@@ -194,6 +287,19 @@ def _long_run_variance(z: FloatArray, lags: int) -> float:
         return 1.0
     acf = [float(np.dot(x[:-lag], x[lag:])) / var for lag in range(1, lags + 1)]
     return max(1.0, 1.0 + 2.0 * sum((1.0 - lag / (lags + 1)) * r for lag, r in enumerate(acf, 1)))
+
+
+def _cusum_summary(c: Cusum, warmup: int) -> dict[str, Any]:
+    """Reference and shift of a warmed-up CUSUM, ms."""
+    assert c.warm is not None
+    res = np.array(c.residual_s[warmup:])
+    med = float(np.median(c.warm))
+    return {
+        "gap_to_model_ms": med * 1e3,
+        "serial_correlation_factor": c.lrv,
+        "warmup_spread_ms": float(1.4826 * np.median(np.abs(c.warm - med)) * 1e3),
+        "shift_ms": float(np.median(res) - med) * 1e3 if len(res) else None,
+    }
 
 
 def _hodges_lehmann(
@@ -277,8 +383,9 @@ class DelayMonitor:
                 f"reference_k={reference_k!r} is out of range; use 0 < k < {SCORE_CLIP} (scores "
                 f"are clipped at {SCORE_CLIP}: a larger k could never alarm; 0.5 by default)"
             )
-        self.arl0_moves = float(arl0_moves)
-        self.threshold = threshold_for_arl(self.arl0_moves, self.reference_k, warmup_moves)
+        self.arl0_moves = check_arl0(arl0_moves)
+        # two tests per joint (level and contrast), each with half the false-alarm budget
+        self.threshold = threshold_for_arl(2.0 * self.arl0_moves, self.reference_k, warmup_moves)
         self.nominal_arl0_moves = 1.0 / false_alarm_rate(self.threshold, self.reference_k)
         if joints is not None:
             bad = [j for j in joints if j not in range(1, 7)]
@@ -327,17 +434,60 @@ class DelayMonitor:
             np.array([m.q_start_rad for m in use]),
             t_s=t_s,
         )
-        expected = pred.actuation_mean + pred.response_mean
+        residual = np.array([m.lag_s for m in use]) - (pred.actuation_mean + pred.response_mean)
+        plans: dict[float, list[int]] = {}  # moves that left at the same instant, in order
+        for i, m in enumerate(use):
+            plans.setdefault(round(m.send_s, 6), []).append(i)
         new: list[Alert] = []
-        for m, e, s in zip(use, expected, pred.actuation_std, strict=True):
-            st = self._joint(m.joint)
-            st.lag_s.append(m.lag_s)
-            st.send_s.append(m.send_s)
-            alert = self._step(st, m.lag_s - float(e), float(s))
-            if alert is not None:
-                new.append(alert)
+        for idx in plans.values():
+            # contrasts with the alarms as they stand before this plan
+            contrast = self._contrasts([use[i] for i in idx], residual[idx])
+            for i, c in zip(idx, contrast, strict=True):
+                m = use[i]
+                st = self._joint(m.joint)
+                st.lag_s.append(m.lag_s)
+                st.send_s.append(m.send_s)
+                alert = self._step(st, float(residual[i]), float(c), float(pred.actuation_std[i]))
+                if alert is not None:
+                    new.append(alert)
         self.alerts.extend(new)
         return new
+
+    def _contrasts(self, plan: list[Move], residual: FloatArray) -> FloatArray:
+        """Each move's centred residual minus the median centred residual of the other
+        joints of its plan; NaN for a joint moved alone. Centred: less the joint's own
+        warm-up median (its running median while it warms up, from 5 moves on), so a
+        contrast's level does not depend on which joints moved with it. Joints in alarm are
+        left out of the others (their change would leak into the rest)."""
+        out = np.full(len(plan), np.nan)
+        if len(plan) < 2 or len({m.joint for m in plan}) < len(plan):
+            return out  # moved alone, or not one plan (a joint twice)
+        centred = np.full(len(plan), np.nan)
+        for i, m in enumerate(plan):
+            level = self._joint(m.joint).level
+            if level.warm is not None:
+                centred[i] = residual[i] - float(np.median(level.warm))
+            elif level.n >= 5:
+                centred[i] = residual[i] - float(np.median(level.residual_s))
+        usable = [
+            i
+            for i, m in enumerate(plan)
+            if math.isfinite(centred[i]) and self._joint(m.joint).alarm is None
+        ]
+        for i in range(len(plan)):
+            others = [centred[o] for o in usable if o != i]
+            if others and math.isfinite(centred[i]):
+                out[i] = centred[i] - float(np.median(others))
+        return out  # moved alone, or not one plan (a joint twice)
+        for i in range(len(plan)):
+            others = [
+                residual[o]
+                for o in range(len(plan))
+                if o != i and self._joint(plan[o].joint).alarm is None
+            ]
+            if others:
+                out[i] = residual[i] - float(np.median(others))
+        return out
 
     def feed_log(self, arrays: dict[str, NDArray[Any]]) -> list[Alert]:
         """Add the next rows of a cycle log (:meth:`CycleLog.arrays` or a saved log)."""
@@ -376,52 +526,68 @@ class DelayMonitor:
             st = self._state[joint] = JointState(joint)
         return st
 
-    def _step(self, st: JointState, r: float, act_std_s: float) -> Alert | None:
+    def _step(self, st: JointState, r: float, c: float, act_std_s: float) -> Alert | None:
         st.moves += 1
-        st.residual_s.append(r)
         st.act_std_s.append(act_std_s)
-        if st.warm is None:
-            st.up_hist.append(0.0)
-            st.down_hist.append(0.0)
-            if st.moves >= self.warmup_moves:
-                in_order = np.array(st.residual_s[-self.warmup_moves :])
-                st.warm = np.sort(in_order)
-                st.scores = _normal_scores(self.warmup_moves)
-                z_warm = np.clip(np.interp(in_order, st.warm, st.scores), -SCORE_CLIP, SCORE_CLIP)
-                st.lrv = _long_run_variance(z_warm, LRV_LAGS)
-                st.up_zero = st.down_zero = st.moves
+        args = (self.warmup_moves, self.reference_k, self.threshold)
+        fired = st.level.step(r, *args)
+        test = "level"
+        if math.isfinite(c):
+            fired_c = st.contrast.step(c, *args)
+            if fired is None and fired_c is not None:
+                fired, test = fired_c, "contrast"
+        if st.alarm is not None or fired is None:
             return None
-        assert st.scores is not None
-        z = float(np.interp(r, st.warm, st.scores))
-        z = min(max(z, -SCORE_CLIP), SCORE_CLIP) / math.sqrt(st.lrv)
-        k = self.reference_k
-        st.up = max(0.0, st.up + z - k)
-        st.down = max(0.0, st.down - z - k)
-        if st.up == 0.0:
-            st.up_zero = st.moves
-        if st.down == 0.0:
-            st.down_zero = st.moves
-        st.up_hist.append(st.up)
-        st.down_hist.append(st.down)
-        if st.alarm is not None or max(st.up, st.down) <= self.threshold:
+        if test == "level":
+            return self._alarm(st, "level", st.level, st.level.since_change(fired), st)
+        return self._contrast_alarm(st, st.contrast.since_change(fired))
+
+    def _contrast_alarm(self, fired: JointState, since: int) -> Alert | None:
+        """A contrast crossed: one joint changed against the joints moved with it, but its
+        change also moved theirs (by half, for three joints), and clipped scores cross at
+        about the same time. The alarm goes to the joint whose contrast moved most over
+        the same number of recent contrasts (a change of one joint, not of all the others,
+        is the simpler explanation); the contrast CUSUMs of the others restart."""
+        best: tuple[float, JointState] | None = None
+        for other in self._state.values():
+            con = other.contrast
+            if other.alarm is not None or con.warm is None or con.n - self.warmup_moves < since:
+                continue
+            shift = abs(float(np.median(con.residual_s[-since:])) - float(np.median(con.warm)))
+            if best is None or shift > best[0]:
+                best = (shift, other)
+        if best is None:
             return None
-        upper = st.up > self.threshold
-        since = st.moves - (st.up_zero if upper else st.down_zero)
-        post = np.array(st.residual_s[-since:])
-        est, lo, hi = _hodges_lehmann(post, st.warm)
+        st = best[1]
+        for other in self._state.values():
+            if other is not st:
+                other.contrast.up = other.contrast.down = 0.0
+                other.contrast.up_zero = other.contrast.down_zero = other.contrast.n
+        return self._alarm(st, "contrast", st.contrast, since, fired)
+
+    def _alarm(
+        self, st: JointState, test: str, cusum: Cusum, since: int, fired: JointState
+    ) -> Alert:
+        assert cusum.warm is not None
+        assert st.level.warm is not None
+        est, lo, hi = _hodges_lehmann(np.array(cusum.residual_s[-since:]), cusum.warm)
+        side = "later" if est > 0 else "earlier"
+        crossed = fired.level if test == "level" else fired.contrast
         alert = Alert(
             joint=st.joint,
             shift_ms=est * 1e3,
             ci_ms=(lo * 1e3, hi * 1e3),
-            statistic=st.up if upper else st.down,
+            statistic=max(crossed.up, crossed.down),
             threshold=self.threshold,
-            side="later" if upper else "earlier",
+            side=side,
             move=st.moves,
             moves_since_change=since,
             false_alarm_rate=1.0 / self.arl0_moves,
             arl0_moves=self.arl0_moves,
-            gap_to_model_ms=float(np.median(st.warm)) * 1e3,
+            gap_to_model_ms=float(np.median(st.level.warm)) * 1e3,
             recalibrate=self._recalibration([st.joint], float(np.median(st.act_std_s))),
+            test=test,
+            crossed_joint=fired.joint,
         )
         st.alarm = alert
         return alert
@@ -454,12 +620,16 @@ class DelayMonitor:
         return [self._state[j] for j in sorted(self._state)]
 
     def history(self, joint: int) -> dict[str, FloatArray]:
-        """``residual_ms``, ``upper``, ``lower`` per move of ``joint`` (warm-up included)."""
+        """``residual_ms``, ``upper``, ``lower`` per move of ``joint`` (warm-up included);
+        ``contrast_ms``, ``contrast_upper``, ``contrast_lower`` per move with other joints."""
         st = self._state[joint]
         return {
-            "residual_ms": np.array(st.residual_s) * 1e3,
-            "upper": np.array(st.up_hist),
-            "lower": np.array(st.down_hist),
+            "residual_ms": np.array(st.level.residual_s) * 1e3,
+            "upper": np.array(st.level.up_hist),
+            "lower": np.array(st.level.down_hist),
+            "contrast_ms": np.array(st.contrast.residual_s) * 1e3,
+            "contrast_upper": np.array(st.contrast.up_hist),
+            "contrast_lower": np.array(st.contrast.down_hist),
         }
 
     def summary(self) -> dict[str, Any]:
@@ -471,24 +641,26 @@ class DelayMonitor:
                 "status": st.status,
                 "moves": st.moves,
                 "skipped": st.skipped,
-                "upper": st.up,
-                "lower": st.down,
+                "upper": st.level.up,
+                "lower": st.level.down,
             }
             if st.warm is not None:
-                res = np.array(st.residual_s[self.warmup_moves :])
-                row["gap_to_model_ms"] = float(np.median(st.warm)) * 1e3
-                row["serial_correlation_factor"] = st.lrv
-                row["warmup_spread_ms"] = float(
-                    1.4826 * np.median(np.abs(st.warm - np.median(st.warm))) * 1e3
-                )
-                row["shift_ms"] = (
-                    float(np.median(res) - np.median(st.warm)) * 1e3 if len(res) else None
-                )
+                row.update(_cusum_summary(st.level, self.warmup_moves))
+            if st.contrast.warm is not None:
+                row["contrast"] = {
+                    "moves": st.contrast.n,
+                    "upper": st.contrast.up,
+                    "lower": st.contrast.down,
+                    **_cusum_summary(st.contrast, self.warmup_moves),
+                }
             if st.alarm is not None:
                 row["alert"] = st.alarm.to_dict()
             hist = self.history(st.joint)
-            # the statistic over moves, for the monitor figure (rounded: a figure's worth)
-            row["history"] = {k: np.round(hist[k], 3).tolist() for k in ("upper", "lower")}
+            # the statistics over moves, for the monitor figure (rounded: a figure's worth)
+            row["history"] = {
+                k: np.round(hist[k], 3).tolist()
+                for k in ("upper", "lower", "contrast_upper", "contrast_lower")
+            }
             joints.append(row)
         return {
             "warmup_moves": self.warmup_moves,

@@ -229,7 +229,10 @@ class ControllerSim:
         # sees every joint's undelayed reference), and per joint a delay line of whole
         # substeps (q, v, position mode) between it and the drive.
         self._delay_n = [math.ceil(o / self.dt_s - 1e-9) for o in self._offset_s.tolist()]
-        self._lines = [deque([(float(q), 0.0, False)] * n) for q, n in zip(q0.tolist(), self._delay_n)]
+        self._lines = [
+            deque([(float(q), 0.0, False)] * n)
+            for q, n in zip(q0.tolist(), self._delay_n, strict=True)
+        ]
         self._lines_busy_until_s = 0.0  # a non-zero reference is in some delay line until then
         self._params_q = q0.copy()
         self._params_time_s = 0.0
