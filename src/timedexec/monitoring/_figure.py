@@ -12,7 +12,8 @@ __all__ = ["monitor_figure"]
 
 
 def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> Any:
-    """Draw the upper and lower CUSUM of every joint against its moves.
+    """Draw the upper and lower CUSUMs of every joint (level, and dotted the contrast with
+    the joints moved with it) against its moves.
 
     One panel per joint: the two statistics (warm-up moves shaded), the threshold, and a
     marker where an alarm fired. matplotlib is imported here, never at import time, and
@@ -44,6 +45,15 @@ def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> 
         x = np.arange(1, len(upper) + 1)
         ax.plot(x, upper, lw=1.0, color="C3", label="upper (later)")
         ax.plot(x, lower, lw=1.0, color="C0", label="lower (earlier)")
+        hist = row["history"]
+        cx = np.asarray(hist.get("contrast_move", []), dtype=np.float64)
+        if len(cx):
+            c_up = np.asarray(hist["contrast_upper"], dtype=np.float64)
+            c_down = np.asarray(hist["contrast_lower"], dtype=np.float64)
+            ax.plot(cx, c_up, lw=0.8, ls=":", color="C3", label="contrast upper")
+            ax.plot(cx, c_down, lw=0.8, ls=":", color="C0", label="contrast lower")
+            upper = np.concatenate((upper, c_up))
+            lower = np.concatenate((lower, c_down))
         ax.axhline(h, color="k", lw=0.8, ls="--", label=f"threshold {h:.1f}")
         ax.axvspan(0.5, min(warmup, len(x)) + 0.5, color="0.9", label="warm-up")
         alert = row.get("alert")

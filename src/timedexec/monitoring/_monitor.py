@@ -236,6 +236,7 @@ class JointState:
     lag_s: list[float] = field(default_factory=list)
     send_s: list[float] = field(default_factory=list)
     act_std_s: list[float] = field(default_factory=list)
+    contrast_move: list[int] = field(default_factory=list)  # move count of each contrast
 
     @property
     def residual_s(self) -> list[float]:
@@ -533,13 +534,15 @@ class DelayMonitor:
         fired = st.level.step(r, *args)
         test = "level"
         if math.isfinite(c):
+            st.contrast_move.append(st.moves)
             fired_c = st.contrast.step(c, *args)
             if fired is None and fired_c is not None:
                 fired, test = fired_c, "contrast"
         if st.alarm is not None or fired is None:
             return None
         if test == "level":
-            return self._alarm(st, "level", st.level, st.level.since_change(fired), st)
+            statistic = max(st.level.up, st.level.down)
+            return self._alarm(st, "level", st.level, st.level.since_change(fired), st, statistic)
         return self._contrast_alarm(st, st.contrast.since_change(fired))
 
     def _contrast_alarm(self, fired: JointState, since: int) -> Alert | None:
@@ -559,25 +562,31 @@ class DelayMonitor:
         if best is None:
             return None
         st = best[1]
+        statistic = max(fired.contrast.up, fired.contrast.down)  # before the restart
         for other in self._state.values():
             if other is not st:
                 other.contrast.up = other.contrast.down = 0.0
                 other.contrast.up_zero = other.contrast.down_zero = other.contrast.n
-        return self._alarm(st, "contrast", st.contrast, since, fired)
+        return self._alarm(st, "contrast", st.contrast, since, fired, statistic)
 
     def _alarm(
-        self, st: JointState, test: str, cusum: Cusum, since: int, fired: JointState
+        self,
+        st: JointState,
+        test: str,
+        cusum: Cusum,
+        since: int,
+        fired: JointState,
+        statistic: float,
     ) -> Alert:
         assert cusum.warm is not None
         assert st.level.warm is not None
         est, lo, hi = _hodges_lehmann(np.array(cusum.residual_s[-since:]), cusum.warm)
         side = "later" if est > 0 else "earlier"
-        crossed = fired.level if test == "level" else fired.contrast
         alert = Alert(
             joint=st.joint,
             shift_ms=est * 1e3,
             ci_ms=(lo * 1e3, hi * 1e3),
-            statistic=max(crossed.up, crossed.down),
+            statistic=statistic,
             threshold=self.threshold,
             side=side,
             move=st.moves,
@@ -621,7 +630,8 @@ class DelayMonitor:
 
     def history(self, joint: int) -> dict[str, FloatArray]:
         """``residual_ms``, ``upper``, ``lower`` per move of ``joint`` (warm-up included);
-        ``contrast_ms``, ``contrast_upper``, ``contrast_lower`` per move with other joints."""
+        ``contrast_ms``, ``contrast_upper``, ``contrast_lower`` per move with other joints,
+        ``contrast_move`` the joint's move count of each."""
         st = self._state[joint]
         return {
             "residual_ms": np.array(st.level.residual_s) * 1e3,
@@ -630,6 +640,7 @@ class DelayMonitor:
             "contrast_ms": np.array(st.contrast.residual_s) * 1e3,
             "contrast_upper": np.array(st.contrast.up_hist),
             "contrast_lower": np.array(st.contrast.down_hist),
+            "contrast_move": np.array(st.contrast_move),
         }
 
     def summary(self) -> dict[str, Any]:
@@ -659,7 +670,7 @@ class DelayMonitor:
             # the statistics over moves, for the monitor figure (rounded: a figure's worth)
             row["history"] = {
                 k: np.round(hist[k], 3).tolist()
-                for k in ("upper", "lower", "contrast_upper", "contrast_lower")
+                for k in ("upper", "lower", "contrast_upper", "contrast_lower", "contrast_move")
             }
             joints.append(row)
         return {
