@@ -11,7 +11,7 @@ change (false), the first alarm after it (joint, moves of that joint since the c
 the estimated shift and its 95 % interval), and the residual spread per joint. With
 ``--step-ms 0`` the run measures false alarms only.
 
-    nice -n 5 python benchmarks/bench_monitor_twin.py [--runs 3] [--warmup 42] [--after 80]
+    nice -n 5 python benchmarks/bench_monitor_twin.py [--runs 3] [--warmup 50] [--after 80]
         [--step-ms 2] [--joint 2]
 
 A real-time twin on a shared two-core VM: the executor's send times wander with the load,
@@ -83,6 +83,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     moves_at_step: dict[int, int] = {}
     false_before: list[str] = []
     first_after = None
+    after_all: list[str] = []
     with (
         URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim),
         TimedExecutor(URDriver(host), model, stale_periods=200, watchdog_timeout_s=1.0) as ex,
@@ -107,8 +108,13 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
                 if not moves_at_step:
                     false_before.append(a.message())
                     mon.rebaseline(a.joint)
-                elif first_after is None:
-                    first_after = a
+                else:
+                    after_all.append(
+                        f"joint {a.joint} ({a.test}) after "
+                        f"{a.move - moves_at_step.get(a.joint, 0)} of its moves: {a.shift_ms:+.2f} ms"
+                    )
+                    if first_after is None:
+                        first_after = a
             if first_after is not None and not args.full:
                 break
         ex.idle(ex.now() + 0.5)
@@ -134,8 +140,8 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         shifts[st.joint] = (
             float(np.median(r[n0:]) - np.median(r[:n0])) if len(r) > n0 else float("nan"),
             float(np.median(c[after]) - np.median(c[~after])) if after.any() else float("nan"),
-            st.lrv,
-            float(max(max(st.up_hist), max(st.down_hist))),
+            st.level.lrv,
+            float(max(max(st.level.up_hist), max(st.level.down_hist))),
         )
     out: dict[str, Any] = {
         "seed": seed,
@@ -143,6 +149,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         "spread_ms": spread,
         "shifts": shifts,
         "threshold": mon.threshold,
+        "after_all": after_all,
     }
     if first_after is not None:
         out.update(
@@ -150,6 +157,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
             after=first_after.move - moves_at_step.get(first_after.joint, 0),
             shift_ms=first_after.shift_ms,
             ci_ms=first_after.ci_ms,
+            test=first_after.test,
         )
     return out
 
@@ -157,7 +165,12 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--warmup", type=int, default=42, help="executions before the change")
+    ap.add_argument(
+        "--warmup",
+        type=int,
+        default=50,
+        help="executions before the change (the contrasts' warm-up starts at a joint's 5th move)",
+    )
     ap.add_argument("--after", type=int, default=80, help="executions after it (at most)")
     ap.add_argument("--warmup-moves", type=int, default=40, help="monitor warm-up per joint")
     ap.add_argument(
@@ -177,11 +190,13 @@ def main() -> None:
         if "joint" in r:
             lo, hi = r["ci_ms"]
             print(
-                f"    first alarm after it: joint {r['joint']} after {r['after']} of its moves, "
+                f"    first alarm after it: joint {r['joint']} ({r['test']}) after {r['after']} of its moves, "
                 f"shift {r['shift_ms']:+.2f} ms (95 % {lo:+.2f} .. {hi:+.2f})"
             )
         else:
             print("    no alarm after the change")
+        for m in r["after_all"]:
+            print("    alarm after the change:", m)
         print(f"    move-to-move residual spread (ms, robust): {spread}")
         for j, (raw, con, lrv, cmax) in sorted(r["shifts"].items()):
             print(

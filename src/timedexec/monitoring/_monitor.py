@@ -382,7 +382,7 @@ class DelayMonitor:
         if not 0 < self.reference_k < SCORE_CLIP:
             raise ConfigError(
                 f"reference_k={reference_k!r} is out of range; use 0 < k < {SCORE_CLIP} (scores "
-                f"are clipped at {SCORE_CLIP}: a larger k could never alarm; 0.5 by default)"
+                f"are clipped at {SCORE_CLIP}: a larger k could never alarm; 0.4 by default)"
             )
         self.arl0_moves = check_arl0(arl0_moves)
         # two tests per joint (level and contrast), each with half the false-alarm budget
@@ -479,15 +479,6 @@ class DelayMonitor:
             others = [centred[o] for o in usable if o != i]
             if others and math.isfinite(centred[i]):
                 out[i] = centred[i] - float(np.median(others))
-        return out  # moved alone, or not one plan (a joint twice)
-        for i in range(len(plan)):
-            others = [
-                residual[o]
-                for o in range(len(plan))
-                if o != i and self._joint(plan[o].joint).alarm is None
-            ]
-            if others:
-                out[i] = residual[i] - float(np.median(others))
         return out
 
     def feed_log(self, arrays: dict[str, NDArray[Any]]) -> list[Alert]:
@@ -547,20 +538,29 @@ class DelayMonitor:
 
     def _contrast_alarm(self, fired: JointState, since: int) -> Alert | None:
         """A contrast crossed: one joint changed against the joints moved with it, but its
-        change also moved theirs (by half, for three joints), and clipped scores cross at
-        about the same time. The alarm goes to the joint whose contrast moved most over
-        the same number of recent contrasts (a change of one joint, not of all the others,
-        is the simpler explanation); the contrast CUSUMs of the others restart."""
-        best: tuple[float, JointState] | None = None
+        change also moved theirs, the other way (by half, with three joints: the
+        contrasts of a plan sum to zero), and clipped scores cross at about the same time.
+        The alarm goes to the joint whose recent contrasts (as many as the crossing one's
+        since its change) moved alone in their direction, or, without such a joint (two
+        joints, or no clear pattern), to the one that moved most: one joint changing is the
+        simpler explanation than all the others changing together. The other joints'
+        contrast CUSUMs restart."""
+        shifts: list[tuple[float, JointState]] = []
         for other in self._state.values():
             con = other.contrast
-            if other.alarm is not None or con.warm is None or con.n - self.warmup_moves < since:
+            recent = min(since, con.n - self.warmup_moves)  # contrasts after its warm-up
+            if other.alarm is not None or con.warm is None or recent < min(since, 3):
                 continue
-            shift = abs(float(np.median(con.residual_s[-since:])) - float(np.median(con.warm)))
-            if best is None or shift > best[0]:
-                best = (shift, other)
-        if best is None:
+            shift = float(np.median(con.residual_s[-recent:])) - float(np.median(con.warm))
+            shifts.append((shift, other))
+        if not shifts:
             return None
+        best = max(shifts, key=lambda x: abs(x[0]))
+        if len(shifts) >= 3:
+            for sign in (1.0, -1.0):
+                alone = [x for x in shifts if x[0] * sign > 0]
+                if len(alone) == 1:
+                    best = alone[0]
         st = best[1]
         statistic = max(fired.contrast.up, fired.contrast.down)  # before the restart
         for other in self._state.values():
