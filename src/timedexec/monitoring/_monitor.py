@@ -1,4 +1,4 @@
-"""DelayMonitor: per-joint CUSUM of observed lag minus the model's actuation + response.
+"""DelayMonitor: per-joint CUSUMs of observed lag minus the model's actuation + response.
 
 Per move: residual ``r = lag - (actuation_mean + response_mean)`` (the model's prediction
 for the joint, direction and start configuration). The first ``warmup_moves`` moves of a
@@ -7,6 +7,12 @@ distribution, whose empirical quantiles map later residuals to normal scores
 ``z = Phi^-1(F_warm(r))`` (the standardization). A two-sided CUSUM with reference ``k`` runs
 on ``z``; its threshold gives the false-alarm rate asked for (``arl0_moves``, Siegmund's
 approximation averaged over the warm-up's own estimation error, :mod:`._cusum`).
+
+A second CUSUM per joint runs on its *contrast* with the joints of the same plan (moves
+that left at the same instant): its residual centred on its own warm-up, minus the median
+of the others'. Timing noise common to a move (host send times, the publisher's phase)
+cancels in it; a change common to all joints stays with the first ("level") test. Each test
+gets half the false-alarm budget. See ``docs/monitor.md``.
 
 Two departures from independent normal residuals are met on real cells and in an
 independently written generator of executor logs (``tests/independent_cycle_log.py``), and
@@ -131,8 +137,8 @@ class Alert:
         ``moves_since_change`` are of the contrast (moves with other joints only).
     crossed_joint : int
         The joint whose CUSUM crossed. A contrast alarm goes to the joint whose contrast
-        moved most (one joint's change moves the others' contrasts too), which may not be
-        the one that crossed first.
+        moved alone in its direction, or most (one joint's change moves the others'
+        contrasts too, the other way), which may not be the one that crossed first.
     """
 
     joint: int
