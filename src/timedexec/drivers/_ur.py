@@ -467,7 +467,11 @@ class URDriver(RobotDriver):
             # A connect right after another session's close can find that session's
             # program still running and see it stop between the check and the call: the
             # script refuses; start ours and try once more (a real refusal raises again).
-            if self._control().isProgramRunning():
+            try:
+                running = self._control().isProgramRunning()
+            except RuntimeError:
+                running = True  # the connection itself is gone: report the refusal
+            if running:
                 raise
             self._restart_program()
             self._call("setWatchdog", self._control().setWatchdog, 1.0 / float(timeout_s))

@@ -539,7 +539,8 @@ class DelayMonitor:
             return None
         if test == "level":
             statistic = max(st.level.up, st.level.down)
-            return self._alarm(st, "level", st.level, st.level.since_change(fired), st, statistic)
+            since = st.level.since_change(fired)
+            return self._alarm(st, "level", st.level, since, st, statistic, fired)
         return self._contrast_alarm(st, st.contrast.since_change(fired))
 
     def _contrast_alarm(self, fired: JointState, since: int) -> Alert | None:
@@ -583,11 +584,15 @@ class DelayMonitor:
         since: int,
         fired: JointState,
         statistic: float,
+        side: str | None = None,
     ) -> Alert:
+        """The alert of ``st``; ``side`` is the crossing side when it is ``st``'s own CUSUM
+        that crossed, else (an attributed contrast alarm) the sign of ``st``'s shift."""
         assert cusum.warm is not None
         assert st.level.warm is not None
         est, lo, hi = _hodges_lehmann(np.array(cusum.residual_s[-since:]), cusum.warm)
-        side = "later" if est > 0 else "earlier"
+        if side is None:
+            side = "later" if est > 0 else "earlier"
         alert = Alert(
             joint=st.joint,
             shift_ms=est * 1e3,
