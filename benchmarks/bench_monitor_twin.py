@@ -21,6 +21,8 @@ which the monitor sees as timing noise common to the joints of a move.
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import os
 import sys
 import tempfile
@@ -84,6 +86,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     false_before: list[str] = []
     first_after = None
     after_all: list[str] = []
+    rows_at_step = 0
     with (
         URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim),
         TimedExecutor(URDriver(host), model, stale_periods=200, watchdog_timeout_s=1.0) as ex,
@@ -93,6 +96,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
             if k == args.warmup:
                 mon.follow(ex)
                 moves_at_step = {s.joint: s.moves for s in mon.states()}
+                rows_at_step = len(ex.log)
                 flag.touch()
                 ex.idle(ex.now() + 0.2)  # the twin checks the flag every 50 cycles
             target = start.copy()
@@ -121,6 +125,63 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         for a in mon.follow(ex):
             if moves_at_step and first_after is None:
                 first_after = a
+        if args.save is not None:
+            from timedexec.monitoring import save_cycle_log
+
+            save = Path(args.save)
+            save.mkdir(parents=True, exist_ok=True)
+            save_cycle_log(save / f"run{seed}.npz", ex.log.arrays(0), period_s=ex.period_s)
+            meta = {"rows_at_step": rows_at_step, "step_ms": args.step_ms, "joint": args.joint}
+            (save / f"run{seed}.json").write_text(json.dumps(meta))
+    return _result(seed, mon, moves_at_step, false_before, first_after, after_all)
+
+
+def replay(path: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """One saved run through this checkout's monitor, fed as the live run fed it (a
+    chunk of rows per execution)."""
+    from timedexec.learning import DelayModel
+    from timedexec.monitoring import DelayMonitor, load_cycle_log
+
+    arrays, _ = load_cycle_log(path)
+    rows_at_step = json.loads(path.with_suffix(".json").read_text())["rows_at_step"]
+    mon = DelayMonitor(
+        DelayModel.load("ur10e-sim"), warmup_moves=args.warmup_moves, reference_k=args.k
+    )
+    # chunk bounds: the executions' first commands (a send after >= 0.3 s without one)
+    sent = np.flatnonzero(np.isfinite(arrays["send_s"]))
+    starts = sent[np.flatnonzero(np.diff(arrays["arrival_s"][sent], prepend=-1e9) > 0.3)]
+    bounds = sorted({0, rows_at_step, len(arrays["send_s"]), *(int(i) for i in starts)})
+    moves_at_step: dict[int, int] = {}
+    false_before: list[str] = []
+    first_after = None
+    after_all: list[str] = []
+    for lo, hi in itertools.pairwise(bounds):
+        alerts = mon.feed_log({k: v[lo:hi] for k, v in arrays.items()})
+        if hi == rows_at_step:
+            moves_at_step = {s.joint: s.moves for s in mon.states()}
+        for a in alerts:
+            if not moves_at_step:
+                false_before.append(a.message())
+                mon.rebaseline(a.joint)
+            else:
+                after_all.append(
+                    f"joint {a.joint} ({a.test}) after "
+                    f"{a.move - moves_at_step.get(a.joint, 0)} of its moves: {a.shift_ms:+.2f} ms"
+                )
+                if first_after is None:
+                    first_after = a
+    seed = int(path.stem.removeprefix("run")) if path.stem.startswith("run") else 0
+    return _result(seed, mon, moves_at_step, false_before, first_after, after_all)
+
+
+def _result(
+    seed: int,
+    mon: Any,
+    moves_at_step: dict[int, int],
+    false_before: list[str],
+    first_after: Any,
+    after_all: list[str],
+) -> dict[str, Any]:
     spread = {
         s.joint: float(1.4826 * np.median(np.abs(np.diff(s.residual_s))) / np.sqrt(2) * 1e3)
         for s in mon.states()
@@ -179,10 +240,22 @@ def main() -> None:
     ap.add_argument("--step-ms", type=float, default=2.0)
     ap.add_argument("--joint", type=int, default=2)
     ap.add_argument("--full", action="store_true", help="run every execution after an alarm")
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--save", type=Path, help="keep each run's cycle log here")
+    ap.add_argument("--replay", type=Path, help="replay the runs saved in this directory")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    for seed in range(1, args.runs + 1):
-        r = one_run(seed, args)
+    if args.replay is not None:
+        runs = sorted(args.replay.glob("run*.npz"), key=lambda p: int(p.stem[3:]))
+        results = (replay(p, args) for p in runs)
+    else:
+        seeds = range(args.first_seed, args.first_seed + args.runs)
+        results = (one_run(seed, args) for seed in seeds)
+    right = alarmed = 0
+    for r in results:
+        seed = r["seed"]
+        alarmed += "joint" in r
+        right += r.get("joint") == args.joint
         spread = ", ".join(f"j{j} {v:.2f}" for j, v in sorted(r["spread_ms"].items()))
         print(f"run {seed}: false alarms before the change {len(r['false_before'])}", flush=True)
         for m in r["false_before"]:
@@ -204,6 +277,7 @@ def main() -> None:
                 f"other joints of the move {con:+.2f} ms; long-run variance factor {lrv:.2f}; "
                 f"largest CUSUM {cmax:.1f} (threshold {r['threshold']:.1f})"
             )
+    print(f"alarmed after the change {alarmed}, joint {args.joint} first {right}")
     print(f"wall time {time.perf_counter() - t0:.0f} s")
 
 
