@@ -292,17 +292,20 @@ def test_recording_input_and_cli(recording, tmp_path, capsys) -> None:  # type: 
 def _plans(n: int, seed: int, *, joint_shift_s=(0.0, 0.0, 0.0), common_shift_s=0.0, start=0):  # type: ignore[no-untyped-def]
     """``n`` plans moving joints 1-3 together from one pose: each joint's lag carries a
     timing error common to the plan (sd 3 ms, AR(1) 0.8 over plans: a host whose send
-    times wander, as through a real client) and its own 0.3 ms."""
+    times wander, as through a real client) and its own 0.3 ms. As the executor sends
+    them, each joint's first command leaves early by its predicted actuation delay: joint
+    2 6 ms and joint 3 2 ms before joint 1 (moves in send order)."""
     rng = np.random.default_rng(seed)
     q0 = np.array(get_robot("ur10").home_q_rad)
     moves, common = [], 0.0
     for p in range(n):
         common = 0.8 * common + 0.6 * 0.003 * rng.standard_normal()
-        send = 1.0 * (start + p)
-        for j in (1, 2, 3):
+        plan = []
+        for j, lead_s in ((1, 0.0), (2, 0.006), (3, 0.002)):
             lag = 0.03 + common + common_shift_s + joint_shift_s[j - 1]
             lag += 0.0003 * rng.standard_normal()
-            moves.append(Move(j, 1, q0, send, lag, 5))
+            plan.append(Move(j, 1, q0, 1.0 * (start + p) - lead_s, lag, 5))
+        moves += sorted(plan, key=lambda m: m.send_s)
     return moves
 
 
@@ -316,7 +319,9 @@ def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan(
     joints (a response change) is invisible to the contrast: the level tests find it.
     Bands: the contrast's noise is ~0.45 ms, so 2 ms is ~4 sd and the CUSUM (k 0.4,
     scores clipped at 1.5) crosses in 13-17 plans here; 30 leaves room for an unlucky
-    warm-up. The shift estimate within +-0.6 ms (the alarm's own selection bias)."""
+    warm-up. The shift estimate within +-0.6 ms (the alarm's own selection bias). The
+    joints' sends are cycles apart, as the executor's (before, the plans were grouped by
+    identical send times: through the twin half the moves had no contrast)."""
     for seed in range(10):
         mon = DelayMonitor("ur10-sim", warmup_moves=WARMUP)
         assert not mon.update(_plans(WARMUP + 20, seed))
@@ -343,10 +348,11 @@ def test_bad_arguments_name_the_value() -> None:
         DelayMonitor("ur10-sim", joints=[7])
 
 
-def _synthetic_log(lag_s: float, period_s: float = 0.008, moves: int = 3) -> dict:  # type: ignore[type-arg]
+def _synthetic_log(lag_s: float, period_s: float = 0.008, moves: int = 3, lead_s=None) -> dict:  # type: ignore[no-untyped-def,type-arg]
     """A cycle log: joint 3 ramps at 8 rad/s² to 0.4 rad/s for 0.1 s, then back to rest,
     ``moves`` times 0.6 s apart; the reported position follows the commanded ramp
-    ``lag_s`` late (package arrivals 1.3 ms after each cycle)."""
+    ``lag_s`` late (package arrivals 1.3 ms after each cycle). ``lead_s`` ({joint: s}):
+    move these joints instead, each starting that much before the others' start."""
     log = CycleLog()
     from timedexec.drivers import RobotState
 
@@ -355,16 +361,17 @@ def _synthetic_log(lag_s: float, period_s: float = 0.008, moves: int = 3) -> dic
     v_cmd = np.zeros((len(t), 6))
     q = np.zeros((len(t), 6))
     for k in range(moves):
-        t0 = 0.2 + 0.6 * k
-        i0 = int(np.searchsorted(t, t0))
-        for i in range(i0, len(t)):
-            s = t[i] - t[i0]
-            v_cmd[i, 2] = max(0.0, min(a * (s + period_s), 0.4, a * (0.1 - s)))
-        # commanded reference: linear over a period after each send
-        ref_t = np.concatenate(([t[i0]], t[i0:] + period_s))
-        ref_v = np.concatenate(([0.0], v_cmd[i0:, 2]))
-        p = np.concatenate(([0.0], np.cumsum(0.5 * (ref_v[1:] + ref_v[:-1]) * np.diff(ref_t))))
-        q[:, 2] += np.interp(t - lag_s, ref_t, p, left=0.0)
+        for joint, lead in (lead_s or {3: 0.0}).items():
+            c = joint - 1
+            i0 = int(np.searchsorted(t, 0.2 + 0.6 * k - lead))
+            for i in range(i0, len(t)):
+                s = t[i] - t[i0]
+                v_cmd[i, c] = max(0.0, min(a * (s + period_s), 0.4, a * (0.1 - s)))
+            # commanded reference: linear over a period after each send
+            ref_t = np.concatenate(([t[i0]], t[i0:] + period_s))
+            ref_v = np.concatenate(([0.0], v_cmd[i0:, c]))
+            p = np.concatenate(([0.0], np.cumsum(0.5 * (ref_v[1:] + ref_v[:-1]) * np.diff(ref_t))))
+            q[:, c] += np.interp(t - lag_s, ref_t, p, left=0.0)
     for i in range(len(t)):
         st = RobotState(
             host_time_s=t[i],
@@ -396,6 +403,25 @@ def test_cycle_log_moves_chunks_and_file(tmp_path) -> None:  # type: ignore[no-u
     assert np.array_equal(back["q"], arrays["q"])
     with pytest.raises(RecordingError, match="cannot read it as a cycle log"):
         load_cycle_log(tmp_path / "missing.npz")
+
+
+def test_a_plans_moves_come_out_together() -> None:
+    """The executor sends joint 2's share of a trajectory two cycles before joint 3's
+    (their predicted actuation delays differ): fed one row at a time, the extractor
+    returns both moves of each plan in one batch, so the monitor sees them as one plan
+    (before, joint 2's came out a row earlier and had no contrast)."""
+    arrays = _synthetic_log(0.031, moves=8, lead_s={2: 0.016, 3: 0.0})
+    ex = MoveExtractor(0.008)
+    batches = []
+    for i in range(len(arrays["arrival_s"])):
+        got = ex.feed({k: v[i : i + 1] for k, v in arrays.items()})
+        if got:
+            batches.append([m.joint for m in got])
+    assert batches == [[2, 3]] * 8
+    mon = DelayMonitor("ur10-sim", warmup_moves=20, period_s=0.008)
+    mon.feed_log(arrays)
+    # contrasts from each joint's 6th move on (centred on its running median)
+    assert [len(st.contrast.residual_s) for st in mon.states()] == [3, 3]
 
 
 def test_follow_reads_only_new_rows() -> None:

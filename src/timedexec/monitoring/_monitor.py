@@ -9,8 +9,10 @@ on ``z``; its threshold gives the false-alarm rate asked for (``arl0_moves``, Si
 approximation averaged over the warm-up's own estimation error, :mod:`._cusum`).
 
 A second CUSUM per joint runs on its *contrast* with the joints of the same plan (moves
-that left at the same instant): its residual centred on its own warm-up, minus the median
-of the others'. Timing noise common to a move (host send times, the publisher's phase)
+from rest of distinct joints whose first commands left within ``PLAN_WINDOW_S`` of the
+plan's first: the executor sends each joint's share of a trajectory early by that joint's
+predicted actuation delay, so one trajectory's moves start cycles apart): its residual
+centred on its own warm-up, minus the median of the others'. Timing noise common to a move (host send times, the publisher's phase)
 cancels in it; a change common to all joints stays with the first ("level") test. Each test
 gets half the false-alarm budget. See ``docs/monitor.md``.
 
@@ -43,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
 from timedexec.monitoring._cusum import check_arl0, false_alarm_rate, threshold_for_arl
-from timedexec.monitoring._moves import Move, MoveExtractor
+from timedexec.monitoring._moves import PLAN_WINDOW_S, Move, MoveExtractor
 
 __all__ = [
     "Alert",
@@ -286,6 +288,21 @@ def warmup_reference(residuals_in_order: ArrayLike) -> tuple[FloatArray, float]:
     return warm, _long_run_variance(standardize(x, warm), LRV_LAGS)
 
 
+def _plans(moves: list[Move]) -> list[list[int]]:
+    """Indices of ``moves`` (in send order) grouped into plans: distinct joints whose sends
+    lie within ``PLAN_WINDOW_S`` of the plan's first."""
+    plans: list[list[int]] = []
+    first = -math.inf
+    joints: set[int] = set()
+    for i, m in enumerate(moves):
+        if m.send_s - first > PLAN_WINDOW_S or m.joint in joints or m.send_s < first:
+            plans.append([])
+            first, joints = m.send_s, set()
+        plans[-1].append(i)
+        joints.add(m.joint)
+    return plans
+
+
 def _long_run_variance(z: FloatArray, lags: int) -> float:
     """``1 + 2 sum_l (1 - l/(lags+1)) rho_l`` of a sequence (Bartlett), at least 1."""
     x = z - z.mean()
@@ -442,11 +459,8 @@ class DelayMonitor:
             t_s=t_s,
         )
         residual = np.array([m.lag_s for m in use]) - (pred.actuation_mean + pred.response_mean)
-        plans: dict[float, list[int]] = {}  # moves that left at the same instant, in order
-        for i, m in enumerate(use):
-            plans.setdefault(round(m.send_s, 6), []).append(i)
         new: list[Alert] = []
-        for idx in plans.values():
+        for idx in _plans(use):
             # contrasts with the alarms as they stand before this plan
             contrast = self._contrasts([use[i] for i in idx], residual[idx])
             for i, c in zip(idx, contrast, strict=True):

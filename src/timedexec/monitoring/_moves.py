@@ -53,6 +53,11 @@ FloatArray = NDArray[np.float64]
 #: encoder's noise counts); above 60 % the velocity loop's catch-up distorts the lag.
 LOW_FRACTION = 0.02
 HIGH_FRACTION = 0.6
+#: Moves whose first commands left within this of the first's are one plan, s: the
+#: executor sends each joint's share of a trajectory early by the joint's predicted
+#: actuation delay (UR: a few ms apart; KR 5: up to ~0.1 s). Below the 0.3 s rest a
+#: joint needs between two moves, so a plan holds each joint once.
+PLAN_WINDOW_S = 0.15
 #: Format name of a saved cycle log (.npz).
 LOG_FORMAT = "timedexec-cycle-log"
 _LOG_COLUMNS = ("arrival_s", "controller_s", "sequence", "send_s", "qd_cmd", "q")
@@ -491,9 +496,13 @@ class MoveExtractor:
         b = self._buf
         newest = float(b["arrival_s"][-1])
         out: list[Move] = []
+        # pending moves are in send order; the measurable ones are a prefix. Hold those a
+        # move still to measure may share a plan with (its send within PLAN_WINDOW_S).
+        unready = [p[2] for p in self._pending if newest < p[2] + self.horizon_s]
+        hold_from = unready[0] - PLAN_WINDOW_S if unready else math.inf
         keep: list[tuple[int, int, float]] = []
         for row, col, t_send in self._pending:
-            if newest < t_send + self.horizon_s:
+            if newest < t_send + self.horizon_s or t_send >= hold_from:
                 keep.append((row, col, t_send))
                 continue
             move = self._one(row - self._row0, col, t_send)
