@@ -14,7 +14,10 @@ plan's first: the executor sends each joint's share of a trajectory early by tha
 predicted actuation delay, so one trajectory's moves start cycles apart): its residual
 centred on its own warm-up, minus the median of the others'. Timing noise common to a move (host send times, the publisher's phase)
 cancels in it; a change common to all joints stays with the first ("level") test. Each test
-gets half the false-alarm budget. See ``docs/monitor.md``.
+gets half the false-alarm budget. A level alarm whose joint's contrast did not move with it,
+while the joints moved with it shifted alike, is reported as a *common* shift of those joints
+(response delay, network, host timing: not one drive), and their level references move to
+the new level. See ``docs/monitor.md``.
 
 Two departures from independent normal residuals are met on real cells and in an
 independently written generator of executor logs (``tests/independent_cycle_log.py``), and
@@ -81,7 +84,8 @@ class RecalibrationPlan:
     delay : str
         What to re-fit: the state stream cannot separate actuation from response, so
         "actuation" when one joint moved alone (response is shared by the joints), else
-        "actuation or response".
+        "actuation or response"; "response" for a common shift (first check the host's
+        timing and the network, which the sweep would measure as well).
     trials : int
         Trials: enough for the shift to +-``RECAL_PRECISION_MS`` (95 %) at the model's
         single-trial std, in whole conditions (2 directions x 10 repeats), at least 200.
@@ -137,6 +141,10 @@ class Alert:
         minus the median of the joints moved with it: a change of this joint against the
         others, blind to one they share). For "contrast", the shift, the interval and
         ``moves_since_change`` are of the contrast (moves with other joints only).
+        "common": the joint's level crossed, but its contrast did not move with it and the
+        joints moved with it shifted alike (``common_ms``): a change of the lag shared by
+        the moves (response delay, network, host timing), not this joint's drive. The
+        joints stay under watch, their level references moved by their shifts.
     crossed_joint : int
         The joint whose CUSUM crossed. A contrast alarm goes to the joint whose contrast
         moved alone in its direction, or most (one joint's change moves the others'
@@ -157,10 +165,22 @@ class Alert:
     recalibrate: RecalibrationPlan
     test: str = "level"
     crossed_joint: int = 0
+    common_ms: dict[int, float] = field(default_factory=dict)
 
     def message(self) -> str:
         """One line for people."""
         lo, hi = self.ci_ms
+        if self.test == "common":
+            each = ", ".join(f"joint {j} {v:+.2f}" for j, v in sorted(self.common_ms.items()))
+            return (
+                f"joints {', '.join(str(j) for j in sorted(self.common_ms))}: lag "
+                f"{self.side} together ({each} ms; joint {self.joint} {self.shift_ms:+.2f}, "
+                f"95 % CI {lo:+.2f} .. {hi:+.2f}) — a change common to the moves (response "
+                f"delay, network or host timing), not one joint's drive; joint {self.joint}'s "
+                f"level CUSUM {self.statistic:.1f} > {self.threshold:.1f} after "
+                f"{self.moves_since_change} moves; references moved to the new level; "
+                f"re-measure: {self.recalibrate.command}"
+            )
         against = " than the joints moved with it" if self.test == "contrast" else ""
         which = (
             f"{self.test} CUSUM"
@@ -181,15 +201,18 @@ class Alert:
         d = asdict(self)
         d["ci_ms"] = list(self.ci_ms)
         d["recalibrate"]["joints"] = list(self.recalibrate.joints)
+        d["common_ms"] = {str(j): v for j, v in self.common_ms.items()}
         return d
 
 
 @dataclass
 class Cusum:
     """One two-sided CUSUM on standardized residuals, with the warm-up that standardizes
-    them (module docstring). ``n`` counts its residuals, warm-up included."""
+    them (module docstring). ``n`` counts its residuals since its warm-up began, which was
+    at ``residual_s[start]``."""
 
     n: int = 0
+    start: int = 0
     warm: FloatArray | None = None  # sorted warm-up residuals, s
     lrv: float = 1.0  # long-run variance factor of the warm-up's scores (serial correlation)
     up: float = 0.0
@@ -227,6 +250,13 @@ class Cusum:
     def since_change(self, side: str) -> int:
         """Residuals since the side's statistic was last zero."""
         return self.n - (self.up_zero if side == "later" else self.down_zero)
+
+    def rewarm(self) -> None:
+        """Forget the reference: the next ``warmup`` residuals fix a new one."""
+        self.warm = None
+        self.n = self.up_zero = self.down_zero = 0
+        self.up = self.down = 0.0
+        self.start = len(self.residual_s)
 
 
 @dataclass
@@ -316,7 +346,7 @@ def _long_run_variance(z: FloatArray, lags: int) -> float:
 def _cusum_summary(c: Cusum, warmup: int) -> dict[str, Any]:
     """Reference and shift of a warmed-up CUSUM, ms."""
     assert c.warm is not None
-    res = np.array(c.residual_s[warmup:])
+    res = np.array(c.residual_s[c.start + warmup :])
     med = float(np.median(c.warm))
     return {
         "gap_to_model_ms": med * 1e3,
@@ -479,17 +509,18 @@ class DelayMonitor:
         joints of its plan; NaN for a joint moved alone. Centred: less the joint's own
         warm-up median (its running median while it warms up, from 5 moves on), so a
         contrast's level does not depend on which joints moved with it. Joints in alarm are
-        left out of the others (their change would leak into the rest)."""
+        left out of the others (their change would leak into the rest; the others'
+        contrasts then re-learn their reference, see :meth:`_alarm`)."""
         out = np.full(len(plan), np.nan)
         if len(plan) < 2 or len({m.joint for m in plan}) < len(plan):
             return out  # moved alone, or not one plan (a joint twice)
         centred = np.full(len(plan), np.nan)
         for i, m in enumerate(plan):
-            level = self._joint(m.joint).level
-            if level.warm is not None:
-                centred[i] = residual[i] - float(np.median(level.warm))
-            elif level.n >= 5:
-                centred[i] = residual[i] - float(np.median(level.residual_s))
+            st = self._joint(m.joint)
+            if st.warm is not None:
+                centred[i] = residual[i] - float(np.median(st.warm))
+            elif st.level.n >= 5:
+                centred[i] = residual[i] - float(np.median(st.level.residual_s))
         usable = [
             i
             for i, m in enumerate(plan)
@@ -554,8 +585,70 @@ class DelayMonitor:
         if test == "level":
             statistic = max(st.level.up, st.level.down)
             since = st.level.since_change(fired)
+            common = self._common_shift(st, since)
+            if common:
+                return self._common_alarm(st, common, since, statistic, fired)
             return self._alarm(st, "level", st.level, since, st, statistic, fired)
         return self._contrast_alarm(st, st.contrast.since_change(fired))
+
+    def _common_shift(self, st: JointState, since: int) -> dict[int, float]:
+        """{joint: level shift, s} of the joints that moved over ``st``'s last ``since``
+        moves, when ``st``'s level change is common to them: the others' levels moved the
+        same way (their median by at least half of it), so that what is left of it against
+        them is less than half; else {}. Each other joint needs 3 moves in the
+        span (an alarmed one counts: its reference is from before its own change)."""
+        if st.warm is None or since < 3:
+            return {}
+        level = float(np.median(st.level.residual_s[-since:]) - np.median(st.warm))
+        t0 = st.send_s[-since] - PLAN_WINDOW_S
+        others: dict[int, float] = {}
+        for other in self._state.values():
+            if other is st or other.warm is None:
+                continue
+            k = int(np.searchsorted(other.send_s, t0))
+            if len(other.send_s) - k >= 3:
+                others[other.joint] = float(np.median(other.residual_s[k:]) - np.median(other.warm))
+        if not others:
+            return {}
+        mid = float(np.median(list(others.values())))
+        if mid * level <= 0 or abs(level - mid) >= 0.5 * abs(level):
+            return {}  # the joint moved against the others: its own change
+        return {st.joint: level, **others}
+
+    def _common_alarm(
+        self, st: JointState, shifts: dict[int, float], since: int, statistic: float, side: str
+    ) -> Alert:
+        """The alert of a common shift. The shift, one for the joints that moved over the
+        span (the median of theirs), moves each one's level reference, so their contrasts
+        stay centred; their level CUSUMs restart (alarmed joints stay in alarm)."""
+        assert st.warm is not None
+        est, lo, hi = _hodges_lehmann(np.array(st.residual_s[-since:]), st.warm)
+        joints = sorted(shifts)
+        alert = Alert(
+            joint=st.joint,
+            shift_ms=est * 1e3,
+            ci_ms=(lo * 1e3, hi * 1e3),
+            statistic=statistic,
+            threshold=self.threshold,
+            side=side,
+            move=st.moves,
+            moves_since_change=since,
+            false_alarm_rate=1.0 / self.arl0_moves,
+            arl0_moves=self.arl0_moves,
+            gap_to_model_ms=float(np.median(st.warm)) * 1e3,
+            recalibrate=self._recalibration(joints, float(np.median(st.act_std_s)), "response"),
+            test="common",
+            crossed_joint=st.joint,
+            common_ms={j: shifts[j] * 1e3 for j in joints},
+        )
+        common = float(np.median(list(shifts.values())))
+        for j in shifts:
+            level = self._state[j].level
+            assert level.warm is not None
+            level.warm = level.warm + common
+            level.up = level.down = 0.0
+            level.up_zero = level.down_zero = level.n
+        return alert
 
     def _contrast_alarm(self, fired: JointState, since: int) -> Alert | None:
         """A contrast crossed: one joint changed against the joints moved with it, but its
@@ -564,8 +657,7 @@ class DelayMonitor:
         The alarm goes to the joint whose recent contrasts (as many as the crossing one's
         since its change) moved alone in their direction, or, without such a joint (two
         joints, or no clear pattern), to the one that moved most: one joint changing is the
-        simpler explanation than all the others changing together. The other joints'
-        contrast CUSUMs restart."""
+        simpler explanation than all the others changing together."""
         shifts: list[tuple[float, JointState]] = []
         for other in self._state.values():
             con = other.contrast
@@ -583,11 +675,7 @@ class DelayMonitor:
                 if len(alone) == 1:
                     best = alone[0]
         st = best[1]
-        statistic = max(fired.contrast.up, fired.contrast.down)  # before the restart
-        for other in self._state.values():
-            if other is not st:
-                other.contrast.up = other.contrast.down = 0.0
-                other.contrast.up_zero = other.contrast.down_zero = other.contrast.n
+        statistic = max(fired.contrast.up, fired.contrast.down)  # before the re-warm
         return self._alarm(st, "contrast", st.contrast, since, fired, statistic)
 
     def _alarm(
@@ -601,7 +689,9 @@ class DelayMonitor:
         side: str | None = None,
     ) -> Alert:
         """The alert of ``st``; ``side`` is the crossing side when it is ``st``'s own CUSUM
-        that crossed, else (an attributed contrast alarm) the sign of ``st``'s shift."""
+        that crossed, else (an attributed contrast alarm) the sign of ``st``'s shift. The
+        other joints' contrasts lose ``st`` from their plans' medians, which changes their
+        spread: their contrast CUSUMs re-learn their reference."""
         assert cusum.warm is not None
         assert st.level.warm is not None
         est, lo, hi = _hodges_lehmann(np.array(cusum.residual_s[-since:]), cusum.warm)
@@ -624,13 +714,19 @@ class DelayMonitor:
             crossed_joint=fired.joint,
         )
         st.alarm = alert
+        for other in self._state.values():
+            if other is not st and other.alarm is None:
+                other.contrast.rewarm()
         return alert
 
-    def _recalibration(self, joints: list[int], act_std_s: float) -> RecalibrationPlan:
+    def _recalibration(
+        self, joints: list[int], act_std_s: float, delay: str | None = None
+    ) -> RecalibrationPlan:
         others = [
             s.joint for s in self._state.values() if s.alarm is not None and s.joint not in joints
         ]
-        delay = "actuation" if not others else "actuation or response"
+        if delay is None:
+            delay = "actuation" if not others else "actuation or response"
         n = math.ceil((1.96 * act_std_s * 1e3 / RECAL_PRECISION_MS) ** 2 / 20.0) * 20
         n = max(200, n)
         js = ",".join(str(j) for j in joints)
