@@ -137,7 +137,7 @@ def cost(p: dict, n_moves: int = 2000) -> None:  # type: ignore[type-arg]
 
 def detection(p: dict, runs: int) -> None:  # type: ignore[type-arg]
     model = DelayModel.load("ur10-sim")
-    delays, right, false, exposure, missed = [], 0, 0, 0, 0
+    delays, right, false, exposure, missed, common = [], 0, 0, 0, 0, 0
     for seed in range(runs):
         rng = np.random.default_rng(seed)
         mon = DelayMonitor(model)
@@ -148,6 +148,9 @@ def detection(p: dict, runs: int) -> None:  # type: ignore[type-arg]
 
         before = mon.update([draw(j, False) for _ in range(200) for j in JOINTS])
         after = mon.update([draw(j, j == 2) for _ in range(300) for j in JOINTS])
+        common += sum(a.test == "common" for a in before + after)
+        before = [a for a in before if a.test != "common"]
+        after = [a for a in after if a.test != "common"]
         false += len(before) + sum(a.joint != 2 for a in after)
         exposure += 4 * 100 + 3 * 300
         j2 = [a for a in after if a.joint == 2]
@@ -165,6 +168,7 @@ def detection(p: dict, runs: int) -> None:  # type: ignore[type-arg]
     )
     print(f"  right joint named first: {right}/{len(d)}")
     print(f"  false alarms during the runs: {false} in {exposure:,} unchanged joint-moves")
+    print(f"  common-shift alerts during the runs: {common}")
 
 
 def false_alarms(p: dict, chains: int) -> None:  # type: ignore[type-arg]

@@ -600,14 +600,16 @@ class DelayMonitor:
         if st.warm is None or since < 3:
             return {}
         level = float(np.median(st.level.residual_s[-since:]) - np.median(st.warm))
-        t0 = st.send_s[-since] - PLAN_WINDOW_S
+        span = st.send_s[-since:]
+        t0, t1 = min(span) - PLAN_WINDOW_S, max(span) + PLAN_WINDOW_S
         others: dict[int, float] = {}
         for other in self._state.values():
             if other is st or other.warm is None:
                 continue
-            k = int(np.searchsorted(other.send_s, t0))
-            if len(other.send_s) - k >= 3:
-                others[other.joint] = float(np.median(other.residual_s[k:]) - np.median(other.warm))
+            send = np.asarray(other.send_s)
+            inside = np.asarray(other.residual_s)[(send >= t0) & (send <= t1)]
+            if len(inside) >= 3:
+                others[other.joint] = float(np.median(inside) - np.median(other.warm))
         if not others:
             return {}
         mid = float(np.median(list(others.values())))
