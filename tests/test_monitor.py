@@ -27,7 +27,9 @@ from timedexec.monitoring import (
     Move,
     MoveExtractor,
     arl_two_sided,
+    describe_alert,
     load_cycle_log,
+    monitor_figure,
     move_lag_s,
     moves_from_recording,
     moves_from_trials,
@@ -309,7 +311,7 @@ def _plans(n: int, seed: int, *, joint_shift_s=(0.0, 0.0, 0.0), common_shift_s=0
     return moves
 
 
-def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan() -> None:
+def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Through a real client most of a move's timing noise is common to the joints moved
     together (the twin: 1.2-2.1 ms per joint, of which 0.3-0.9 ms against the others).
     Plans of joints 1-3 with 3 ms common noise: +2 ms on joint 2 after the warm-up is
@@ -343,9 +345,18 @@ def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan(
     # later, and alike: over a span of ~10 plans the 3 ms AR(1) common noise's mean has a
     # ~3 ms sd (the alarm picks a high one), the joints' own noise (0.3 ms) ~0.1 ms each
     shifts = list(after[0].common_ms.values())
-    assert min(shifts) > 0.5 and max(shifts) - min(shifts) < 0.5, after[0].common_ms
+    assert min(shifts) > 0.5, after[0].common_ms
+    assert max(shifts) - min(shifts) < 0.5, after[0].common_ms
     assert "not one joint's drive" in after[0].message()
     assert all(st.status == "ok" for st in mon.states())
+    # as `timedexec monitor --json` saves it, and `timedexec report` renders it
+    summary = json.loads(json.dumps(mon.summary()))
+    assert describe_alert(summary["alerts"][0]) == after[0].message()
+    monitor_figure(summary)
+    (tmp_path / "monitor.json").write_text(json.dumps(summary))
+    assert main(["report", str(tmp_path / "monitor.json"), "--out", str(tmp_path / "rep")]) == 0
+    md = next((tmp_path / "rep").glob("*.md")).read_text()
+    assert "**Common shift**: joints 1, 2, 3: lag later together" in md
 
 
 def test_bad_arguments_name_the_value() -> None:

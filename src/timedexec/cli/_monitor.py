@@ -102,6 +102,8 @@ def add_parser(sub: Any) -> None:
 
 
 def _text(summary: dict[str, Any], source: str) -> str:
+    from timedexec.monitoring import describe_alert
+
     lines = [
         f"{source}: threshold {summary['threshold']:.2f} (1 false alarm per "
         f"{summary['arl0_moves']:,.0f} moves per joint; warm-up {summary['warmup_moves']} moves)",
@@ -117,16 +119,7 @@ def _text(summary: dict[str, Any], source: str) -> str:
         )
     if summary["alerts"]:
         lines.append("alarms:")
-        for a in summary["alerts"]:
-            lo, hi = a["ci_ms"]
-            lines.append(
-                f"  joint {a['joint']}: lag {a['side']} by {a['shift_ms']:+.2f} ms (95 % CI "
-                f"{lo:+.2f} .. {hi:+.2f}); CUSUM {a['statistic']:.1f} > {a['threshold']:.1f}, "
-                f"{a['moves_since_change']} moves since the change (move {a['move']}); "
-                f"recalibrate {a['recalibrate']['delay']} of joint(s) "
-                f"{','.join(map(str, a['recalibrate']['joints']))} with "
-                f"{a['recalibrate']['trials']} trials: {a['recalibrate']['command']}"
-            )
+        lines += [f"  {describe_alert(a)}" for a in summary["alerts"]]
     else:
         lines.append("no alarm")
     return "\n".join(lines)

@@ -26,6 +26,7 @@ from timedexec.monitoring._monitor import (
     DelayMonitor,
     JointState,
     RecalibrationPlan,
+    describe_alert,
     standardize,
     warmup_reference,
 )
@@ -58,6 +59,7 @@ __all__ = [
     "arl_one_sided",
     "arl_two_sided",
     "collapse_conditions",
+    "describe_alert",
     "false_alarm_rate",
     "load_cycle_log",
     "monitor_figure",

@@ -56,6 +56,14 @@ def monitor_figure(monitor: Any, path: str | os.PathLike[str] | None = None) -> 
             lower = np.concatenate((lower, c_down))
         ax.axhline(h, color="k", lw=0.8, ls="--", label=f"threshold {h:.1f}")
         ax.axvspan(0.5, min(warmup, len(x)) + 0.5, color="0.9", label="warm-up")
+        common = [
+            a
+            for a in summary.get("alerts", [])
+            if a.get("test") == "common" and a["joint"] == row["joint"]
+        ]
+        if common:
+            ax.plot([a["move"] for a in common], [a["statistic"] for a in common], "^",
+                    color="0.4", ms=6, label="common shift (all joints)")  # fmt: skip
         alert = row.get("alert")
         if alert is not None:
             ax.plot([alert["move"]], [alert["statistic"]], "kv", ms=7, label="alarm")

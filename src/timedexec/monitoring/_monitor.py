@@ -56,6 +56,7 @@ __all__ = [
     "DelayMonitor",
     "JointState",
     "RecalibrationPlan",
+    "describe_alert",
     "standardize",
     "warmup_reference",
 ]
@@ -168,33 +169,8 @@ class Alert:
     common_ms: dict[int, float] = field(default_factory=dict)
 
     def message(self) -> str:
-        """One line for people."""
-        lo, hi = self.ci_ms
-        if self.test == "common":
-            each = ", ".join(f"joint {j} {v:+.2f}" for j, v in sorted(self.common_ms.items()))
-            return (
-                f"joints {', '.join(str(j) for j in sorted(self.common_ms))}: lag "
-                f"{self.side} together ({each} ms; joint {self.joint} {self.shift_ms:+.2f}, "
-                f"95 % CI {lo:+.2f} .. {hi:+.2f}) — a change common to the moves (response "
-                f"delay, network or host timing), not one joint's drive; joint {self.joint}'s "
-                f"level CUSUM {self.statistic:.1f} > {self.threshold:.1f} after "
-                f"{self.moves_since_change} moves; references moved to the new level; "
-                f"re-measure: {self.recalibrate.command}"
-            )
-        against = " than the joints moved with it" if self.test == "contrast" else ""
-        which = (
-            f"{self.test} CUSUM"
-            if self.crossed_joint in (0, self.joint)
-            else f"joint {self.crossed_joint}'s {self.test} CUSUM"
-        )
-        return (
-            f"joint {self.joint}: lag {self.side}{against} by {self.shift_ms:+.2f} ms "
-            f"(95 % CI {lo:+.2f} .. {hi:+.2f}) — {which} {self.statistic:.1f} > "
-            f"{self.threshold:.1f} "
-            f"after {self.moves_since_change} moves since the change (move {self.move}); "
-            f"threshold set for 1 false alarm per {self.arl0_moves:,.0f} moves; "
-            f"recalibrate: {self.recalibrate.command}"
-        )
+        """One line for people (:func:`describe_alert`)."""
+        return describe_alert(self.to_dict())
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe form."""
@@ -203,6 +179,37 @@ class Alert:
         d["recalibrate"]["joints"] = list(self.recalibrate.joints)
         d["common_ms"] = {str(j): v for j, v in self.common_ms.items()}
         return d
+
+
+def describe_alert(alert: dict[str, Any]) -> str:
+    """One line for people from an alert's JSON form (:meth:`Alert.to_dict`, or the
+    ``alerts`` of a saved ``timedexec monitor --json``)."""
+    a = alert
+    lo, hi = a["ci_ms"]
+    rec = a["recalibrate"]
+    joints = ",".join(str(j) for j in rec["joints"])
+    redo = f"recalibrate {rec['delay']} of joint(s) {joints} with {rec['trials']} trials: "
+    if a.get("test") == "common":
+        each = ", ".join(f"joint {j} {v:+.2f}" for j, v in a["common_ms"].items())
+        return (
+            f"joints {', '.join(a['common_ms'])}: lag {a['side']} together ({each} ms; joint "
+            f"{a['joint']} {a['shift_ms']:+.2f}, 95 % CI {lo:+.2f} .. {hi:+.2f}) — a change "
+            "common to the moves (response delay, network or host timing), not one joint's "
+            f"drive; joint {a['joint']}'s level CUSUM {a['statistic']:.1f} > "
+            f"{a['threshold']:.1f} after {a['moves_since_change']} moves; references moved to "
+            f"the new level; check the host and network first, then {redo}{rec['command']}"
+        )
+    test = a.get("test", "level")
+    against = " than the joints moved with it" if test == "contrast" else ""
+    crossed = a.get("crossed_joint", 0)
+    which = f"{test} CUSUM" if crossed in (0, a["joint"]) else f"joint {crossed}'s {test} CUSUM"
+    return (
+        f"joint {a['joint']}: lag {a['side']}{against} by {a['shift_ms']:+.2f} ms "
+        f"(95 % CI {lo:+.2f} .. {hi:+.2f}) — {which} {a['statistic']:.1f} > "
+        f"{a['threshold']:.1f} after {a['moves_since_change']} moves since the change (move "
+        f"{a['move']}); threshold set for 1 false alarm per {a['arl0_moves']:,.0f} moves; "
+        f"{redo}{rec['command']}"
+    )
 
 
 @dataclass

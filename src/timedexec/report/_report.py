@@ -297,7 +297,7 @@ def _table_lines(title: str, table: DelayTable, figures: dict[str, Path]) -> lis
 def _monitor_lines(title: str, data: dict[str, Any], figure: Path) -> list[str]:
     """The delay monitor's section (``timedexec monitor --json``): per joint its state and
     shift, the alarms, and the CUSUM figure."""
-    from timedexec.monitoring import monitor_figure
+    from timedexec.monitoring import describe_alert, monitor_figure
 
     monitor_figure(data, figure)
     md = [f"## Delay monitor `{title}`", "",
@@ -316,10 +316,8 @@ def _monitor_lines(title: str, data: dict[str, Any], figure: Path) -> list[str]:
                   f"{ms(j.get('gap_to_model_ms'))} | {ms(j.get('shift_ms'))} |")  # fmt: skip
     md.append("")
     for a in data["alerts"]:
-        lo, hi = a["ci_ms"]
-        md += [f"- **Alarm, joint {a['joint']}**: lag {a['side']} by {a['shift_ms']:+.2f} ms "
-               f"(95 % CI {lo:+.2f} .. {hi:+.2f}) at move {a['move']}; recalibrate: "
-               f"`{a['recalibrate']['command']}`"]  # fmt: skip
+        kind = "Common shift" if a.get("test") == "common" else "Alarm"
+        md.append(f"- **{kind}**: {describe_alert(a)}")
     if not data["alerts"]:
         md.append("No alarm.")
     return [*md, "", f"![delay monitor]({figure.name})", ""]
