@@ -12,12 +12,13 @@ A second CUSUM per joint runs on its *contrast* with the joints of the same plan
 from rest of distinct joints whose first commands left within ``PLAN_WINDOW_S`` of the
 plan's first: the executor sends each joint's share of a trajectory early by that joint's
 predicted actuation delay, so one trajectory's moves start cycles apart): its residual
-centred on its own warm-up, minus the median of the others'. Timing noise common to a move (host send times, the publisher's phase)
-cancels in it; a change common to all joints stays with the first ("level") test. Each test
-gets half the false-alarm budget. A level alarm whose joint's contrast did not move with it,
-while the joints moved with it shifted alike, is reported as a *common* shift of those joints
-(response delay, network, host timing: not one drive), and their level references move to
-the new level. See ``docs/monitor.md``.
+centred on its own warm-up, minus the median of the others'. Timing noise common to a
+move (host send times, the publisher's phase) cancels in it; a change common to all joints
+stays with the first ("level") test. Each test gets half the false-alarm budget. A level
+alarm whose joint moved by less than half of its shift against the other joints over the
+same span is reported as a *common* shift of those joints (response delay, network, host
+timing: not one drive), and their level references move to the new level. See
+``docs/monitor.md``.
 
 Two departures from independent normal residuals are met on real cells and in an
 independently written generator of executor logs (``tests/independent_cycle_log.py``), and
@@ -142,10 +143,11 @@ class Alert:
         minus the median of the joints moved with it: a change of this joint against the
         others, blind to one they share). For "contrast", the shift, the interval and
         ``moves_since_change`` are of the contrast (moves with other joints only).
-        "common": the joint's level crossed, but its contrast did not move with it and the
-        joints moved with it shifted alike (``common_ms``): a change of the lag shared by
-        the moves (response delay, network, host timing), not this joint's drive. The
-        joints stay under watch, their level references moved by their shifts.
+        "common": the joint's level crossed, but the other joints' levels moved alike over
+        the same span (``common_ms``; less than half of the shift is left against them): a
+        change of the lag shared by the moves (response delay, network, host timing), not
+        this joint's drive. The joints stay under watch, their level references moved to
+        the new level.
     crossed_joint : int
         The joint whose CUSUM crossed. A contrast alarm goes to the joint whose contrast
         moved alone in its direction, or most (one joint's change moves the others'
@@ -630,26 +632,12 @@ class DelayMonitor:
         """The alert of a common shift. The shift, one for the joints that moved over the
         span (the median of theirs), moves each one's level reference, so their contrasts
         stay centred; their level CUSUMs restart (alarmed joints stay in alarm)."""
-        assert st.warm is not None
-        est, lo, hi = _hodges_lehmann(np.array(st.residual_s[-since:]), st.warm)
         joints = sorted(shifts)
-        alert = Alert(
-            joint=st.joint,
-            shift_ms=est * 1e3,
-            ci_ms=(lo * 1e3, hi * 1e3),
-            statistic=statistic,
-            threshold=self.threshold,
-            side=side,
-            move=st.moves,
-            moves_since_change=since,
-            false_alarm_rate=1.0 / self.arl0_moves,
-            arl0_moves=self.arl0_moves,
-            gap_to_model_ms=float(np.median(st.warm)) * 1e3,
-            recalibrate=self._recalibration(joints, float(np.median(st.act_std_s)), "response"),
-            test="common",
-            crossed_joint=st.joint,
-            common_ms={j: shifts[j] * 1e3 for j in joints},
-        )
+        alert = self._alert(
+            st, "common", st.level, since, st, statistic, side,
+            self._recalibration(joints, float(np.median(st.act_std_s)), "response"),
+            {j: shifts[j] * 1e3 for j in joints},
+        )  # fmt: skip
         common = float(np.median(list(shifts.values())))
         for j in shifts:
             level = self._state[j].level
@@ -697,16 +685,37 @@ class DelayMonitor:
         statistic: float,
         side: str | None = None,
     ) -> Alert:
-        """The alert of ``st``; ``side`` is the crossing side when it is ``st``'s own CUSUM
-        that crossed, else (an attributed contrast alarm) the sign of ``st``'s shift. The
-        other joints' contrasts lose ``st`` from their plans' medians, which changes their
-        spread: their contrast CUSUMs re-learn their reference."""
+        """The alarm of ``st`` (it stays in alarm); ``side`` is the crossing side when it
+        is ``st``'s own CUSUM that crossed, else (an attributed contrast alarm) the sign of
+        ``st``'s shift. The other joints' contrasts lose ``st`` from their plans' medians,
+        which changes their spread: their contrast CUSUMs re-learn their reference."""
+        recal = self._recalibration([st.joint], float(np.median(st.act_std_s)))
+        alert = self._alert(st, test, cusum, since, fired, statistic, side, recal)
+        st.alarm = alert
+        for other in self._state.values():
+            if other is not st and other.alarm is None:
+                other.contrast.rewarm()
+        return alert
+
+    def _alert(
+        self,
+        st: JointState,
+        test: str,
+        cusum: Cusum,
+        since: int,
+        fired: JointState,
+        statistic: float,
+        side: str | None,
+        recalibrate: RecalibrationPlan,
+        common_ms: dict[int, float] | None = None,
+    ) -> Alert:
+        """An :class:`Alert` on ``st``: the shift of ``cusum``'s last ``since`` residuals."""
         assert cusum.warm is not None
         assert st.level.warm is not None
         est, lo, hi = _hodges_lehmann(np.array(cusum.residual_s[-since:]), cusum.warm)
         if side is None:
             side = "later" if est > 0 else "earlier"
-        alert = Alert(
+        return Alert(
             joint=st.joint,
             shift_ms=est * 1e3,
             ci_ms=(lo * 1e3, hi * 1e3),
@@ -718,15 +727,11 @@ class DelayMonitor:
             false_alarm_rate=1.0 / self.arl0_moves,
             arl0_moves=self.arl0_moves,
             gap_to_model_ms=float(np.median(st.level.warm)) * 1e3,
-            recalibrate=self._recalibration([st.joint], float(np.median(st.act_std_s))),
+            recalibrate=recalibrate,
             test=test,
             crossed_joint=fired.joint,
+            common_ms=common_ms or {},
         )
-        st.alarm = alert
-        for other in self._state.values():
-            if other is not st and other.alarm is None:
-                other.contrast.rewarm()
-        return alert
 
     def _recalibration(
         self, joints: list[int], act_std_s: float, delay: str | None = None
