@@ -58,6 +58,31 @@ def stepped_sim(robot: str, *, effects: Any, q0_rad: Any, seed: int) -> Any:
     return Stepped(robot, effects=effects, q0_rad=q0_rad, seed=seed, physics_rate_hz=4000.0)
 
 
+class Tally:
+    """The alerts of one run: false before the change (the joint re-baselined, as an
+    operator would), every one after it, and the first joint alarm after it (a common-shift
+    alert names no changed joint)."""
+
+    def __init__(self) -> None:
+        self.false_before: list[str] = []
+        self.after_all: list[str] = []
+        self.first_after: Any = None
+
+    def take(self, mon: Any, alerts: list[Any], moves_at_step: dict[int, int]) -> None:
+        for a in alerts:
+            if not moves_at_step:
+                self.false_before.append(a.message())
+                if a.test != "common":
+                    mon.rebaseline(a.joint)
+                continue
+            moves = a.move - moves_at_step.get(a.joint, 0)
+            self.after_all.append(
+                f"joint {a.joint} ({a.test}) after {moves} of its moves: {a.shift_ms:+.2f} ms"
+            )
+            if self.first_after is None and a.test != "common":
+                self.first_after = a
+
+
 def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     from timedexec.drivers import URDriver
     from timedexec.effects import EffectSet, default_effects
@@ -83,9 +108,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         predict_delays(model, [1, 2, 3], [d] * 3, np.tile(q0, (3, 1)))
     mon = DelayMonitor(model, warmup_moves=args.warmup_moves, reference_k=args.k)
     moves_at_step: dict[int, int] = {}
-    false_before: list[str] = []
-    first_after = None
-    after_all: list[str] = []
+    tally = Tally()
     rows_at_step = 0
     with (
         URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim),
@@ -108,23 +131,11 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
                 if "too soon" not in str(exc):
                     raise
                 continue
-            for a in mon.follow(ex):
-                if not moves_at_step:
-                    false_before.append(a.message())
-                    mon.rebaseline(a.joint)
-                else:
-                    after_all.append(
-                        f"joint {a.joint} ({a.test}) after "
-                        f"{a.move - moves_at_step.get(a.joint, 0)} of its moves: {a.shift_ms:+.2f} ms"
-                    )
-                    if first_after is None:
-                        first_after = a
-            if first_after is not None and not args.full:
+            tally.take(mon, mon.follow(ex), moves_at_step)
+            if tally.first_after is not None and not args.full:
                 break
         ex.idle(ex.now() + 0.5)
-        for a in mon.follow(ex):
-            if moves_at_step and first_after is None:
-                first_after = a
+        tally.take(mon, mon.follow(ex), moves_at_step)
         if args.save is not None:
             from timedexec.monitoring import save_cycle_log
 
@@ -133,7 +144,7 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
             save_cycle_log(save / f"run{seed}.npz", ex.log.arrays(0), period_s=ex.period_s)
             meta = {"rows_at_step": rows_at_step, "step_ms": args.step_ms, "joint": args.joint}
             (save / f"run{seed}.json").write_text(json.dumps(meta))
-    return _result(seed, mon, moves_at_step, false_before, first_after, after_all)
+    return _result(seed, mon, moves_at_step, tally)
 
 
 def replay(path: Path, args: argparse.Namespace) -> dict[str, Any]:
@@ -152,36 +163,23 @@ def replay(path: Path, args: argparse.Namespace) -> dict[str, Any]:
     starts = sent[np.flatnonzero(np.diff(arrays["arrival_s"][sent], prepend=-1e9) > 0.3)]
     bounds = sorted({0, rows_at_step, len(arrays["send_s"]), *(int(i) for i in starts)})
     moves_at_step: dict[int, int] = {}
-    false_before: list[str] = []
-    first_after = None
-    after_all: list[str] = []
+    tally = Tally()
     for lo, hi in itertools.pairwise(bounds):
         alerts = mon.feed_log({k: v[lo:hi] for k, v in arrays.items()})
         if hi == rows_at_step:
             moves_at_step = {s.joint: s.moves for s in mon.states()}
-        for a in alerts:
-            if not moves_at_step:
-                false_before.append(a.message())
-                mon.rebaseline(a.joint)
-            else:
-                after_all.append(
-                    f"joint {a.joint} ({a.test}) after "
-                    f"{a.move - moves_at_step.get(a.joint, 0)} of its moves: {a.shift_ms:+.2f} ms"
-                )
-                if first_after is None:
-                    first_after = a
+        tally.take(mon, alerts, moves_at_step)
     seed = int(path.stem.removeprefix("run")) if path.stem.startswith("run") else 0
-    return _result(seed, mon, moves_at_step, false_before, first_after, after_all)
+    return _result(seed, mon, moves_at_step, tally)
 
 
 def _result(
     seed: int,
     mon: Any,
     moves_at_step: dict[int, int],
-    false_before: list[str],
-    first_after: Any,
-    after_all: list[str],
+    tally: Tally,
 ) -> dict[str, Any]:
+    first_after = tally.first_after
     spread = {
         s.joint: float(1.4826 * np.median(np.abs(np.diff(s.residual_s))) / np.sqrt(2) * 1e3)
         for s in mon.states()
@@ -206,11 +204,11 @@ def _result(
         )
     out: dict[str, Any] = {
         "seed": seed,
-        "false_before": false_before,
+        "false_before": tally.false_before,
         "spread_ms": spread,
         "shifts": shifts,
         "threshold": mon.threshold,
-        "after_all": after_all,
+        "after_all": tally.after_all,
     }
     if first_after is not None:
         out.update(
