@@ -334,6 +334,8 @@ def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan(
         first = after[0]
         assert (first.joint, first.test, first.side) == (2, "contrast", "later"), first
         assert first.shift_ms == pytest.approx(2.0, abs=0.6), first.shift_ms
+        # joint 2 left the others' plan medians: their contrasts re-learn their reference
+        assert [st.contrast.warm is None for st in mon.states()] == [True, False, True]
         assert len(after) + len(mon.update(shifted[90:])) == 1, [a.message() for a in mon.alerts]
     mon = DelayMonitor("ur10-sim", warmup_moves=WARMUP)
     mon.update(_plans(WARMUP + 20, 7))
