@@ -359,6 +359,7 @@ def test_contrast_finds_one_joints_change_under_timing_noise_common_to_the_plan(
     assert main(["report", str(tmp_path / "monitor.json"), "--out", str(tmp_path / "rep")]) == 0
     md = next((tmp_path / "rep").glob("*.md")).read_text()
     assert "**Common shift**: joints 1, 2, 3: lag later together" in md
+    assert "`python -c " in md  # the command as code
 
 
 def test_bad_arguments_name_the_value() -> None:

@@ -317,7 +317,8 @@ def _monitor_lines(title: str, data: dict[str, Any], figure: Path) -> list[str]:
     md.append("")
     for a in data["alerts"]:
         kind = "Common shift" if a.get("test") == "common" else "Alarm"
-        md.append(f"- **{kind}**: {describe_alert(a)}")
+        cmd = a["recalibrate"]["command"]  # as code: it holds ** and quotes
+        md.append(f"- **{kind}**: {describe_alert(a).replace(cmd, f'`{cmd}`')}")
     if not data["alerts"]:
         md.append("No alarm.")
     return [*md, "", f"![delay monitor]({figure.name})", ""]
