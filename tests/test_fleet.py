@@ -308,16 +308,19 @@ def _kill_while_running(
 
     killed: list[int] = []
     deadline = time.monotonic() + 180
+    # a worker just killed (or still restarting) may be listed and not answer: skip it
+    quiet = {"on_error": "ignore"}
     while len(killed) < kills and thread.is_alive() and time.monotonic() < deadline:
-        for addr, keys in client.run(_executing).items():
+        for addr, keys in client.run(_executing, **quiet).items():
             hits = [k for k in keys if k.startswith(prefix)]
             if not hits:
                 continue
             time.sleep(1.0)  # well inside the robot's work (several seconds)
-            if hits[0] in client.run(_executing, workers=[addr]).get(addr, []):
-                pid = client.run(os.getpid, workers=[addr])[addr]
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
+            if hits[0] in client.run(_executing, workers=[addr], **quiet).get(addr, []):
+                pid = client.run(os.getpid, workers=[addr], **quiet).get(addr)
+                if pid is not None:
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
             break
         time.sleep(0.1)
     return killed
