@@ -435,7 +435,8 @@ def test_open_driver_refuses_what_is_not_a_url() -> None:
     with pytest.raises(ConfigError, match="'period' is given twice"):
         open_driver("rsi://49152?period=0.004&period=0.012")
     with pytest.raises(
-        ConfigError, match=r"unknown parameter 'x' for ur:// URLs \(it takes none\)"
+        ConfigError,
+        match=r"unknown parameter 'x' for ur:// URLs \(allowed: external_control, ur_cap_port, program\)",
     ):
         open_driver("ur://10.0.0.2?x=1")
 

@@ -398,11 +398,13 @@ import numpy as np
 from timedexec.drivers import URDriver
 from timedexec.execution import FixedDelays, StalenessLimits, TimedExecutor
 host, speed = sys.argv[1], float(sys.argv[2])
+# argv[3], if given: the pendant program holding the External Control URCap's node
+program = sys.argv[3] if len(sys.argv) > 3 else None
 model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuation_std_s=6e-4)
 # The ceiling's tolerance from the start: this test is about the watchdog, and a test
 # process on a loaded two-core machine sees 50 ms stalls now and then.
 limits = StalenessLimits(floor_s=0.08)
-with TimedExecutor(URDriver(host, robot="ur10e"), model, staleness=limits) as ex:
+with TimedExecutor(URDriver(host, robot="ur10e", program=program), model, staleness=limits) as ex:
     ex.idle(ex.now() + 0.2)
     q0 = ex.estimate().q_rad
     target = q0.copy(); target[0] += 0.1
@@ -452,11 +454,14 @@ def watch_rest(host: str, since_s: float, span_s: float) -> float:
         recv.disconnect()
 
 
-def _cruising_host(host: str) -> tuple[subprocess.Popen[str], str | None]:
-    """Start a host process (CHILD) cruising through ur_rtde against ``host``; return it
-    and None once it says CRUISING, or it (ended) and the tail of its stderr."""
+def _cruising_host(
+    host: str, program: str | None = None
+) -> tuple[subprocess.Popen[str], str | None]:
+    """Start a host process (CHILD) cruising through ur_rtde against ``host`` (through the
+    External Control URCap when ``program`` names its pendant program); return it and None
+    once it says CRUISING, or it (ended) and the tail of its stderr."""
     child = subprocess.Popen(
-        [sys.executable, "-c", CHILD, host, str(CRUISE_RAD_S)],
+        [sys.executable, "-c", CHILD, host, str(CRUISE_RAD_S), *([program] if program else [])],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -470,9 +475,20 @@ def _cruising_host(host: str) -> tuple[subprocess.Popen[str], str | None]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["SIGKILL", "SIGSTOP"])
-def test_killed_or_paused_host_process_stops_the_twin_arm(ur_twin: Any, sig: int) -> None:
-    """A host process streaming a 0.5 rad/s cruise through ur_rtde is SIGKILLed / SIGSTOPped:
+@pytest.mark.parametrize(
+    ("sig", "program"),
+    [
+        (signal.SIGKILL, None),
+        (signal.SIGSTOP, None),
+        (signal.SIGKILL, "/programs/external_control.urp"),
+    ],
+    ids=["SIGKILL", "SIGSTOP", "SIGKILL-external-control"],
+)
+def test_killed_or_paused_host_process_stops_the_twin_arm(
+    ur_twin: Any, sig: int, program: str | None
+) -> None:
+    """A host process streaming a 0.5 rad/s cruise through ur_rtde is SIGKILLed / SIGSTOPped
+    (its script uploaded, or fetched by the pendant program's External Control node):
     the twin's reported speed is zero within the watchdog timeout (0.1 s) + the program
     stop's ramp (0.5 / 4 rad/s² = 0.125 s) + SIM_STOP_LAG_S (actuation delay, velocity
     loop settling, 3 packages) + 100 ms (the last command's age at the signal, the
@@ -480,7 +496,7 @@ def test_killed_or_paused_host_process_stops_the_twin_arm(ur_twin: Any, sig: int
     wake-up; see the bound): 0.375 s."""
     failures = []
     for _attempt in range(3):  # a host stall before the cruise is not what this tests
-        child, failure = _cruising_host(ur_twin.host)
+        child, failure = _cruising_host(ur_twin.host, program)
         try:
             if failure is not None:
                 failures.append(failure)

@@ -113,6 +113,20 @@ class URDriver(RobotDriver):
         On Linux, set the calling thread's timer slack to 1 µs before the ``ur_rtde``
         threads are created (they inherit it): their 100 µs polling sleeps and this
         driver's polling then wake on time instead of up to 50 µs late.
+    external_control : bool
+        Run the control script through Universal Robots' External Control URCap instead of
+        uploading it (a cell without remote control): ``ur_rtde`` serves the script on
+        ``ur_cap_port`` of this PC (``FLAG_USE_EXT_UR_CAP``) and the pendant program holding
+        the External Control node fetches it when it starts. Implied by ``program``.
+    ur_cap_port : int
+        Port the URCap's installation points at (its default, 50002).
+    program : str, optional
+        Pendant program holding the External Control node (e.g.
+        ``"/programs/external_control.urp"``): loaded and played through the dashboard
+        server on connect and after a watchdog trip. None: someone presses play on the
+        pendant (the driver waits ``program_timeout_s`` and says so every 5 s).
+    program_timeout_s : float
+        How long to wait for the External Control program to run, s.
 
     Examples
     --------
@@ -131,6 +145,10 @@ class URDriver(RobotDriver):
         variables: Sequence[str] | None = None,
         poll_interval_s: float = 50e-6,
         tight_timer_slack: bool = True,
+        external_control: bool = False,
+        ur_cap_port: int = 50002,
+        program: str | None = None,
+        program_timeout_s: float = 60.0,
     ) -> None:
         if frequency_hz is not None and not 0 < frequency_hz <= 500:
             raise ConfigError(
@@ -150,6 +168,22 @@ class URDriver(RobotDriver):
             raise ConfigError(f"variables must include {sorted(missing)} (read_state needs them)")
         self.poll_interval_s = float(poll_interval_s)
         self.tight_timer_slack = tight_timer_slack
+        if not (isinstance(ur_cap_port, int) and 1 <= ur_cap_port <= 65535):
+            raise ConfigError(
+                f"ur_cap_port={ur_cap_port!r} outside 1..65535; use the port the External "
+                "Control URCap's installation names (default 50002)"
+            )
+        if program is not None and not (isinstance(program, str) and program.endswith(".urp")):
+            raise ConfigError(
+                f"program={program!r} is not a pendant program; give the .urp path that holds "
+                "the External Control node, e.g. '/programs/external_control.urp'"
+            )
+        if not 0 < program_timeout_s <= 3600:
+            raise ConfigError(f"program_timeout_s={program_timeout_s!r} outside (0, 3600] s")
+        self.external_control = bool(external_control) or program is not None
+        self.ur_cap_port = int(ur_cap_port)
+        self.program = program
+        self.program_timeout_s = float(program_timeout_s)
         self.controller_version: tuple[int, ...] = ()
         self._recv: Any = None
         self._ctrl: Any = None
@@ -234,14 +268,26 @@ class URDriver(RobotDriver):
                 f"{_hint(self.host)}"
             ) from exc
         if self.control:
+            iface = rtde_control.RTDEControlInterface
             try:
-                self._ctrl = rtde_control.RTDEControlInterface(self.host, frequency)
+                if self.external_control:
+                    # NO_WAIT: the constructor would wait for the program holding the GIL.
+                    flags = iface.FLAG_USE_EXT_UR_CAP | iface.FLAG_NO_WAIT
+                    self._ctrl = iface(self.host, frequency, flags, self.ur_cap_port)
+                else:
+                    self._ctrl = iface(self.host, frequency)
             except RuntimeError as exc:
                 self._close_receive()
                 raise DriverError(
                     f"cannot open the RTDE control interface of {self.host} ({exc}); "
                     f"{_hint(self.host)}"
                 ) from exc
+            if self.external_control:
+                try:
+                    self._start_external_program()
+                except DriverError:
+                    self.close()
+                    raise
         if self.frequency_hz is not None:
             rate_hz = float(self.frequency_hz)
         else:
@@ -433,9 +479,55 @@ class URDriver(RobotDriver):
             "or close() and connect() again"
         )
 
+    def _start_external_program(self) -> None:
+        """Play :attr:`program` through the dashboard (if given) and wait until the program
+        with the External Control node runs (it fetches ``ur_rtde``'s script from us)."""
+        import dashboard_client
+
+        ctrl = self._control()
+        where = f"this PC, port {self.ur_cap_port}"
+        if self.program is not None and not ctrl.isProgramRunning():
+            try:
+                dash = dashboard_client.DashboardClient(self.host)
+                dash.connect()
+                try:
+                    dash.loadURP(self.program)
+                    dash.play()
+                finally:
+                    dash.disconnect()
+            except RuntimeError as exc:
+                raise DriverError(
+                    f"the dashboard server of {self.host} did not play {self.program!r} "
+                    f"(it answered {str(exc)!r}); check the path on the pendant and that its "
+                    f"External Control node points at {where}"
+                ) from exc
+        start = time.monotonic()
+        note = start + 5.0
+        while not ctrl.isProgramRunning():
+            now = time.monotonic()
+            if now - start > self.program_timeout_s:
+                raise DriverError(
+                    f"the External Control program on {self.host} did not run within "
+                    f"{self.program_timeout_s:g} s; press play on the pendant (or pass "
+                    f"program='/programs/....urp'), and check that its External Control node "
+                    f"points at {where}"
+                )
+            if self.program is None and now >= note:
+                print(
+                    f"waiting for the program with the External Control node on {self.host} "
+                    f"({now - start:.0f} s of {self.program_timeout_s:g}): press play on the "
+                    "pendant",
+                    file=sys.stderr,
+                )
+                note += 5.0
+            time.sleep(0.01)
+
     def _restart_program(self, timeout_s: float = 5.0) -> None:
         ctrl = self._control()
         if ctrl.isProgramRunning():
+            return
+        if self.external_control:
+            self._start_external_program()
             return
         self._call("reuploadScript", ctrl.reuploadScript)
         deadline = time.monotonic() + timeout_s

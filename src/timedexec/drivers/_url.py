@@ -22,7 +22,7 @@ SCHEMES = ("sim", "ur", "rsi")
 #: Query parameters each scheme accepts (anything else is an error).
 URL_PARAMS: dict[str, tuple[str, ...]] = {
     "sim": ("realtime", "seed"),
-    "ur": (),
+    "ur": ("external_control", "ur_cap_port", "program"),
     "rsi": ("period", "listen", "robot", "ipoc_tick_ms", "first_frame_timeout_s"),
 }
 
@@ -76,7 +76,9 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
 
     ``sim://ur10`` (in-process simulator, virtual time; ``sim://ur10?realtime=1`` real
     time, ``?seed=N`` its seed, which wins over a ``seed=`` option), ``ur://192.168.1.10``
-    (ur_rtde; a UR twin: ``ur://127.0.0.2``; no parameters), ``rsi://49152`` (the PC side
+    (ur_rtde; a UR twin: ``ur://127.0.0.2``; through the External Control URCap:
+    ``?external_control=1``, ``?ur_cap_port=50002``, ``?program=/programs/x.urp`` which the
+    dashboard then plays; see docs/ur-twin.md), ``rsi://49152`` (the PC side
     of KUKA RSI listening on that UDP port of the loopback interface;
     ``rsi://0.0.0.0:49152`` or ``?listen=192.168.1.5`` listens where a real robot can
     reach it; ``?robot=IP`` answers only that controller, ``?period=0.004``,
@@ -132,6 +134,7 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
             )
         if parts.netloc:
             _no_path(url, parts.path, "ur://HOST, e.g. ur://192.168.1.10")
+        options.update(_ur_options(url, query))
         return URDriver(where, **options)
     from timedexec.drivers._rsi import KukaRSIDriver
 
@@ -141,6 +144,31 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
 
 
 _RSI_FORM = "rsi://PORT or rsi://LISTEN_IP:PORT, e.g. rsi://49152 or rsi://0.0.0.0:49152"
+
+
+def _ur_options(url: str, query: dict[str, str]) -> dict[str, Any]:
+    """Keyword options of :class:`URDriver` from a ``ur://`` URL's parameters."""
+    out: dict[str, Any] = {}
+    if "external_control" in query:
+        flag = query["external_control"].strip().lower()
+        if flag not in _TRUE + _FALSE:
+            raise ConfigError(
+                f"robot URL {url!r}: external_control={query['external_control']!r} must be 1 "
+                "or 0 (true/false, yes/no)"
+            )
+        out["external_control"] = flag in _TRUE
+    if "ur_cap_port" in query:
+        raw = query["ur_cap_port"].strip()
+        if not (raw.isdigit() and 1 <= int(raw) <= 65535):
+            raise ConfigError(
+                f"robot URL {url!r}: ur_cap_port={query['ur_cap_port']!r} must be a port "
+                "1..65535 (the External Control URCap's, default 50002)"
+            )
+        out["ur_cap_port"] = int(raw)
+        out.setdefault("external_control", True)
+    if "program" in query:
+        out["program"] = query["program"].strip()  # URDriver checks it (a .urp path)
+    return out
 
 
 def _rsi_options(url: str, parts: Any, query: dict[str, str]) -> dict[str, Any]:

@@ -64,6 +64,7 @@ if TYPE_CHECKING:
         read_truth,
         run_ur_twin,
     )
+    from timedexec.twins._urprograms import EXTERNAL_CONTROL_PORT, EXTERNAL_CONTROL_URP
 
 # The servers load on first use: they pull in sockets, multiprocessing and pty code.
 _LAZY = {
@@ -92,6 +93,8 @@ _LAZY = {
     "URTwin": "timedexec.twins._ur",
     "read_truth": "timedexec.twins._ur",
     "run_ur_twin": "timedexec.twins._ur",
+    "EXTERNAL_CONTROL_PORT": "timedexec.twins._urprograms",
+    "EXTERNAL_CONTROL_URP": "timedexec.twins._urprograms",
 }
 
 
@@ -106,6 +109,8 @@ def __getattr__(name: str) -> Any:
 __all__ = [
     "DASHBOARD_PORT",
     "DEFAULT_PHYSICS_RATE_HZ",
+    "EXTERNAL_CONTROL_PORT",
+    "EXTERNAL_CONTROL_URP",
     "RTDE_HEADER_SIZE",
     "RTDE_INPUT_TYPES",
     "RTDE_OUTPUT_TYPES",

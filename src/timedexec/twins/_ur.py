@@ -63,6 +63,7 @@ from timedexec.twins._ur_server import (
     _check_robot,
     _TwinServer,
 )
+from timedexec.twins._urprograms import EXTERNAL_CONTROL_PORT
 
 __all__ = [
     "DASHBOARD_PORT",
@@ -90,6 +91,7 @@ def run_ur_twin(
     sim_factory: str | Callable[..., Any] | None = None,
     physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
     rt_priority: int | None = _DEFAULT_RT_PRIORITY,
+    external_control: tuple[str, int] = ("127.0.0.1", EXTERNAL_CONTROL_PORT),
 ) -> None:
     """Serve a simulated UR controller until stopped (blocking; for ``timedexec serve``).
 
@@ -127,6 +129,10 @@ def run_ur_twin(
         (Linux as root or with CAP_SYS_NICE; silently normal scheduling otherwise). A real
         controller's cycle runs at real-time priority; on a loaded machine this keeps the
         twin on time. None: never ask.
+    external_control : (host, port)
+        Where the installed program :data:`EXTERNAL_CONTROL_URP` (an External Control URCap
+        node) asks for its script when the dashboard plays it: the PC running ``ur_rtde``
+        with ``FLAG_USE_EXT_UR_CAP`` (see :mod:`timedexec.twins._urprograms`).
     """
     server = _TwinServer(
         robot,
@@ -139,6 +145,7 @@ def run_ur_twin(
         sim_factory=sim_factory,
         physics_rate_hz=physics_rate_hz,
         rt_priority=rt_priority,
+        external_control=(str(external_control[0]), int(external_control[1])),
     )
     server.bind()
     sys.setswitchinterval(_SWITCH_INTERVAL_S)
@@ -219,7 +226,8 @@ class URTwin(Twin):
     host : str
         Loopback address to serve on; ports are fixed by the client (30004, 29999, 30003),
         so run one twin per address (127.0.0.2, 127.0.0.3, ... for parallel twins).
-    seed, effects, q0_rad, truth_path, imu_link, sim_factory, physics_rate_hz, rt_priority
+    seed, effects, q0_rad, truth_path, imu_link, sim_factory, physics_rate_hz, rt_priority,
+    external_control
         See :func:`run_ur_twin`. ``effects`` and ``sim_factory`` must be picklable.
     start_timeout_s : float
         How long to wait for the process to listen, s.
@@ -252,6 +260,7 @@ class URTwin(Twin):
         sim_factory: str | Callable[..., Any] | None = None,
         physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
         rt_priority: int | None = _DEFAULT_RT_PRIORITY,
+        external_control: tuple[str, int] = ("127.0.0.1", EXTERNAL_CONTROL_PORT),
         start_timeout_s: float = 20.0,
     ) -> None:
         _check_robot(robot)
@@ -269,6 +278,7 @@ class URTwin(Twin):
             "sim_factory": sim_factory,
             "physics_rate_hz": physics_rate_hz,
             "rt_priority": rt_priority,
+            "external_control": (str(external_control[0]), int(external_control[1])),
         }
         self.start_timeout_s = float(start_timeout_s)
         self._process: multiprocessing.process.BaseProcess | None = None

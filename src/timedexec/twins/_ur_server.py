@@ -37,6 +37,7 @@ from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._cartesian import tcp_values
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
 from timedexec.twins._ur_truthlog import TruthLog, json_safe
+from timedexec.twins._urprograms import EXTERNAL_CONTROL_PORT, ProgramStore
 from timedexec.twins._urscript import (
     _PROGRAM_START_DELAY_S,
     DASHBOARD_MAX_LINE_BYTES,
@@ -205,6 +206,7 @@ class _TwinServer:
         sim_factory: str | Callable[..., _SimLike] | None = None,
         physics_rate_hz: float | None = DEFAULT_PHYSICS_RATE_HZ,
         rt_priority: int | None = _DEFAULT_RT_PRIORITY,
+        external_control: tuple[str, int] = ("127.0.0.1", EXTERNAL_CONTROL_PORT),
         log: Callable[[str], None] | None = None,
     ) -> None:
         _check_robot(robot)
@@ -225,6 +227,12 @@ class _TwinServer:
             self.sim = factory(robot, effects=effects, q0_rad=q0_rad, seed=seed)
         self.script = _ControlScript(self.sim, self.log)
         self.script.track_truth = truth_path is not None
+        self.programs = ProgramStore(
+            external_control,
+            start_program=self._program_uploaded,
+            request_stop=self._request_program_stop,
+            log=self.log,
+        )
         self._tcp_wanted = False
         self.period_s = float(self.sim.period_s)
         self.t0 = 0.0
@@ -402,13 +410,16 @@ class _TwinServer:
 
     # -- dashboard and script port --------------------------------------------------------
     def _dashboard_reply(self, line: str) -> str | None:
+        playing = self.script.playing
+        answer = self.programs.reply(line.strip(), playing)
+        if answer is not None:
+            return answer
         return _dashboard_reply(
             line,
             version=self.version,
             serial_number=_SERIAL_NUMBERS[self.robot],
             model=_MODEL_NAMES[self.robot],
-            playing=self.script.playing,
-            request_stop=self._request_program_stop,
+            playing=playing,
         )
 
     def _dashboard_loop(self, client: socket.socket) -> None:
@@ -440,6 +451,7 @@ class _TwinServer:
                 if not chunk:
                     return
                 for program in reader.feed(chunk):
+                    self.programs.script_uploaded()
                     self._program_uploaded(program)
         except ProtocolError as exc:  # a line or program over the limits: this client only
             self.log_abuse(str(exc))

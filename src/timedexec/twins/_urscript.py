@@ -743,9 +743,12 @@ def _dashboard_reply(
     serial_number: str,
     model: str,
     playing: bool,
-    request_stop: Callable[[], None],
 ) -> str | None:
-    """The dashboard server's answer to one command line (None: ``quit``, disconnect)."""
+    """The dashboard server's answer to one command line (None: ``quit``, disconnect).
+
+    Program commands (``load``, ``play``, ``pause``, ``stop``, ``programState``, ``get
+    loaded program``) are answered by :class:`timedexec.twins._urprograms.ProgramStore`
+    before this is asked."""
     cmd = line.strip()
     low = cmd.lower()
     major, minor, bugfix, build = version
@@ -757,21 +760,12 @@ def _dashboard_reply(
         return model
     if low == "is in remote control":
         return "true"
-    if low == "stop":
-        request_stop()
-        return "Stopped"
-    if low == "play":
-        return "Starting program"
-    if low == "pause":
-        return "Pausing program"
     if low == "robotmode":
         return "Robotmode: RUNNING"
     if low == "safetymode":
         return "Safetymode: NORMAL"
     if low == "safetystatus":
         return "Safetystatus: NORMAL"
-    if low == "programstate":
-        return "PLAYING rtde_control" if playing else "STOPPED <unnamed>"
     if low == "running":
         return f"Program running: {str(playing).lower()}"
     if low == "power on":
@@ -784,8 +778,6 @@ def _dashboard_reply(
         return "Protective stop releasing"
     if low in ("close popup", "close safety popup"):
         return "closing popup" if low == "close popup" else "closing safety popup"
-    if low == "get loaded program":
-        return "No program loaded"
     if low == "quit":
         return None
     return f"could not understand: '{cmd}'"
