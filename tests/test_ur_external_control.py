@@ -21,8 +21,12 @@ import pytest
 
 from timedexec.drivers import URDriver, open_driver
 from timedexec.errors import ConfigError, DriverError, ProtocolError
-from timedexec.twins import DASHBOARD_PORT, EXTERNAL_CONTROL_URP, URTwin
-from timedexec.twins._urprograms import fetch_external_control_script
+from timedexec.twins import (
+    DASHBOARD_PORT,
+    EXTERNAL_CONTROL_URP,
+    URTwin,
+    fetch_external_control_script,
+)
 
 pytest.importorskip("rtde_control")
 

@@ -64,7 +64,11 @@ if TYPE_CHECKING:
         read_truth,
         run_ur_twin,
     )
-    from timedexec.twins._urprograms import EXTERNAL_CONTROL_PORT, EXTERNAL_CONTROL_URP
+    from timedexec.twins._urprograms import (
+        EXTERNAL_CONTROL_PORT,
+        EXTERNAL_CONTROL_URP,
+        fetch_external_control_script,
+    )
 
 # The servers load on first use: they pull in sockets, multiprocessing and pty code.
 _LAZY = {
@@ -95,6 +99,7 @@ _LAZY = {
     "run_ur_twin": "timedexec.twins._ur",
     "EXTERNAL_CONTROL_PORT": "timedexec.twins._urprograms",
     "EXTERNAL_CONTROL_URP": "timedexec.twins._urprograms",
+    "fetch_external_control_script": "timedexec.twins._urprograms",
 }
 
 
@@ -134,6 +139,7 @@ __all__ = [
     "decode_rtde_header",
     "encode_rtde_package",
     "envelope_transport_latency",
+    "fetch_external_control_script",
     "free_udp_port",
     "gyro_window_start_s",
     "iter_truth_records",
