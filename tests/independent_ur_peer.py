@@ -41,6 +41,40 @@ Truth log (``--truth``): a header comment with ``t0_monotonic``, then the line
 positions in rad, velocities in rad/s, time in controller seconds), flushed every ~50 ms, plus
 ``#event,time_s,kind,key=value;...`` lines (program start/stop, watchdog trips, at_rest, ...).
 
+The pendant program with the External Control URCap (``--urcap HOST:PORT``, default
+``127.0.0.1:50002``; ``--external-control-program PATH``, default
+``/programs/external_control.urp``): for cells where remote control is forbidden the operator
+plays a pendant program holding the URCap's *External Control* node. The URCap's installation
+names a PC address and port; when the program starts the URCap connects there, sends
+``request_program\n`` and reads back a URScript text, which it splits at the markers
+``# HEADER_BEGIN`` / ``# HEADER_END`` (function definitions, inserted once) and runs the rest
+(``# NODE_CONTROL_LOOP_BEGINS`` ... ``# NODE_CONTROL_LOOP_ENDS``) at its node
+(UniversalRobots/Universal_Robots_ExternalControl_URCap, README and ``RequestProgram.java``;
+the script is requested anew at every program start). Here:
+
+* The dashboard knows exactly one installed program, that path: ``load`` of it answers
+  ``Loading program: <path>``, any other path ``File not found: <path>`` (PolyScope 3.4+ / 5.x
+  replies); ``get loaded program`` answers ``Loaded program: <path>`` (``No program loaded``
+  before); ``programState`` names the loaded program's file (``<unnamed>`` without one).
+* ``play`` with it loaded (and the program stopped) fetches the script as the URCap does, with
+  bounds (connect ``URCAP_CONNECT_TIMEOUT_S``; the whole exchange ``URCAP_FETCH_TIMEOUT_S``;
+  lines of at most ``MAX_URCAP_LINE`` bytes, ``MAX_URCAP_SCRIPT`` in all). The text is complete
+  at the ``# NODE_CONTROL_LOOP_ENDS`` line (ur_rtde's script server keeps the connection open
+  after it) or when the PC closes the connection with no marked part left open. Then the program
+  starts through the same path as an uploaded script and ``play`` answers ``Starting program``.
+  Nobody listening, a timeout, an oversized or incomplete text: ``Failed to execute: play``, a
+  ``urcap_fetch_failed`` event, and the program stays STOPPED. (The real URCap instead runs a
+  blocking popup program saying "Receive program failed"; for a client either way the program
+  never runs.) ``play`` while PAUSED resumes; while PLAYING it changes nothing.
+* A fetched text is run with the ``rtde_control`` semantics when it is ur_rtde's control script:
+  the four markers in order, a header defining ``rtde_cmd``, ``signal_ready`` and
+  ``process_cmd``, and a control loop calling ``rtde_cmd`` and ``process_cmd`` (the uploaded
+  form is recognised as before, by its ``rtde_control`` name). Register offsets are read from
+  the ``global reg_offset_int = # int register offset`` line, whose value ur_rtde 1.6.5 writes on
+  the next line (in the uploaded script too).
+* ``load`` while a program runs is refused (``Error while loading program: <path>``, event
+  ``load_refused``): the documented failure reply, for a case the document does not describe.
+
 Deliberate simplifications: no kinematics (TCP fields are zero; speedl, movel and other
 Cartesian commands stop the program with an ``unsupported_command`` event rather than pretend);
 stopl is executed as a joint-space stop; when a new motion command arrives while another
@@ -69,6 +103,7 @@ import dataclasses
 import io
 import math
 import os
+import posixpath
 import queue
 import re
 import select
@@ -95,6 +130,17 @@ MAX_SCRIPT_BYTES = 2 * 1024 * 1024  # bytes buffered from one script connection
 MAX_CONNECTIONS = 16  # concurrent connections per port
 MAX_RECIPES = 255  # recipe ids are one byte; more setups close the connection
 OUTPUT_QUEUE_PACKAGES = 64  # data packages queued per RTDE connection before dropping
+
+# The External Control URCap's script request (see the module docstring).
+URCAP_REQUEST = b"request_program\n"
+URCAP_CONNECT_TIMEOUT_S = 2.0  # s to connect to the PC (the URCap itself waits 5 s)
+URCAP_FETCH_TIMEOUT_S = 3.0  # s for the whole request, connect included
+MAX_URCAP_LINE = 4096  # bytes in one line of the received script (ur_rtde 1.6.5: 218)
+MAX_URCAP_SCRIPT = 1024 * 1024  # bytes in the whole received script (ur_rtde 1.6.5: 42 kB)
+DEFAULT_URCAP = "127.0.0.1:50002"  # the URCap installation's PC address (port 50002 default)
+DEFAULT_EXTERNAL_CONTROL_PROGRAM = "/programs/external_control.urp"
+HEADER_BEGIN, HEADER_END = "# HEADER_BEGIN", "# HEADER_END"
+LOOP_BEGINS, LOOP_ENDS = "# NODE_CONTROL_LOOP_BEGINS", "# NODE_CONTROL_LOOP_ENDS"
 
 STOPPED, PLAYING, PAUSED = 1, 2, 3
 ROBOT_MODE_RUNNING = 7
@@ -753,6 +799,138 @@ class RtdeControlProgram:
 
 
 # ---------------------------------------------------------------------------------------------
+# The External Control URCap: the script request, and recognising ur_rtde's control script
+# ---------------------------------------------------------------------------------------------
+
+_MARKERS = (HEADER_BEGIN, HEADER_END, LOOP_BEGINS, LOOP_ENDS)
+
+
+def _marker_positions(lines: list[str]) -> list[tuple[str, int]]:
+    """(marker, line index) of every marker line; a marker stands alone on its line, blanks
+    around it allowed (as the URCap's own match of these lines)."""
+    return [(ln.strip(), i) for i, ln in enumerate(lines) if ln.strip() in _MARKERS]
+
+
+def split_external_control(text: str) -> tuple[str, str] | None:
+    """Split a fetched script into (header, control loop), the parts the URCap inserts once and
+    at its node. None unless the four markers appear once each, in their order."""
+    lines = text.split("\n")
+    found = _marker_positions(lines)
+    if [m for m, _ in found] != list(_MARKERS):
+        return None
+    (_, hb), (_, he), (_, lb), (_, le) = found
+    return "\n".join(lines[hb + 1 : he]), "\n".join(lines[lb + 1 : le])
+
+
+def _defines(text: str, name: str) -> bool:
+    return re.search(rf"^[ \t]*def[ \t]+{name}[ \t]*\(", text, re.M) is not None
+
+
+def _calls(text: str, name: str) -> bool:
+    return re.search(rf"\b{name}[ \t]*\(", text) is not None
+
+
+def is_rtde_control_script(text: str) -> bool:
+    """Whether ``text`` is ur_rtde's control script, run here with its semantics.
+
+    Uploaded on port 30003 it is ``def rtde_control(): ... end`` and is recognised, as it always
+    was here, by that name. Fetched by the External Control URCap it has no ``def`` of its own
+    and no such name: then the marked parts must show the script's protocol, a header defining
+    ``rtde_cmd`` (reads the command register), ``signal_ready`` and ``process_cmd``, and a
+    control loop that reads commands and hands them to ``process_cmd``.
+    """
+    if "rtde_control" in text:
+        return True
+    parts = split_external_control(text)
+    if parts is None:
+        return False
+    header, loop = parts
+    if not all(_defines(header, f) for f in ("rtde_cmd", "signal_ready", "process_cmd")):
+        return False
+    return _calls(loop, "rtde_cmd") and _calls(loop, "process_cmd")
+
+
+def register_offset(text: str, kind: str) -> int:
+    """``reg_offset_<kind>`` (``int`` or ``float``) assigned in the script; 0 when absent.
+
+    ur_rtde 1.6.5 writes ``global reg_offset_int = # int register offset``, a newline, then the
+    value (followed on that line by the next statement): the value may follow the ``=`` directly
+    or after a comment that runs to the end of the line. ``==`` comparisons are not assignments.
+    """
+    m = re.search(rf"\breg_offset_{kind}[ \t]*=(?!=)[ \t]*(?:#[^\n]*)?\n?[ \t]*(\d+)", text)
+    return int(m.group(1)) if m else 0
+
+
+def _open_part(text: str) -> bool:
+    """Whether a marked part of ``text`` was begun and not ended (or a marker is out of order)."""
+    seq = [m for m, _ in _marker_positions(text.split("\n"))]
+    closed = ([], [HEADER_BEGIN, HEADER_END], [LOOP_BEGINS, LOOP_ENDS], list(_MARKERS))
+    return seq not in closed
+
+
+def fetch_urcap_script(
+    addr: tuple[str, int], timeout_s: float = URCAP_FETCH_TIMEOUT_S
+) -> tuple[str | None, str]:
+    """Request the script as the External Control URCap does; return ``(text, "ok")`` or
+    ``(None, reason)``.
+
+    Connect to the PC at ``addr`` (at most ``URCAP_CONNECT_TIMEOUT_S``), send
+    ``request_program``, read lines until the ``# NODE_CONTROL_LOOP_ENDS`` line, or until the PC
+    closes the connection with no marked part left open. The whole exchange is bounded by
+    ``timeout_s`` (s), a line by ``MAX_URCAP_LINE`` and the text by ``MAX_URCAP_SCRIPT`` bytes.
+    The connection is closed afterwards (the URCap closes its socket too).
+    """
+    deadline = time.monotonic() + timeout_s
+    try:
+        sock = socket.create_connection(addr, timeout=min(URCAP_CONNECT_TIMEOUT_S, timeout_s))
+    except OSError as exc:
+        return None, f"connect_failed:{type(exc).__name__}"
+    lines: list[str] = []
+    pending = b""
+    total = 0
+    try:
+        sock.sendall(URCAP_REQUEST)
+        while True:
+            start = 0
+            while (end := pending.find(b"\n", start)) >= 0:
+                if end - start > MAX_URCAP_LINE:
+                    return None, "line_too_long"
+                line = pending[start:end].decode("utf-8", "replace").rstrip("\r")
+                start = end + 1
+                lines.append(line)
+                if line.strip() == LOOP_ENDS:
+                    text = "\n".join(lines) + "\n"
+                    return (None, "incomplete") if _open_part(text) else (text, "ok")
+            pending = pending[start:]
+            if len(pending) > MAX_URCAP_LINE:
+                return None, "line_too_long"
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None, "timeout"
+            sock.settimeout(left)
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                return None, "timeout"
+            if not chunk:  # the PC closed the connection
+                if pending:
+                    lines.append(pending.decode("utf-8", "replace").rstrip("\r"))
+                text = "\n".join(lines) + "\n"
+                if not text.strip():
+                    return None, "empty"
+                return (None, "incomplete") if _open_part(text) else (text, "ok")
+            total += len(chunk)
+            if total > MAX_URCAP_SCRIPT:
+                return None, "too_large"
+            pending += chunk
+    except OSError as exc:
+        return None, f"connection_error:{type(exc).__name__}"
+    finally:
+        with contextlib.suppress(OSError):
+            sock.close()
+
+
+# ---------------------------------------------------------------------------------------------
 # The controller: clock, registers, program state, watchdogs, truth log
 # ---------------------------------------------------------------------------------------------
 
@@ -768,6 +946,8 @@ class Controller:
         stop_decel: float,
         start_delay: float,
         q0: list[float],
+        urcap: tuple[str, int] = ("127.0.0.1", 50002),
+        installed_program: str = DEFAULT_EXTERNAL_CONTROL_PROGRAM,
     ) -> None:
         self.model = model
         self.version = version
@@ -788,6 +968,10 @@ class Controller:
         self.program: RtdeControlProgram | None = None
         self.program_text: str | None = None
         self.pending_program: tuple[int, str] | None = None
+        self.urcap = urcap  # where the External Control node asks for its script
+        self.installed_program = installed_program  # the pendant program holding that node
+        self.loaded_urp: str | None = None  # the pendant program loaded through the dashboard
+        self.dashboard_lock = threading.Lock()  # one load / play of it at a time
         self.watchdogs: dict[str, tuple[float, str]] = {}
         self.cycle = 0
         self.t0 = time.monotonic()
@@ -849,13 +1033,52 @@ class Controller:
         self.pending_program = (self.cycle + self.start_delay_cycles, text)
         self.event("program_received", chars=len(text))
 
+    def load_urp(self, path: str) -> str:
+        """Dashboard ``load <path>``; returns the reply."""
+        if path != self.installed_program:
+            self.event("load_failed", path=path, reason="file_not_found")
+            return f"File not found: {path}"
+        if self.runtime_state != STOPPED:
+            self.event("load_refused", path=path, reason="program_running")
+            return f"Error while loading program: {path}"
+        self.loaded_urp = path
+        self.event("urp_loaded", path=path)
+        return f"Loading program: {path}"
+
+    def play_urp(self) -> bool:
+        """Dashboard ``play`` of the loaded pendant program: its External Control node fetches
+        the script from the PC, then it starts like an uploaded script. False: it did not start
+        (the reason is logged)."""
+        if self.runtime_state == PAUSED:
+            self.runtime_state = PLAYING
+            self.event("program_resumed", path=self.loaded_urp)
+            return True
+        if self.runtime_state == PLAYING or self.pending_program is not None:
+            return True  # already running (or starting): nothing to do
+        host, port = self.urcap
+        self.event("urcap_request", pc=f"{host}:{port}")
+        t0 = time.monotonic()
+        text, reason = fetch_urcap_script(self.urcap)
+        took = time.monotonic() - t0
+        if text is None:
+            self.event("urcap_fetch_failed", pc=f"{host}:{port}", reason=reason, s=f"{took:.3f}")
+            self.event("play_failed", path=self.loaded_urp, reason="urcap_" + reason)
+            return False
+        self.event(
+            "urcap_script_received",
+            chars=len(text),
+            lines=text.count("\n"),
+            marked=split_external_control(text) is not None,
+            s=f"{took:.3f}",
+        )
+        self.load_program(text)
+        return True
+
     def _start_program(self, text: str) -> None:
         self.program_text = text
-        m_i = re.search(r"reg_offset_int\s*=\s*(\d+)", text)
-        m_f = re.search(r"reg_offset_float\s*=\s*(\d+)", text)
-        off_i = int(m_i.group(1)) if m_i else 0
-        off_f = int(m_f.group(1)) if m_f else 0
-        if "rtde_control" not in text:
+        off_i = register_offset(text, "int")
+        off_f = register_offset(text, "float")
+        if not is_rtde_control_script(text):
             # A foreign program cannot be interpreted here: it "runs" for one cycle.
             self.event("foreign_program_ignored")
             self.runtime_state = PLAYING
@@ -864,7 +1087,8 @@ class Controller:
         self.program = RtdeControlProgram(self, off_i, off_f)
         self.runtime_state = PLAYING
         self.program.start()
-        self.event("program_started", offset_int=off_i, offset_float=off_f)
+        source = "upload" if "rtde_control" in text else "external_control"
+        self.event("program_started", offset_int=off_i, offset_float=off_f, source=source)
 
     def program_stop(self, reason: str) -> None:
         """Stop the running program; the arm decelerates at ``stop_decel`` rad/s^2."""
@@ -1319,13 +1543,17 @@ def _dashboard_reply(ctl: Controller, line: str) -> str | None:
             "NORMAL" if ctl.safety_mode == SAFETY_NORMAL else "PROTECTIVE_STOP"
         )
     if low == "programstate":
-        return f"{_STATE_NAMES[ctl.runtime_state]} <unnamed>"
+        name = posixpath.basename(ctl.loaded_urp) if ctl.loaded_urp else "<unnamed>"
+        return f"{_STATE_NAMES[ctl.runtime_state]} {name}"
     if low == "running":
         return "Program running: " + ("true" if ctl.runtime_state == PLAYING else "false")
     if low == "is in remote control":
         return "true"
     if low == "get loaded program":
-        return "No program loaded"
+        return f"Loaded program: {ctl.loaded_urp}" if ctl.loaded_urp else "No program loaded"
+    if low.startswith("load "):
+        with ctl.dashboard_lock:
+            return ctl.load_urp(cmd[5:].strip())
     if low == "stop":
         if ctl.runtime_state == STOPPED:
             return "Failed to execute: stop"
@@ -1337,6 +1565,9 @@ def _dashboard_reply(ctl: Controller, line: str) -> str | None:
         ctl.runtime_state = PAUSED
         ctl.arm.motion = StopMotion(ctl.stop_decel)
         return "Pausing program"
+    if low == "play" and ctl.loaded_urp is not None:
+        with ctl.dashboard_lock:
+            return "Starting program" if ctl.play_urp() else "Failed to execute: play"
     if low == "play":
         if ctl.program_text is None:
             return "Failed to execute: play"
@@ -1482,12 +1713,34 @@ def main(argv: list[str] | None = None) -> int:
         default=",".join(str(q) for q in DEFAULT_Q0),
         help="initial joint positions, rad, comma separated",
     )
+    ap.add_argument(
+        "--urcap",
+        default=DEFAULT_URCAP,
+        metavar="HOST:PORT",
+        help="where the External Control URCap's installation says the PC serves the script",
+    )
+    ap.add_argument(
+        "--external-control-program",
+        default=DEFAULT_EXTERNAL_CONTROL_PROGRAM,
+        metavar="PATH",
+        help="the installed pendant program holding the External Control node",
+    )
     args = ap.parse_args(argv)
     q0 = [float(x) for x in args.q0.split(",")]
     if len(q0) != 6:
         ap.error("--q0 needs 6 values")
+    urcap_host, _, urcap_port = args.urcap.rpartition(":")
+    if not urcap_host or not urcap_port.isdigit() or not 0 < int(urcap_port) < 65536:
+        ap.error(f"--urcap {args.urcap!r} is not HOST:PORT")
     ctl = Controller(
-        args.model, _parse_version(args.version), args.truth, args.stop_decel, args.start_delay, q0
+        args.model,
+        _parse_version(args.version),
+        args.truth,
+        args.stop_decel,
+        args.start_delay,
+        q0,
+        urcap=(urcap_host, int(urcap_port)),
+        installed_program=args.external_control_program,
     )
     rtde = RtdeServer(ctl)
     listeners = [
