@@ -91,6 +91,10 @@ _BIAS_POOL = 31
 #: Samples at the start of each window that lie before the command (pre_s is >= 0.05 s; the
 #: first 40 ms are used so that a late clock or a slow USB block cannot reach the command).
 _PRE_S = 0.04
+#: When the reported position enters the first gain estimate: this long after the sensor
+#: time the gyro angle ends, s (a typical response delay; the fit method then matches it
+#: to the trial's measured response delay).
+_GAIN_REPORT_S = 0.03
 #: A trial is flagged "uncertain" when a delay's standard error exceeds this, s.
 MAX_SE_S = 0.002
 #: Lost samples that make a trial unmeasurable: over 30 % of the onset window, or over 20 %
@@ -378,9 +382,13 @@ def _extract_chunk_inner(
     pause_mid = t_send + np.nan_to_num(tau_coarse, nan=0.05) + pulse + prof["pause_s"] / 2
     q_start = np.array([q_rep[i][present[i]][0] if present[i].any() else np.nan
                         for i in range(n)])  # fmt: skip
-    q_mid = np.array([np.interp(pause_mid[i] + 0.03, host[i][present[i]], q_rep[i][present[i]])
-                      if present[i].sum() > 1 else np.nan for i in range(n)])  # fmt: skip
-    disp = (q_mid - q_start) * direction
+
+    def reported_at(times: FloatArray) -> FloatArray:
+        """The reported position at these host times (interpolated), rad."""
+        return np.array([np.interp(times[i], host[i][present[i]], q_rep[i][present[i]])
+                         if present[i].sum() > 1 else np.nan for i in range(n)])  # fmt: skip
+
+    disp = (reported_at(pause_mid + _GAIN_REPORT_S) - q_start) * direction
     s_pulse = _span(t_g, t_send - 0.002, pause_mid)
     in_pulse = (t_g[:, s_pulse] >= (t_send - 0.002)[:, None]) & (
         t_g[:, s_pulse] <= pause_mid[:, None]
@@ -402,17 +410,34 @@ def _extract_chunk_inner(
 
     n_cols = {}
     if method == "fit":
-        on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz)
-        act = on["onset"] - (t_send + level / accel)
-        # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
-        sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
-        act_se = np.sqrt(on["crb"] ** 2 + on["bias"] ** 2 + (sd_bias / on["slope"]) ** 2)
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
         resp, resp_se = response_increments(
             t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
             np.full(n, 0.6 * ctx.period_s),
             smooth_samples=2 * round(RESPONSE_SMOOTH_S * ctx.fs_hz / 2) + 1,  # odd
         )  # fmt: skip
+        # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
+        # displacement is the position *sampled* then, reported one response delay later.
+        # The first guess (reported at +30 ms) is off when the joint still creeps in the
+        # pause: on the independent KR 5 (12 Hz velocity loop) it scaled the speed ~1 %
+        # high and moved the level crossing +0.12 ms (level/slope ~9 ms).
+        q_at = reported_at(pause_mid + np.where(np.isfinite(resp), resp, _GAIN_REPORT_S))
+        disp_at = (q_at - q_start) * direction
+        matched = angle / np.where(np.abs(disp_at) > 1e-9, disp_at, np.nan)
+        rescale = np.where(np.isfinite(matched), gain / matched, 1.0)
+        gain = np.where(np.isfinite(matched), matched, gain)
+        y_phys *= rescale[:, None]
+        sigma = sigma * rescale
+        peak = peak * rescale
+        if traces:
+            filt_phys *= rescale[:, None]
+        on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz)
+        act = on["onset"] - (t_send + level / accel)
+        # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
+        sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
+        act_se = np.sqrt(
+            on["crb"] ** 2 + on["misfit"] ** 2 + on["bias"] ** 2 + (sd_bias / on["slope"]) ** 2
+        )
         missing_onset = on["missing"]
         n_cols = {
             "actuation_delay_se": act_se,

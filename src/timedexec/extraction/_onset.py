@@ -15,7 +15,11 @@ Lepski's method (Lepski, Mammen and Spokoiny, Ann. Statist. 25(3), 1997): of a l
 growing windows, take the largest whose estimate agrees with every smaller window's within
 ``LEPSKI_KAPPA`` of that window's standard deviation. Clean data keep the short window
 (bias-limited), noisy data widen it (variance-limited); the error grows smoothly with the
-noise. The reported standard error adds the zero-rate (baseline) uncertainty to the bound.
+noise. The reported standard error adds to the bound the zero-rate (baseline) uncertainty,
+the window's bias allowance and a misfit term: where the fit's residuals exceed the noise
+(reduced chi-square above 1: a resonance or the breakaway the cubic does not follow) the
+bound is scaled by the excess (independent recordings, 95 % coverage: UR10 88.7 -> 91.0 %,
+KR 5 90.3 -> 91.3 %, 10x noise 91.9 -> 94.0 %; the simulator's KR 5 90.0 -> 93.3 %).
 
 **Response.** The reported positions are aligned with the integrated gyro angle. The angle
 of a white-noise rate is a random walk, so a least-squares fit of positions weights the
@@ -95,7 +99,7 @@ def _cubic_roots(
     level: FloatArray,
     dt: float,
     windows: tuple[tuple[float, float], ...],
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Weighted cubic fits around sample ``k`` and their roots at ``level``, one per window.
 
     The windows share their left edge, so the normal equations of every window are
@@ -104,8 +108,8 @@ def _cubic_roots(
     one per window.
 
     Returns, each of shape (len(windows), n): the crossing time (s), the root's variance
-    factor gᵀ(XᵀWX)⁻¹g/p'² (s² per (rad/s)² of noise variance) and the slope p'(t*)
-    (rad/s²)."""
+    factor gᵀ(XᵀWX)⁻¹g/p'² (s² per (rad/s)² of noise variance), the slope p'(t*)
+    (rad/s²) and the mean squared residual of the fit ((rad/s)², per degree of freedom)."""
     n, g = y.shape
     los = [round(wd[0] / dt) for wd in windows]
     his = [round(wd[1] / dt) for wd in windows]
@@ -127,7 +131,8 @@ def _cubic_roots(
         np.multiply(pw[p - 1], xs, out=pw[p])
     mom = np.cumsum(pw, axis=2)  # (7, n, m): Σ w·x^p over the window's first j+1 samples
     ymom = np.cumsum(pw[:4] * yy, axis=2)  # (4, n, m): Σ w·y·x^p
-    est, var, slopes = [], [], []
+    y2mom = np.cumsum(ww * yy * yy, axis=1)  # (n, m): Σ w·y²
+    est, var, slopes, msr = [], [], [], []
     pairs = np.add.outer(np.arange(4), np.arange(4))
     for hi in his:
         j = hi - lo  # column of the window's last sample
@@ -149,10 +154,13 @@ def _cubic_roots(
         ainv_g = np.linalg.solve(a, gvec[..., None])[..., 0]
         quad = np.einsum("ni,ni->n", gvec, ainv_g)
         slope = dp / _SCALE
+        # Residual sum of squares of the least-squares fit: yᵀWy - coefᵀXᵀWy.
+        rss = y2mom[:, j] - np.einsum("ni,ni->n", coef, b)
+        msr.append(np.maximum(rss, 0.0) / np.maximum(mom[0, :, j] - 4.0, 1.0))
         est.append(tc + root * _SCALE)
         var.append(quad / np.where(np.abs(slope) > 1e-9, slope, np.nan) ** 2)
         slopes.append(slope)
-    return np.array(est), np.array(var), np.array(slopes)
+    return np.array(est), np.array(var), np.array(slopes), np.array(msr)
 
 
 def onset_adaptive(
@@ -187,13 +195,14 @@ def onset_adaptive(
     -------
     dict
         ``onset`` (s), ``crb`` (s, square root of the bound for the chosen window),
-        ``bias`` (s, allowance for the window's bias), ``window`` (index into :data:`ONSET_WINDOWS_S`), ``slope`` (rad/s², at the
+        ``bias`` (s, allowance for the window's bias), ``misfit`` (s, the bound scaled by
+        the residuals' excess over the noise), ``window`` (index into :data:`ONSET_WINDOWS_S`), ``slope`` (rad/s², at the
         crossing), ``missing`` (fraction of the chosen window's samples lost).
     """
     w = have.astype(np.float64)
     n = y.shape[0]
     k = k_coarse
-    t_all, vf_all, sl_all = _cubic_roots(t_g, y, w, k, level, dt, ONSET_WINDOWS_S)
+    t_all, vf_all, sl_all, msr_all = _cubic_roots(t_g, y, w, k, level, dt, ONSET_WINDOWS_S)
     sd_all = sigma * np.sqrt(np.abs(vf_all))
     chosen = np.zeros(n, dtype=np.int64)
     alive = np.ones(n, dtype=bool)
@@ -215,7 +224,12 @@ def onset_adaptive(
     # (least biased) one, beyond what their noise explains (var(t0 - tj) ~ sd0² - sdj² for
     # nested least-squares fits).
     d2 = (t_all[chosen, r] - t_all[0]) ** 2 - np.maximum(sd_all[0] ** 2 - sd_all[chosen, r] ** 2, 0)
+    # Misfit: residuals beyond the noise mean a signal the cubic does not follow (the
+    # joint's resonance, the breakaway); its variance is scaled by the reduced chi-square.
+    chi2 = msr_all[chosen, r] / np.maximum(sigma**2, 1e-30)
+    misfit = sd_all[chosen, r] * np.sqrt(np.maximum(chi2 - 1.0, 0.0))
     return {
+        "misfit": misfit,
         "onset": t_all[chosen, r],
         "crb": sd_all[chosen, r],
         "bias": np.sqrt(np.maximum(d2, 0.0)),
