@@ -13,6 +13,12 @@ the same run, one after the other, quiet and with two busy processes
 * **ur_rtde**: ``t = initPeriod(); servoJ(q, 0, 0, 0.002, 0.1, 300); waitPeriod(t)`` on a
   sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority.
 
+``--peer`` runs the same phases against the independently written UR peer
+(``tests/independent_ur_peer.py``: the real control script's semantics, standard library
+only) instead of the twin: it costs about a quarter of a core at 500 Hz where the twin costs
+0.8, so on a two-core machine the loops are measured rather than the controller's starvation
+(its input log gives each package's arrival and the cycle that took it).
+
 Per phase it prints: missed cycles (controller cycles of the streaming span whose register
 got no new command, from the twin's truth: each command the twin took has ``arrival_s``
 and ``intake_s``) and overwritten commands (sent minus taken); the send-time error
@@ -24,12 +30,13 @@ command arrived; the middle of the window is 1 ms); the twin's CPU use and worst
 executor's own work per cycle (p50/p99) and its allocations per cycle (tracemalloc, on
 the in-process simulator, files of ``timedexec/execution`` only).
 
-    python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--json F]
+    python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer] [--json F]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -66,7 +73,7 @@ def cpu_s(pid: int | None) -> float:
         return math.nan
 
 
-def taken_commands(truth: Path, t0: float, span: tuple[float, float]) -> dict[str, Any]:
+def twin_commands(truth: Path, t0: float, span: tuple[float, float]) -> dict[str, Any]:
     """The twin's view of the commands whose arrival (host time) lies in ``span``."""
     _, commands = read_truth(truth)
     arr, intake = [], []
@@ -76,20 +83,36 @@ def taken_commands(truth: Path, t0: float, span: tuple[float, float]) -> dict[st
             continue
         arr.append(float(a))
         intake.append(float(i))
-    a = np.asarray(arr)
-    i = np.asarray(intake)
+    return taken_commands(np.asarray(arr), np.asarray(intake))
+
+
+def peer_commands(log: Path, peer: Any, span: tuple[float, float]) -> dict[str, Any]:
+    """The independent peer's input log (arrival, intake; controller s) over ``span``."""
+    rows = np.loadtxt(log, delimiter=",", ndmin=2) if log.stat().st_size else np.empty((0, 3))
+    lo, hi = peer.to_peer_time(span[0]), peer.to_peer_time(span[1])
+    keep = (rows[:, 0] >= lo) & (rows[:, 0] <= hi)
+    # The peer reads its inputs when its cycle runs, at or after the boundary: the phase is
+    # measured against that read.
+    return taken_commands(rows[keep, 0], rows[keep, 1], rows[keep, 2])
+
+
+def taken_commands(a: np.ndarray, i: np.ndarray, read: np.ndarray | None = None) -> dict[str, Any]:
+    """Missed cycles and arrival phases of commands that arrived at ``a`` and were taken at
+    the cycle boundary ``i`` (controller s), read by the controller at ``read`` (default
+    the boundary); ``same_cycle``: packages another one replaced before its cycle read it."""
     if len(i) < 2:
         return {"taken": len(i)}
     cycles = np.round(i / PERIOD_S).astype(np.int64)
     distinct = np.unique(cycles)
     expected = int(distinct.max() - distinct.min() + 1)
-    before_ms = (i - a) * 1e3
+    before_ms = ((i if read is None else read) - a) * 1e3
     hist, _ = np.histogram(before_ms, bins=PHASE_BINS_MS)
     return {
         "taken": len(i),
         "cycles": expected,
         "missed_cycles": expected - len(distinct),
         "missed_fraction": (expected - len(distinct)) / expected,
+        "same_cycle": len(i) - len(distinct),
         "phase_before_boundary_ms": {
             "p1": float(np.percentile(before_ms, 1)),
             "p50": float(np.percentile(before_ms, 50)),
@@ -259,42 +282,82 @@ def main(argv: list[str] | None = None) -> int:
         "--twin-rt",
         type=int,
         default=10,
-        help="SCHED_FIFO priority of the twin's threads where allowed (default 10, as a "
-        "controller's cycle; the clients get 5)",
+        help="SCHED_FIFO priority of the twin's (or the peer's) cycle where allowed (default "
+        "10, as a controller's cycle; the clients get 5)",
+    )
+    p.add_argument(
+        "--peer",
+        action="store_true",
+        help="run against the independent UR peer (tests/independent_ur_peer.py), not the twin",
     )
     p.add_argument("--json", help="write the figures as JSON here")
     args = p.parse_args(argv)
     out: dict[str, Any] = {"seconds": args.seconds, "load_average_start": os.getloadavg()[0]}
+    out["controller"] = "independent peer" if args.peer else "UR10e twin"
     out["allocations"] = allocations_per_cycle()
-    with tempfile.TemporaryDirectory() as tmp:
-        truth = Path(tmp) / "truth.jsonl"
-        with URTwin("ur10e", args.host, seed=1, truth_path=truth, rt_priority=args.twin_rt) as twin:
-            for load in ("quiet", "loaded"):
-                procs = busy(args.busy) if load == "loaded" else []
-                try:
-                    for name, run in RUNS:
-                        c0 = cpu_s(twin.pid)
-                        try:
-                            res = run(args.host, args.seconds)
-                        except (DriverError, ConfigError) as exc:
-                            # a phase that cannot run is reported, the others still measured
-                            out[f"{name}_{load}"] = {"error": str(exc)}
-                            continue
-                        c1 = cpu_s(twin.pid)
-                        span = res.pop("span")
-                        time.sleep(0.1)  # the truth file is flushed every 10 ms
-                        res["twin"] = taken_commands(truth, twin.t0_monotonic_s, span)
-                        res["twin"]["overwritten"] = res["commands"] - res["twin"]["taken"]
-                        stats = twin.stats()
-                        res["twin_cpu_percent"] = 100 * (c1 - c0) / (span[1] - span[0])
-                        res["twin_worst_send_gap_ms"] = 1e3 * float(stats["max_send_gap_s"])
-                        res["twin_max_lateness_ms"] = 1e3 * float(stats["max_lateness_s"])
-                        res["load_average"] = os.getloadavg()[0]
-                        out[f"{name}_{load}"] = res
-                finally:
-                    for proc in procs:
-                        proc.kill()
-                        proc.wait()
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        if args.peer:
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+            from independent_ur_peer import run_peer
+
+            log = Path(tmp) / "inputs.csv"
+            peer = stack.enter_context(
+                run_peer(args.host, model="UR10", version="5.11.1",
+                         extra_args=("--input-log", str(log),
+                                     "--rt-priority", str(args.twin_rt)))
+            )  # fmt: skip
+            pid = peer.process.pid
+
+            def commands(span: tuple[float, float]) -> dict[str, Any]:
+                return peer_commands(log, peer, span)
+
+            def stats() -> dict[str, float]:
+                return {"max_send_gap_s": math.nan, "max_lateness_s": math.nan}
+        else:
+            truth = Path(tmp) / "truth.jsonl"
+            twin = stack.enter_context(
+                URTwin("ur10e", args.host, seed=1, truth_path=truth, rt_priority=args.twin_rt)
+            )
+            pid = twin.pid
+
+            def commands(span: tuple[float, float]) -> dict[str, Any]:
+                return twin_commands(truth, twin.t0_monotonic_s, span)
+
+            def stats() -> dict[str, float]:
+                return dict(twin.stats())
+
+        for load in ("quiet", "loaded"):
+            procs = busy(args.busy) if load == "loaded" else []
+            try:
+                for name, run in RUNS:
+                    c0 = cpu_s(pid)
+                    try:
+                        res = run(args.host, args.seconds)
+                    except (DriverError, ConfigError) as exc:
+                        # a phase that cannot run is reported, the others still measured
+                        out[f"{name}_{load}"] = {"error": str(exc)}
+                        continue
+                    c1 = cpu_s(pid)
+                    span = res.pop("span")
+                    time.sleep(0.1)  # the truth file is flushed every 10 ms
+                    res["twin"] = commands(span)
+                    # the twin's truth holds commands (taken or superseded); the peer's log
+                    # every input package (watchdog kicks and register clears too)
+                    res["twin"]["overwritten"] = (
+                        res["twin"].get("same_cycle", 0)
+                        if args.peer
+                        else res["commands"] - res["twin"]["taken"]
+                    )
+                    st = stats()
+                    res["twin_cpu_percent"] = 100 * (c1 - c0) / (span[1] - span[0])
+                    res["twin_worst_send_gap_ms"] = 1e3 * float(st["max_send_gap_s"])
+                    res["twin_max_lateness_ms"] = 1e3 * float(st["max_lateness_s"])
+                    res["load_average"] = os.getloadavg()[0]
+                    out[f"{name}_{load}"] = res
+            finally:
+                for proc in procs:
+                    proc.kill()
+                    proc.wait()
     report(out)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
@@ -303,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report(out: dict[str, Any]) -> None:
-    print(f"UR10e twin, 500 Hz, {out['seconds']:.0f} s per loop and load")
+    print(f"{out['controller']}, 500 Hz, {out['seconds']:.0f} s per loop and load")
     a = out["allocations"]
     print(
         f"executor allocations per cycle (timedexec/execution): "

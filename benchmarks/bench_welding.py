@@ -8,19 +8,21 @@ What one cycle does here (the online variant of :func:`timedexec.execution.plan_
 a seam not known in advance):
 
 1. ``solve_ik`` of the torch pose at the cycle's time, warm-started from the previous
-   cycle's solution (2 ms earlier on the belt), to 0.1 µm and 0.1 µrad (one Newton step
-   from there; the planner's default 1 nm takes a second);
-2. the bundled ``ur10e-sim`` model's ``predict`` for *one* joint at that configuration
-   (GP mean and std of both delays; BLAS pinned to one thread, as the executor holds it),
-   the joints in turn: each joint's delay is refreshed every 4 cycles (8 ms, 4 mm of belt
-   at 0.5 m/s, over which the prediction moves by microseconds). ``--all-joints`` queries
-   the four modelled joints every cycle instead;
+   cycle's solution (2 ms earlier on the belt), to ``--ik-tol-um`` (default 1 µm and
+   1 µrad, 500 times below a weld's 0.5 mm: one damped Newton step from the warm start;
+   0.1 µm takes a second step, the planner's default 1 nm a third);
+2. the bundled ``ur10e-sim`` model's ``predict`` (the single-query fast path a control
+   loop calls) for *one* joint at that configuration (GP mean and std of both delays; BLAS
+   pinned to one thread, as the executor holds it), the joints in turn: each joint's delay
+   is refreshed every 4 cycles (8 ms, 4 mm of belt at 0.5 m/s, over which the prediction
+   moves by microseconds). ``--all-joints`` queries the four modelled joints every cycle
+   instead (``predict_many``, one vectorised call);
 3. ``Ruckig(6, 0.002).update`` towards the IK position and its finite-difference velocity.
 
 Wall clock and thread CPU time per cycle and per step (CPU time excludes the time the
 scheduler gives other processes on a shared machine; the load average is printed).
 
-Usage: python benchmarks/bench_welding.py [--robot ur10e] [--cycles 5000]
+Usage: python benchmarks/bench_welding.py [--robot ur10e] [--cycles 5000] [--ik-tol-um 1]
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ def main() -> None:
     p.add_argument("--robot", default="ur10e", choices=("ur10", "ur10e", "kr5"))
     p.add_argument("--cycles", type=int, default=5000)
     p.add_argument("--all-joints", action="store_true", help="query every joint every cycle")
+    p.add_argument("--ik-tol-um", type=float, default=1.0, help="IK tolerance, µm and µrad")
     args = p.parse_args()
     from ruckig import InputParameter, OutputParameter, Result, Ruckig
 
@@ -71,6 +74,7 @@ def main() -> None:
     inp.max_jerk = [1600.0] * 6
     model.predict_many(joints, np.ones(len(joints), int), np.tile(q, (len(joints), 1)))  # warm
     n = args.cycles
+    tol = args.ik_tol_um * 1e-6
     steps = np.empty((n, 3))
     cpu = np.empty(n)
     wall = np.empty(n)
@@ -84,11 +88,14 @@ def main() -> None:
             c0 = time.thread_time_ns()
             t0 = time.perf_counter_ns()
             pose[:3, 3] = sp.target([t])[0][0]
-            q_ik = solve_ik(spec, pose, q_prev, tool=cell.tool_m, tol_m=1e-7, tol_rad=1e-7)
+            q_ik = solve_ik(spec, pose, q_prev, tool=cell.tool_m, tol_m=tol, tol_rad=tol)
             t1 = time.perf_counter_ns()
             d = np.where(q_ik >= q_prev, 1, -1)[joints - 1]
-            ask = joints if args.all_joints else joints[i % len(joints) : i % len(joints) + 1]
-            model.predict_many(ask, d[: len(ask)], np.tile(q_ik, (len(ask), 1)))
+            if args.all_joints:
+                model.predict_many(joints, d, np.tile(q_ik, (len(joints), 1)))
+            else:
+                k = i % len(joints)
+                model.predict(joint=int(joints[k]), direction=int(d[k]), q=q_ik)
             t2 = time.perf_counter_ns()
             inp.target_position = q_ik.tolist()
             inp.target_velocity = np.clip((q_ik - q_prev) / period, -0.9 * np.asarray(spec.qd_max_rad_s), 0.9 * np.asarray(spec.qd_max_rad_s)).tolist()  # fmt: skip
@@ -106,8 +113,8 @@ def main() -> None:
             ctx.__exit__(None, None, None)
     load = os.getloadavg()[0]
     what = "all modelled joints" if args.all_joints else "one joint in turn"
-    print(f"{args.robot}: {n} cycles of IK + model ({what}) + Ruckig ({period * 1e3:g} ms "
-          f"period), load average {load:.1f}")  # fmt: skip
+    print(f"{args.robot}: {n} cycles of IK (to {args.ik_tol_um:g} µm) + model ({what}) + "
+          f"Ruckig ({period * 1e3:g} ms period), load average {load:.1f}")  # fmt: skip
     print(f"  cycle, wall  {pct(wall)}")
     print(f"  cycle, CPU   {pct(cpu)}")
     for k, name in enumerate(("IK", "model", "Ruckig")):

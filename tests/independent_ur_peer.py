@@ -980,6 +980,11 @@ class Controller:
         self._truth = open(truth_path, "a", encoding="ascii") if truth_path else None  # noqa: SIM115
         self._last_flush = 0.0
         self._was_still = True
+        # Input log (benchmarks): one line per RTDE input package, when it arrived, the
+        # boundary of the cycle that took it and when that cycle read it (controller s).
+        self.input_log: Any = None
+        self.rt_priority = 0  # SCHED_FIFO priority of the cycle thread (0: normal)
+        self._arrived: list[float] = []
         if self._truth is not None:
             self._truth.write(
                 f"# independent_ur_peer model={model} version={'.'.join(map(str, version))} "
@@ -1014,6 +1019,8 @@ class Controller:
             for n, v in zip(names, values, strict=True):
                 self.inputs[n] = v
                 self.last_update[n] = c
+            if self.input_log is not None:
+                self._arrived.append(time.monotonic() - self.t0)
 
     def set_watchdog(self, var: str, freq: float, action: str) -> None:
         """``rtde_set_watchdog(var, freq, action)``; freq in Hz."""
@@ -1117,6 +1124,12 @@ class Controller:
         with self.lock:
             regs = dict(self.inputs)
             last = dict(self.last_update)
+            arrived, self._arrived = self._arrived, []
+        if self.input_log is not None and arrived:
+            taken = time.monotonic() - self.t0  # when this cycle read them (>= its boundary)
+            self.input_log.write(
+                "".join(f"{a:.6f},{self.now:.6f},{taken:.6f}\n" for a in arrived)
+            )
         if self.pending_program is not None and self.cycle >= self.pending_program[0]:
             text = self.pending_program[1]
             self.pending_program = None
@@ -1195,6 +1208,13 @@ class Controller:
 
     def run(self) -> None:
         """Fixed-rate loop on absolute monotonic deadlines ``t0 + cycle * dt``."""
+        if self.rt_priority:
+            # A controller's cycle runs at real-time priority; Linux with the right to it.
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+                self.event("realtime", priority=self.rt_priority)
+            except (AttributeError, OSError) as exc:
+                self.event("realtime_refused", reason=type(exc).__name__)
         while not self.stop_event.is_set():
             deadline = self.t0 + self.cycle * self.dt
             delay = deadline - time.monotonic()
@@ -1703,6 +1723,19 @@ def main(argv: list[str] | None = None) -> int:
         help="program-stop deceleration, rad/s^2 (leading axis)",
     )
     ap.add_argument(
+        "--rt-priority",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority of the controller cycle (Linux, needs the right; 0: normal)",
+    )
+    ap.add_argument(
+        "--input-log",
+        type=Path,
+        default=None,
+        help="CSV of every RTDE input package: arrival_s,intake_s,read_s (controller s: "
+        "arrival, the boundary of the cycle that took it, when that cycle read the inputs)",
+    )
+    ap.add_argument(
         "--start-delay",
         type=float,
         default=0.1,
@@ -1742,6 +1775,10 @@ def main(argv: list[str] | None = None) -> int:
         urcap=(urcap_host, int(urcap_port)),
         installed_program=args.external_control_program,
     )
+    ctl.rt_priority = args.rt_priority
+    if args.input_log is not None:
+        # line-buffered: a reader sees every package up to the last cycle
+        ctl.input_log = open(args.input_log, "a", encoding="ascii", buffering=1)  # noqa: SIM115
     rtde = RtdeServer(ctl)
     listeners = [
         (_listen(args.host, RTDE_PORT), rtde.on_accept),
@@ -1773,6 +1810,8 @@ def main(argv: list[str] | None = None) -> int:
     ctl.event("peer_exit")
     if ctl._truth is not None:
         ctl._truth.close()
+    if ctl.input_log is not None:
+        ctl.input_log.close()
     return 0
 
 

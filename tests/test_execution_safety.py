@@ -570,19 +570,30 @@ PEER_STOP_DECEL_RAD_S2 = 3.0
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["SIGKILL", "SIGSTOP"])
-def test_killed_or_paused_host_stops_the_independent_peer_arm(sig: int) -> None:
+@pytest.mark.parametrize(
+    ("sig", "program"),
+    [
+        (signal.SIGKILL, None),
+        (signal.SIGSTOP, None),
+        (signal.SIGKILL, "/programs/external_control.urp"),
+    ],
+    ids=["SIGKILL", "SIGSTOP", "SIGKILL-external-control"],
+)
+def test_killed_or_paused_host_stops_the_independent_peer_arm(
+    sig: int, program: str | None
+) -> None:
     """The same against the independently written UR peer (tests/independent_ur_peer.py,
     real script semantics: speedj never expires, setWatchdog honoured, no stop on
-    disconnect): its watchdog trips 0.1 s after the last command (the signal lands at most
-    a few periods after it: -10 / +40 ms for the signal's and the peer's own timing on a
-    loaded machine) and its truth shows every joint at rest within the timeout + 0.5 rad/s
-    / 3 rad/s² + 100 ms (pipeline 6 ms, the last command's age, load)."""
+    disconnect; its script uploaded, or fetched by the peer's External Control program):
+    its watchdog trips 0.1 s after the last command (the signal lands at most a few periods
+    after it: -10 / +40 ms for the signal's and the peer's own timing on a loaded machine)
+    and its truth shows every joint at rest within the timeout + 0.5 rad/s / 3 rad/s² + 100
+    ms (pipeline 6 ms, the last command's age, load)."""
     pytest.importorskip("rtde_receive")
     pytest.importorskip("rtde_control")
     peer_mod = pytest.importorskip("independent_ur_peer")
     with peer_mod.run_peer("127.0.0.44", model="UR10", version="5.11.1") as peer:
-        child, failure = _cruising_host(peer.host)
+        child, failure = _cruising_host(peer.host, program)
         try:
             if failure is not None:
                 pytest.fail(f"the host never reached the cruise: {failure}")
@@ -596,6 +607,8 @@ def test_killed_or_paused_host_stops_the_independent_peer_arm(sig: int) -> None:
                 child.kill()
             child.wait(10)
         rest = truth.rest_time_after(t_signal)
+        sources = [ev.fields["source"] for ev in peer.events("program_started")]
+    assert sources == ["external_control" if program else "upload"], sources
     assert rest is not None, "the peer's arm still moves"
     assert 0.1 - 0.01 <= trip.time_s - t_signal <= 0.1 + 0.04, trip.time_s - t_signal
     bound = 0.1 + CRUISE_RAD_S / PEER_STOP_DECEL_RAD_S2 + 0.1  # load allowance as above
