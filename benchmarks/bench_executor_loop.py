@@ -172,6 +172,7 @@ def run_executor(host: str, seconds: float, *, lock: bool = True) -> dict[str, A
         work = ex.log.work()
         phase = ex.send_phase
         rt = ex.realtime
+        gcp = ex.gc_pauses
     sent = np.isfinite(log["send_s"])
     # Intended send time: the cycle-locked target (earliest arrival of the package's cycle,
     # lower envelope over 0.5 s, plus the phase offset).
@@ -193,6 +194,7 @@ def run_executor(host: str, seconds: float, *, lock: bool = True) -> dict[str, A
         "realtime": rt,
         "send_error_ms": {f"p{p}": float(np.percentile(err, p) * 1e3) for p in (50, 99)},
         "work_us": {f"p{p}": float(np.percentile(w, p) * 1e6) for p in (50, 99)},
+        "gc": {"count": gcp.count, "max_ms": gcp.max_s * 1e3} if gcp is not None else {},
     }
 
 
@@ -398,9 +400,12 @@ def report(out: dict[str, Any]) -> None:
                 f"{100 * ph.get('within_0.3ms_of_boundary', math.nan):5.1f}% {work:>16} "
                 f"{r['twin_cpu_percent']:7.1f}% {r['twin_worst_send_gap_ms']:8.1f}ms"
             )
+            gc_note = ""
+            if r.get("gc"):
+                gc_note = f"; {r['gc']['count']} collections, longest {r['gc']['max_ms']:.2f} ms"
             print(
                 f"{'':17} arrival phase histogram (ms before boundary, 0.2 ms bins): "
-                f"{t.get('phase_histogram')}"
+                f"{t.get('phase_histogram')}{gc_note}"
             )
     for load in ("quiet", "loaded"):
         ex = out[f"executor_{load}"].get("twin", {})

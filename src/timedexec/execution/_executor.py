@@ -34,7 +34,7 @@ from typing import Any, NoReturn, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec._realtime import realtime
+from timedexec._realtime import GcPauses, quiet_gc, realtime
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
@@ -165,6 +165,10 @@ class TimedExecutor:
         One row per state package handled.
     clip_count, coasted : int
         Commands a limit clipped; cycles commanded from the estimate (``coast``).
+    gc_pauses : GcPauses or None
+        With a real-time driver: the garbage collections while connected (``count``,
+        ``max_s``). Everything alive at connect is frozen (``gc.freeze``) until close, so a
+        collection only walks what the loop made since.
 
     Examples
     --------
@@ -235,13 +239,14 @@ class TimedExecutor:
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
         self._served = -1  # last controller cycle a command was sent for
-        virtual = bool(getattr(driver, "virtual", False))
+        virtual = self._virtual = bool(getattr(driver, "virtual", False))
         self.coast = bool(coast) and not virtual
         self.cycle_lock = bool(cycle_lock) and not virtual
         self.round_trip_s = float(round_trip_s)
         self.send_phase: SendPhase | None = None
         self.realtime_priority = realtime_priority
         self.realtime = False
+        self.gc_pauses: GcPauses | None = None
         self._rt = ExitStack()
         self.coasted = 0
         self.log = CycleLog()
@@ -266,6 +271,10 @@ class TimedExecutor:
         if self._session.spec is None:
             # Before the driver starts its threads: they inherit the policy.
             self.realtime = self._rt.enter_context(realtime(self.realtime_priority))
+            if not self._virtual:
+                # What is alive now (numpy, SciPy, the model) is never scanned again while
+                # connected: a full collection no longer stalls a cycle by 10-35 ms.
+                self.gc_pauses = self._rt.enter_context(quiet_gc())
         try:
             self._session.open(self._first_state)
             self._period = self._session.period_s

@@ -201,7 +201,7 @@ def _child_main(conn: multiprocessing.connection.Connection, kwargs: dict[str, A
                 server.drop_connections()
             elif kind == "stats":
                 pass
-            conn.send(("ok", dict(server.stats)))
+            conn.send(("ok", server.stats_now()))
 
     def ready(info: dict[str, Any]) -> None:
         conn.send(("ready", info))

@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
-import gc
 import heapq
 import importlib
 import math
@@ -32,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._realtime import try_realtime
+from timedexec._realtime import GcPauses, quiet_gc, try_realtime
 from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._cartesian import tcp_values
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
@@ -269,6 +268,12 @@ class _TwinServer:
             "program_stops": [],
         }
         self._send_queue: queue.Queue[_Send | None] = queue.Queue()
+        self._gc_quiet = contextlib.ExitStack()
+        self._gc_pauses = GcPauses()
+
+    def stats_now(self) -> dict[str, Any]:
+        """:attr:`stats` with the longest garbage collection since serving began, s."""
+        return dict(self.stats, gc_max_pause_s=self._gc_pauses.max_s)
 
     def log(self, message: str) -> None:
         self._log(message)
@@ -659,7 +664,9 @@ class _TwinServer:
         # Real-time priority for this thread before any other starts: threads inherit it,
         # so no normal-priority thread can hold the GIL while preempted (priority inversion).
         self.stats["realtime"] = try_realtime(self.rt_priority)
-        self._quiet_gc()
+        # Full collections walk only what was made since (see quiet_gc): 10-35 ms each
+        # otherwise, every few tens of seconds, 5-17 missed cycles.
+        self._gc_pauses = self._gc_quiet.enter_context(quiet_gc())
         self.t0 = time.monotonic() + 0.005
         self._write_meta()
         self._start_gyro()
@@ -679,31 +686,6 @@ class _TwinServer:
             self._clock_loop()
         finally:
             self.close()
-
-    def _quiet_gc(self) -> None:
-        """Keep the garbage collector from stalling the clock.
-
-        A full collection walks every object of the process (numpy, SciPy, the simulator:
-        about 30,000), 10-35 ms on the development VM, and one comes every few tens of
-        seconds from the per-cycle allocations: 5-17 missed e-Series cycles. Everything
-        alive at start is frozen (never scanned again), so a collection only walks what
-        was made since. ``stats()["gc_max_pause_s"]`` is the longest collection seen.
-        """
-        gc.collect()
-        gc.freeze()
-        self.stats["gc_max_pause_s"] = 0.0
-        started: list[float] = [0.0]
-
-        def timer(phase: str, info: dict[str, Any]) -> None:
-            if phase == "start":
-                started[0] = time.perf_counter()
-            else:
-                pause = time.perf_counter() - started[0]
-                if pause > self.stats["gc_max_pause_s"]:
-                    self.stats["gc_max_pause_s"] = pause
-
-        gc.callbacks.append(timer)
-        self._gc_timer = timer
 
     def _peek_packet(self) -> Any:
         """The state package of the current cycle boundary, before the cycle is computed.
@@ -834,10 +816,7 @@ class _TwinServer:
 
     def close(self) -> None:
         self.stop_event.set()
-        timer = getattr(self, "_gc_timer", None)
-        if timer is not None and timer in gc.callbacks:
-            gc.callbacks.remove(timer)
-            gc.unfreeze()
+        self._gc_quiet.close()
         for sock in self._listeners:
             with contextlib.suppress(OSError):
                 sock.close()
