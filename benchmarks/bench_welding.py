@@ -51,6 +51,11 @@ def main() -> None:
     p.add_argument("--cycles", type=int, default=5000)
     p.add_argument("--all-joints", action="store_true", help="query every joint every cycle")
     p.add_argument("--ik-tol-um", type=float, default=1.0, help="IK tolerance, µm and µrad")
+    p.add_argument(
+        "--iterative",
+        action="store_true",
+        help="also time the damped Newton IK (solve_ik(closed_form=False)) in the same run",
+    )
     args = p.parse_args()
     from ruckig import InputParameter, OutputParameter, Result, Ruckig
 
@@ -63,64 +68,75 @@ def main() -> None:
     pose = np.eye(4)
     pose[:3, :3] = rot
     q = np.asarray(sp.plan.sample(sp.sync_s)[0])
-    otg = Ruckig(6, period)
-    inp, out = InputParameter(6), OutputParameter(6)
-    inp.current_position = q.tolist()
-    inp.current_velocity = [0.0] * 6
-    inp.current_acceleration = [0.0] * 6
     spec = cell.spec
-    inp.max_velocity = list(spec.qd_max_rad_s)
-    inp.max_acceleration = [8.0] * 6
-    inp.max_jerk = [1600.0] * 6
     model.predict_many(joints, np.ones(len(joints), int), np.tile(q, (len(joints), 1)))  # warm
     n = args.cycles
     tol = args.ik_tol_um * 1e-6
-    steps = np.empty((n, 3))
-    cpu = np.empty(n)
-    wall = np.empty(n)
-    ctx = model.pinned() if hasattr(model, "pinned") else None
-    if ctx is not None:
-        ctx.__enter__()
-    try:
+    vmax = 0.9 * np.asarray(spec.qd_max_rad_s)
+
+    def run(closed_form: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Wall and thread CPU time per cycle, and the wall time of its three steps, s."""
+        otg = Ruckig(6, period)
+        inp, out = InputParameter(6), OutputParameter(6)
+        inp.current_position = q.tolist()
+        inp.current_velocity = [0.0] * 6
+        inp.current_acceleration = [0.0] * 6
+        inp.max_velocity = list(spec.qd_max_rad_s)
+        inp.max_acceleration = [8.0] * 6
+        inp.max_jerk = [1600.0] * 6
+        steps = np.empty((n, 3))
+        cpu = np.empty(n)
+        wall = np.empty(n)
         q_prev = q
-        for i in range(n):
-            t = (i % int(0.8 / period)) * period  # wrap along the 0.8 s seam
-            c0 = time.thread_time_ns()
-            t0 = time.perf_counter_ns()
-            pose[:3, 3] = sp.target([t])[0][0]
-            q_ik = solve_ik(spec, pose, q_prev, tool=cell.tool_m, tol_m=tol, tol_rad=tol)
-            t1 = time.perf_counter_ns()
-            d = np.where(q_ik >= q_prev, 1, -1)[joints - 1]
-            if args.all_joints:
-                model.predict_many(joints, d, np.tile(q_ik, (len(joints), 1)))
-            else:
-                k = i % len(joints)
-                model.predict(joint=int(joints[k]), direction=int(d[k]), q=q_ik)
-            t2 = time.perf_counter_ns()
-            inp.target_position = q_ik.tolist()
-            inp.target_velocity = np.clip((q_ik - q_prev) / period, -0.9 * np.asarray(spec.qd_max_rad_s), 0.9 * np.asarray(spec.qd_max_rad_s)).tolist()  # fmt: skip
-            res = otg.update(inp, out)
-            if res not in (Result.Working, Result.Finished):
-                raise RuntimeError(f"Ruckig: {res}")
-            out.pass_to_input(inp)
-            t3 = time.perf_counter_ns()
-            cpu[i] = (time.thread_time_ns() - c0) * 1e-9
-            wall[i] = (t3 - t0) * 1e-9
-            steps[i] = np.array([t1 - t0, t2 - t1, t3 - t2]) * 1e-9
-            q_prev = q_ik if i % int(0.8 / period) else np.asarray(sp.plan.sample(sp.sync_s)[0])
-    finally:
-        if ctx is not None:
-            ctx.__exit__(None, None, None)
-    load = os.getloadavg()[0]
+        with model.pinned():
+            for i in range(n):
+                t = (i % int(0.8 / period)) * period  # wrap along the 0.8 s seam
+                c0 = time.thread_time_ns()
+                t0 = time.perf_counter_ns()
+                pose[:3, 3] = sp.target([t])[0][0]
+                q_ik = solve_ik(spec, pose, q_prev, tool=cell.tool_m, tol_m=tol, tol_rad=tol,
+                                closed_form=closed_form)  # fmt: skip
+                t1 = time.perf_counter_ns()
+                d = np.where(q_ik >= q_prev, 1, -1)[joints - 1]
+                if args.all_joints:
+                    model.predict_many(joints, d, np.tile(q_ik, (len(joints), 1)))
+                else:
+                    k = i % len(joints)
+                    model.predict(joint=int(joints[k]), direction=int(d[k]), q=q_ik)
+                t2 = time.perf_counter_ns()
+                inp.target_position = q_ik.tolist()
+                inp.target_velocity = np.clip((q_ik - q_prev) / period, -vmax, vmax).tolist()
+                res = otg.update(inp, out)
+                if res not in (Result.Working, Result.Finished):
+                    raise RuntimeError(f"Ruckig: {res}")
+                out.pass_to_input(inp)
+                t3 = time.perf_counter_ns()
+                cpu[i] = (time.thread_time_ns() - c0) * 1e-9
+                wall[i] = (t3 - t0) * 1e-9
+                steps[i] = np.array([t1 - t0, t2 - t1, t3 - t2]) * 1e-9
+                q_prev = q_ik if i % int(0.8 / period) else np.asarray(sp.plan.sample(sp.sync_s)[0])
+        return wall, cpu, steps
+
     what = "all modelled joints" if args.all_joints else "one joint in turn"
-    print(f"{args.robot}: {n} cycles of IK (to {args.ik_tol_um:g} µm) + model ({what}) + "
-          f"Ruckig ({period * 1e3:g} ms period), load average {load:.1f}")  # fmt: skip
-    print(f"  cycle, wall  {pct(wall)}")
-    print(f"  cycle, CPU   {pct(cpu)}")
-    for k, name in enumerate(("IK", "model", "Ruckig")):
-        print(f"  {name:<6} wall  {pct(steps[:, k])}")
-    print(f"  p99 <= 0.5 ms: {'yes' if np.percentile(wall, 99) <= 5e-4 else 'NO'} (wall), "
-          f"{'yes' if np.percentile(cpu, 99) <= 5e-4 else 'NO'} (CPU)")  # fmt: skip
+    variants = [("closed form" if spec.name.lower().startswith("ur") else "iterative", True)]
+    if args.iterative:
+        variants.append(("iterative", False))
+    p99 = {}
+    for label, closed in variants:
+        wall, cpu, steps = run(closed)
+        load = os.getloadavg()[0]
+        print(f"{args.robot}: {n} cycles of IK ({label}, to {args.ik_tol_um:g} µm) + model "
+              f"({what}) + Ruckig ({period * 1e3:g} ms period), load average {load:.1f}")  # fmt: skip
+        print(f"  cycle, wall  {pct(wall)}")
+        print(f"  cycle, CPU   {pct(cpu)}")
+        for k, name in enumerate(("IK", "model", "Ruckig")):
+            print(f"  {name:<6} wall  {pct(steps[:, k])}")
+        print(f"  p99 <= 0.5 ms: {'yes' if np.percentile(wall, 99) <= 5e-4 else 'NO'} (wall), "
+              f"{'yes' if np.percentile(cpu, 99) <= 5e-4 else 'NO'} (CPU)")  # fmt: skip
+        p99[label] = (float(np.percentile(cpu, 50)), float(np.percentile(cpu, 99)))
+    if len(p99) == 2:
+        (a50, a99), (b50, b99) = p99.values()
+        print(f"  iterative / closed form, CPU per cycle: p50 {b50 / a50:.2f}x, p99 {b99 / a99:.2f}x")
 
 
 if __name__ == "__main__":
