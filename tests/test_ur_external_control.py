@@ -229,3 +229,13 @@ def test_fetch_fails_cleanly_on_silence_floods_and_garbage() -> None:
         # another exception
         with contextlib.suppress(ProtocolError):
             assert isinstance(fetch_external_control_script("127.0.0.1", pc.port), str)
+
+
+def test_serve_names_a_bad_urcap_address(capsys: pytest.CaptureFixture[str]) -> None:
+    """``timedexec serve --urcap`` takes HOST:PORT; anything else exits 2 naming the value and
+    the form, before anything is served."""
+    from timedexec.cli import main
+
+    for bad in ("nonsense", "h:70000", ":50002"):
+        assert main(["serve", "--robot", "ur10", "--urcap", bad]) == 2
+        assert f"{bad!r} is not HOST:PORT with a port in 1 .. 65535" in capsys.readouterr().err

@@ -44,6 +44,15 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--imu-link", help="path for a symlink to the gyro's pseudo-terminal")
     p.add_argument("--truth", help="write ground truth (JSON lines) here")
     p.add_argument(
+        "--urcap",
+        type=_host_port,
+        default=("127.0.0.1", 50002),
+        metavar="HOST:PORT",
+        help="UR: where the pendant program /programs/external_control.urp (an External "
+        "Control URCap node) asks for its script when played (default 127.0.0.1:50002: "
+        "ur_rtde with FLAG_USE_EXT_UR_CAP on this machine)",
+    )
+    p.add_argument(
         "--rsi-port",
         type=int_arg(1, 65535),
         default=49152,
@@ -52,6 +61,16 @@ def add_parser(sub: Any) -> None:
     add_period(p, help="RSI period, s (kr5: 0.012 or 0.004)")
     add_seed(p)
     p.set_defaults(func=run)
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    """argparse type: ``HOST:PORT`` with a port in 1 .. 65535."""
+    host, sep, port = text.strip().rpartition(":")
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not HOST:PORT with a port in 1 .. 65535; e.g. 192.168.1.5:50002"
+        )
+    return host, int(port)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -65,7 +84,12 @@ def run(args: argparse.Namespace) -> int:
     if args.robot.startswith("ur"):
         from timedexec.twins import run_ur_twin
 
-        print(f"serving a simulated {args.robot} on {args.host} (Ctrl-C stops)", file=sys.stderr)
+        print(
+            f"serving a simulated {args.robot} on {args.host} (Ctrl-C stops); its pendant "
+            f"program /programs/external_control.urp asks {args.urcap[0]}:{args.urcap[1]} "
+            "for its script",
+            file=sys.stderr,
+        )
         with contextlib.suppress(KeyboardInterrupt):
             run_ur_twin(
                 args.robot,
@@ -74,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
                 truth_path=args.truth,
                 imu_link=args.imu_link,
                 stop_event=stop,
+                external_control=args.urcap,
             )
         return 0
     from timedexec.twins import RSITwin
