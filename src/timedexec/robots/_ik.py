@@ -238,7 +238,16 @@ def solve_ik(
         When the pose is out of reach from this seed or the solution leaves the joint
         limits; the message gives the remaining error.
     """
-    q = check_configuration(spec, q_seed).astype(float).copy()
+    try:
+        seed = np.asarray(q_seed, dtype=float)
+    except (TypeError, ValueError):
+        seed = np.empty(0)  # check_configuration names what is wrong with it
+    if seed.shape == (6,) and all(
+        lo <= v <= hi for v, lo, hi in zip(seed.tolist(), spec.q_min_rad, spec.q_max_rad, strict=True)
+    ):
+        q = seed.copy()  # the common case, checked in plain floats (a NaN fails the test)
+    else:
+        q = check_configuration(spec, q_seed).astype(float).copy()  # raises, naming it
     tgt = np.asarray(target, dtype=float)
     if tgt.shape == (3,):
         position_only = True
