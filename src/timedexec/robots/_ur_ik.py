@@ -75,6 +75,17 @@ def _pick(candidates: tuple[float, float], seed: float) -> float:
     return a if abs(a - seed) <= abs(b - seed) else b
 
 
+def _acos_branch(cosine: float, seed: float) -> tuple[float, float] | None:
+    """The angle with this cosine on the seed's side (+ or -), and its sine; None out of
+    range or where the two sides meet (sine below :data:`_SINGULAR`)."""
+    if abs(cosine) > 1.0:
+        return None
+    a = math.acos(cosine)
+    q = _pick((a, -a), seed)
+    sine = math.sin(q)
+    return None if abs(sine) < _SINGULAR else (q, sine)
+
+
 def ur_closed_form(spec: RobotSpec, flange: FloatArray, seed: FloatArray) -> FloatArray | None:
     """Joint angles (6,) that put the flange at ``flange`` (4 x 4, base frame) on the seed's
     branch, or None (not a UR chain, a singular branch, out of reach)."""
@@ -98,13 +109,10 @@ def ur_closed_form(spec: RobotSpec, flange: FloatArray, seed: FloatArray) -> Flo
     s1, c1 = math.sin(q1), math.cos(q1)
     # Wrist 2 (q5): the flange's height along z1 is d4 + d6 cos q5.
     c5 = (px * s1 - py * c1 - d4) / d6
-    if abs(c5) > 1.0:
+    wrist = _acos_branch(c5, s[4])
+    if wrist is None:
         return None
-    a5 = math.acos(c5)
-    q5 = _pick((a5, -a5), s[4])
-    s5 = math.sin(q5)
-    if abs(s5) < _SINGULAR:
-        return None
+    q5, s5 = wrist
     # Wrist 3 (q6): z1^T R06 = e_z^T Rx(pi/2) R46 = row 1 of R46 = (s5 c6, -s5 s6, c5), with
     # R46 = Rz(q5) Rx(-pi/2) Rz(q6) = [[c5 c6, -c5 s6, -s5], [s5 c6, -s5 s6, c5], [-s6, -c6, 0]].
     t0 = s1 * nx - c1 * ny
@@ -123,13 +131,10 @@ def ur_closed_form(spec: RobotSpec, flange: FloatArray, seed: FloatArray) -> Flo
     x = o4[0] * c1 + o4[1] * s1
     y = o4[2] - d1
     c3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
-    if abs(c3) > 1.0:
+    elbow = _acos_branch(c3, s[2])
+    if elbow is None:
         return None
-    a3c = math.acos(c3)
-    q3 = _pick((a3c, -a3c), s[2])
-    s3 = math.sin(q3)
-    if abs(s3) < _SINGULAR:
-        return None
+    q3, s3 = elbow
     q2 = _near(math.atan2(y, x) - math.atan2(a3 * s3, a2 + a3 * c3), s[1])
     # x4 in frame 1 is (cos q234, sin q234, 0).
     q234 = math.atan2(x4[2], x4[0] * c1 + x4[1] * s1)
