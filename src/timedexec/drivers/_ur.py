@@ -168,7 +168,9 @@ class URDriver(RobotDriver):
             raise ConfigError(f"variables must include {sorted(missing)} (read_state needs them)")
         self.poll_interval_s = float(poll_interval_s)
         self.tight_timer_slack = tight_timer_slack
-        if not (isinstance(ur_cap_port, int) and 1 <= ur_cap_port <= 65535):
+        if isinstance(ur_cap_port, bool) or not (
+            isinstance(ur_cap_port, int) and 1 <= ur_cap_port <= 65535
+        ):
             raise ConfigError(
                 f"ur_cap_port={ur_cap_port!r} outside 1..65535; use the port the External "
                 "Control URCap's installation names (default 50002)"
@@ -178,7 +180,7 @@ class URDriver(RobotDriver):
                 f"program={program!r} is not a pendant program; give the .urp path that holds "
                 "the External Control node, e.g. '/programs/external_control.urp'"
             )
-        if not 0 < program_timeout_s <= 3600:
+        if not (isinstance(program_timeout_s, int | float) and 0 < program_timeout_s <= 3600):
             raise ConfigError(f"program_timeout_s={program_timeout_s!r} outside (0, 3600] s")
         self.external_control = bool(external_control) or program is not None
         self.ur_cap_port = int(ur_cap_port)

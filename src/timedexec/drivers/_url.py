@@ -115,15 +115,10 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
 
         _no_path(url, parts.path if parts.netloc else "", "sim://ROBOT, e.g. sim://ur10")
         where = parts.netloc or parts.path.strip("/")
-        flag = query.get("realtime", "0").strip().lower()
-        if flag not in _TRUE + _FALSE:
-            raise ConfigError(
-                f"robot URL {url!r}: realtime={query['realtime']!r} must be 1 or 0 "
-                "(true/false, yes/no)"
-            )
+        realtime = _flag(url, query, "realtime")
         option_seed = options.pop("seed", 0)
         seed = _seed(url, query["seed"]) if "seed" in query else _seed(url, option_seed)
-        return SimDriver(where or "ur10", virtual=flag in _FALSE, seed=seed, **options)
+        return SimDriver(where or "ur10", virtual=not realtime, seed=seed, **options)
     if scheme == "ur":
         from timedexec.drivers._ur import URDriver
 
@@ -146,17 +141,21 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
 _RSI_FORM = "rsi://PORT or rsi://LISTEN_IP:PORT, e.g. rsi://49152 or rsi://0.0.0.0:49152"
 
 
+def _flag(url: str, query: dict[str, str], name: str) -> bool:
+    """A yes/no URL parameter (absent: no)."""
+    flag = query.get(name, "0").strip().lower()
+    if flag not in _TRUE + _FALSE:
+        raise ConfigError(
+            f"robot URL {url!r}: {name}={query[name]!r} must be 1 or 0 (true/false, yes/no)"
+        )
+    return flag in _TRUE
+
+
 def _ur_options(url: str, query: dict[str, str]) -> dict[str, Any]:
     """Keyword options of :class:`URDriver` from a ``ur://`` URL's parameters."""
     out: dict[str, Any] = {}
     if "external_control" in query:
-        flag = query["external_control"].strip().lower()
-        if flag not in _TRUE + _FALSE:
-            raise ConfigError(
-                f"robot URL {url!r}: external_control={query['external_control']!r} must be 1 "
-                "or 0 (true/false, yes/no)"
-            )
-        out["external_control"] = flag in _TRUE
+        out["external_control"] = _flag(url, query, "external_control")
     if "ur_cap_port" in query:
         raw = query["ur_cap_port"].strip()
         if not (raw.isdigit() and 1 <= int(raw) <= 65535):

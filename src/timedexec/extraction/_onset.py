@@ -19,7 +19,7 @@ noise. The reported standard error adds to the bound the zero-rate (baseline) un
 the window's bias allowance and a misfit term: where the fit's residuals exceed the noise
 (reduced chi-square above 1: a resonance or the breakaway the cubic does not follow) the
 bound is scaled by the excess (independent recordings, 95 % coverage: UR10 88.7 -> 91.0 %,
-KR 5 90.3 -> 91.3 %, 10x noise 91.9 -> 94.0 %; the simulator's KR 5 90.0 -> 93.3 %).
+KR 5 90.3 -> 91.3 %, 10x noise 91.9 -> 94.0 %).
 
 **Response.** The reported positions are aligned with the integrated gyro angle. The angle
 of a white-noise rate is a random walk, so a least-squares fit of positions weights the

@@ -209,7 +209,7 @@ def _child_main(conn: multiprocessing.connection.Connection, kwargs: dict[str, A
 
     server.serve(ready=ready)
     with contextlib.suppress(OSError, BrokenPipeError):
-        conn.send(("stopped", dict(server.stats)))
+        conn.send(("stopped", server.stats_now()))
 
 
 class URTwin(Twin):
