@@ -758,3 +758,28 @@ def test_fused_pair_predictor_matches_separate_predictors() -> None:
             # rounding only: (mean, latent var) of each GP within gp_rounding_bounds
             tol = (*gp_rounding_bounds(a, x), *gp_rounding_bounds(b, x))
             assert np.all(np.abs(np.subtract(fused, sep)) <= tol), (fused, sep, tol)
+
+
+def test_fits_run_every_blas_on_one_thread_and_restore_it() -> None:
+    """The fits' BLAS pin covers numpy's and SciPy's own OpenBLAS (two libraries here),
+    nests, and restores the previous thread counts; it keeps its library handles, so a fit
+    no longer pays threadpoolctl's library lookup (2.3 ms) on every call."""
+    import scipy.linalg  # noqa: F401  (SciPy's BLAS loaded, as in a fit)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from timedexec.learning._threads import single_threaded_blas
+
+    def blas_threads() -> dict[str, int]:
+        return {lib["filepath"]: lib["num_threads"] for lib in threadpool_info()
+                if lib["user_api"] == "blas"}  # fmt: skip
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        assert set(before.values()) == {2}
+        with single_threaded_blas():
+            assert set(blas_threads()) == set(before)
+            assert set(blas_threads().values()) == {1}
+            with single_threaded_blas():
+                pass
+            assert set(blas_threads().values()) == {1}  # the inner block left it pinned
+        assert blas_threads() == before
