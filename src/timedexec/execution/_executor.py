@@ -34,7 +34,7 @@ from typing import Any, NoReturn, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec._realtime import GcPauses, quiet_gc, realtime
+from timedexec._realtime import GcPauses, fast_wakeup, quiet_gc, realtime
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
@@ -169,6 +169,12 @@ class TimedExecutor:
         With a real-time driver: the garbage collections while connected (``count``,
         ``max_s``). Everything alive at connect is frozen (``gc.freeze``) until close, so a
         collection only walks what the loop made since.
+    fast_wakeup : bool
+        With a real-time driver: whether the OS keeps the CPUs out of deep idle states while
+        connected (Linux PM QoS ``/dev/cpu_dma_latency`` held at 0 µs; root or a udev rule
+        granting the file). Without it an idle machine wakes the loop late: the executor's
+        2 ms wait was 3.6 ms late at p99 on a quiet VM, 0.055 ms with it
+        (``benchmarks/bench_wakeup_latency.py``).
 
     Examples
     --------
@@ -247,6 +253,7 @@ class TimedExecutor:
         self.realtime_priority = realtime_priority
         self.realtime = False
         self.gc_pauses: GcPauses | None = None
+        self.fast_wakeup = False
         self._rt = ExitStack()
         self.coasted = 0
         self.log = CycleLog()
@@ -275,6 +282,7 @@ class TimedExecutor:
                 # What is alive now (numpy, SciPy, the model) is never scanned again while
                 # connected: a full collection no longer stalls a cycle by 10-35 ms.
                 self.gc_pauses = self._rt.enter_context(quiet_gc())
+                self.fast_wakeup = self._rt.enter_context(fast_wakeup())
         try:
             self._session.open(self._first_state)
             self._period = self._session.period_s
@@ -302,7 +310,7 @@ class TimedExecutor:
             self._session.close(self._stop_for_close if moving else None)
         finally:
             self._rt.close()
-            self.realtime = False
+            self.realtime = self.fast_wakeup = False
 
     def __enter__(self) -> Self:
         self.connect()

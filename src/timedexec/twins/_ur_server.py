@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._realtime import GcPauses, quiet_gc, try_realtime
+from timedexec._realtime import GcPauses, fast_wakeup, quiet_gc, try_realtime
 from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._cartesian import tcp_values
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
@@ -667,6 +667,9 @@ class _TwinServer:
         # Full collections walk only what was made since (see quiet_gc): 10-35 ms each
         # otherwise, every few tens of seconds, 5-17 missed cycles.
         self._gc_pauses = self._gc_quiet.enter_context(quiet_gc())
+        # A controller's CPU never sleeps deeply; an idle VM's does, and wakes the cycle
+        # late by milliseconds (see fast_wakeup).
+        self.stats["fast_wakeup"] = self._gc_quiet.enter_context(fast_wakeup())
         self.t0 = time.monotonic() + 0.005
         self._write_meta()
         self._start_gyro()
