@@ -441,6 +441,42 @@ def test_failed_append_leaves_no_trace(
         assert_rows_match(r.read, r.read("trial"))
 
 
+def test_ctrl_c_while_a_record_is_synced_keeps_what_a_reader_saw(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C (a real SIGINT) arriving while a batch's journal record is fsync'ed: a reader
+    already sees that batch (its bytes are in the journal), so the writer must keep it. The
+    interrupt is raised once the batch is recorded; closing folds it into the file. (Before:
+    the record was cut off again, and `simulate` interrupted by the CI test's Ctrl-C once
+    left a file with 0 trials after a reader had seen some.)"""
+    import signal as sig
+
+    path = tmp_path / "r.h5"
+    journal = str(path) + ".journal"
+    real_fsync = os.fsync
+    seen: list[int] = []
+
+    def interrupted_fsync(fd: int) -> None:
+        if os.path.exists(journal) and os.path.samestat(os.fstat(fd), os.stat(journal)):
+            with RecordingReader(path) as r:
+                seen.append(r.n_trials)
+            sig.raise_signal(sig.SIGINT)  # Ctrl-C, as the terminal sends it
+        real_fsync(fd)
+
+    w = RecordingWriter(path, header=HEADER, fields=FIELDS)
+    w.append(make_batch([0, 1]))
+    monkeypatch.setattr(os, "fsync", interrupted_fsync)
+    with pytest.raises(KeyboardInterrupt):
+        w.append(make_batch([2, 3]))
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    assert seen == [4]  # the reader saw the batch before its fsync
+    assert w.n_trials == 4
+    w.close()
+    with RecordingReader(path) as r:
+        np.testing.assert_array_equal(r.read("trial"), [0, 1, 2, 3])
+        assert_rows_match(r.read, r.read("trial"))
+
+
 FAILING_HDF5_WRITE = r"""
 import errno, os, sys
 import numpy as np

@@ -536,10 +536,11 @@ class RecordingWriter:
             "doc": str(doc),
         }
         payload, data_start = static_payload(info, arr)
-        rec = self._write_record(KIND_STATIC, 0, payload)
-        rec = rec._replace(static={**info, "data_offset": rec.offset + data_start})
-        self._records[-1] = rec
-        self._statics[name] = rec
+        with sigint_deferred():  # see append
+            rec = self._write_record(KIND_STATIC, 0, payload)
+            rec = rec._replace(static={**info, "data_offset": rec.offset + data_start})
+            self._records[-1] = rec
+            self._statics[name] = rec
         self._maybe_checkpoint()
 
     def append(self, batch: Mapping[str, ArrayLike]) -> None:
@@ -602,10 +603,16 @@ class RecordingWriter:
                 f"trial indices {done[:5]}{' ...' if len(done) > 5 else ''} are already "
                 f"recorded in {self._path}; skip completed_trials when resuming a sweep"
             )
-        self._write_record(KIND_BATCH, k, self._layout.encode(arrays))
-        self._rows += k
-        self._trial_set.update(tl)
-        self._completed_cache = None
+        payload = self._layout.encode(arrays)
+        # Ctrl-C is held while the record is written and counted: a reader sees a record as
+        # soon as its bytes are in the journal, and a KeyboardInterrupt during its fsync cut
+        # it off again (a reader had seen trials the file then lacked), or after it, before
+        # the count, left a record the next checkpoint would not fold.
+        with sigint_deferred():
+            self._write_record(KIND_BATCH, k, payload)
+            self._rows += k
+            self._trial_set.update(tl)
+            self._completed_cache = None
         self._maybe_checkpoint()
 
     def checkpoint(self) -> None:
