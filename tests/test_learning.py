@@ -767,7 +767,7 @@ def test_fits_run_every_blas_on_one_thread_and_restore_it() -> None:
     import scipy.linalg  # noqa: F401  (SciPy's BLAS loaded, as in a fit)
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from timedexec.learning._threads import single_threaded_blas
+    from timedexec.learning import single_threaded_blas
 
     def blas_threads() -> dict[str, int]:
         return {lib["filepath"]: lib["num_threads"] for lib in threadpool_info()

@@ -21,7 +21,7 @@ from timedexec.execution._conveyor import (
     default_cell,
     plan_seam,
 )
-from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase
+from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase, wait_until
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
@@ -116,4 +116,5 @@ __all__ = [
     "tool_radius_m",
     "track_conveyor_seam",
     "track_seam",
+    "wait_until",
 ]

@@ -37,6 +37,7 @@ from timedexec.learning._gpcore import (
     predictor_from_arrays,
 )
 from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
+from timedexec.learning._threads import single_threaded_blas
 from timedexec.learning._train import (
     DELAYS,
     METHODS,
@@ -109,6 +110,7 @@ __all__ = [
     "neg_log_likelihood",
     "noise_floor",
     "predictor_from_arrays",
+    "single_threaded_blas",
     "std_scale_factor",
     "train_delay_models",
 ]
