@@ -8,6 +8,8 @@ the same run, one after the other, quiet and with two busy processes
   streaming back-and-forth moves of joints 1 and 6, with tolerant staleness limits (200 ms)
   and watchdog (0.3 s) so that the loop's timing, not its faults, is measured (faults are
   counted and recovered from);
+* **coasting**: the cycle-locked executor with ``coast=True``: a cycle whose package has
+  not arrived by the send time gets its command from the estimate, on time;
 * **unlocked**: the same executor sending as soon as each package is handled
   (``cycle_lock=False``), the pre-issue-15 behaviour;
 * **ur_rtde**: ``t = initPeriod(); servoJ(q, 0, 0, 0.002, 0.1, 300); waitPeriod(t)`` on a
@@ -30,7 +32,8 @@ command arrived; the middle of the window is 1 ms); the twin's CPU use and worst
 executor's own work per cycle (p50/p99) and its allocations per cycle (tracemalloc, on
 the in-process simulator, files of ``timedexec/execution`` only).
 
-    python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer] [--json F]
+    python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer]
+        [--loops executor,coasting,unlocked,ur_rtde] [--json F]
 """
 
 from __future__ import annotations
@@ -133,12 +136,15 @@ BENCH_STALENESS = StalenessLimits(floor_s=0.2, ceiling_s=0.2)
 BENCH_WATCHDOG_S = 2.0
 
 
-def run_executor(host: str, seconds: float, *, lock: bool = True) -> dict[str, Any]:
+def run_executor(
+    host: str, seconds: float, *, lock: bool = True, coast: bool = False
+) -> dict[str, Any]:
     with TimedExecutor(
         URDriver(host),
         MODEL,
         realtime_priority=RT_PRIORITY,
         cycle_lock=lock,
+        coast=coast,
         staleness=BENCH_STALENESS,
         watchdog_timeout_s=BENCH_WATCHDOG_S,
     ) as ex:
@@ -268,7 +274,16 @@ def run_unlocked(host: str, seconds: float) -> dict[str, Any]:
     return run_executor(host, seconds, lock=False)
 
 
-RUNS = (("executor", run_executor), ("unlocked", run_unlocked), ("ur_rtde", run_ur_rtde))
+def run_coasting(host: str, seconds: float) -> dict[str, Any]:
+    return run_executor(host, seconds, coast=True)
+
+
+RUNS = (
+    ("executor", run_executor),
+    ("coasting", run_coasting),
+    ("unlocked", run_unlocked),
+    ("ur_rtde", run_ur_rtde),
+)
 
 
 def busy(n: int) -> list[subprocess.Popen[bytes]]:
@@ -292,10 +307,20 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="run against the independent UR peer (tests/independent_ur_peer.py), not the twin",
     )
+    p.add_argument(
+        "--loops",
+        default=",".join(name for name, _ in RUNS),
+        help="comma list of the loops to run (default: all)",
+    )
     p.add_argument("--json", help="write the figures as JSON here")
     args = p.parse_args(argv)
+    unknown = set(args.loops.split(",")) - {name for name, _ in RUNS}
+    if unknown:
+        p.error(f"--loops: unknown {sorted(unknown)}; choose from {[n for n, _ in RUNS]}")
+    runs = [(name, run) for name, run in RUNS if name in args.loops.split(",")]
     out: dict[str, Any] = {"seconds": args.seconds, "load_average_start": os.getloadavg()[0]}
     out["controller"] = "independent peer" if args.peer else "UR10e twin"
+    out["loops"] = [name for name, _ in runs]
     out["allocations"] = allocations_per_cycle()
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         # Every loop under the same wake-up policy: the CPUs kept out of deep idle states
@@ -335,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         for load in ("quiet", "loaded"):
             procs = busy(args.busy) if load == "loaded" else []
             try:
-                for name, run in RUNS:
+                for name, run in runs:
                     c0 = cpu_s(pid)
                     try:
                         res = run(args.host, args.seconds)
@@ -386,7 +411,7 @@ def report(out: dict[str, Any]) -> None:
     )
     print(head)
     for load in ("quiet", "loaded"):
-        for name, _ in RUNS:
+        for name in out["loops"]:
             r = out[f"{name}_{load}"]
             if "error" in r:
                 print(f"{name:9} {load:7} failed: {r['error']}")
@@ -413,8 +438,8 @@ def report(out: dict[str, Any]) -> None:
                 f"{t.get('phase_histogram')}{gc_note}"
             )
     for load in ("quiet", "loaded"):
-        ex = out[f"executor_{load}"].get("twin", {})
-        ur = out[f"ur_rtde_{load}"].get("twin", {})
+        ex = out.get(f"executor_{load}", {}).get("twin", {})
+        ur = out.get(f"ur_rtde_{load}", {}).get("twin", {})
         if "missed_fraction" in ex and "missed_fraction" in ur:
             ratio = ur["missed_fraction"] / max(ex["missed_fraction"], 1e-9)
             print(f"{load}: missed cycles, ur_rtde / executor = {ratio:.2f}x")
