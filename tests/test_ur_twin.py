@@ -8,9 +8,8 @@ wide enough for a loaded two-core CI machine and are justified next to each asse
 
 from __future__ import annotations
 
-import os
-
 import json
+import os
 import socket
 import struct
 import time
