@@ -179,6 +179,7 @@ def run_executor(
         phase = ex.send_phase
         rt = ex.realtime
         gcp = ex.gc_pauses
+        coasted = ex.coasted
     sent = np.isfinite(log["send_s"])
     # Intended send time: the cycle-locked target (earliest arrival of the package's cycle,
     # lower envelope over 0.5 s, plus the phase offset).
@@ -197,6 +198,7 @@ def run_executor(
         "moves": k,
         "faults": faults,
         "commands": int(sent.sum()),
+        "coasted": coasted,
         "realtime": rt,
         "send_error_ms": {f"p{p}": float(np.percentile(err, p) * 1e3) for p in (50, 99)},
         "work_us": {f"p{p}": float(np.percentile(w, p) * 1e6) for p in (50, 99)},
@@ -433,6 +435,8 @@ def report(out: dict[str, Any]) -> None:
             gc_note = ""
             if r.get("gc"):
                 gc_note = f"; {r['gc']['count']} collections, longest {r['gc']['max_ms']:.2f} ms"
+            if r.get("coasted"):
+                gc_note += f"; {r['coasted']} of {r['commands']} commands from the estimate"
             print(
                 f"{'':17} arrival phase histogram (ms before boundary, 0.2 ms bins): "
                 f"{t.get('phase_histogram')}{gc_note}"
