@@ -141,7 +141,7 @@ class TimedExecutor:
         ``coast``): measured against the independent UR peer only, not yet on a real
         controller or on RSI. There, with ``coast`` and ``realtime_priority=5``, it missed
         fewer cycles than ur_rtde's own ``initPeriod``/``waitPeriod`` pattern (1.2 vs 4.8 %
-        quiet, 2.8 vs 7.1 % beside two busy processes), sent within 0.26-0.35 ms at p99
+        quiet, 2.8 vs 7.1 % beside two busy processes), sent within 0.24-0.35 ms at p99
         and landed its commands mid-window (docs/execution.md): the recommended setting
         for a UR.
     round_trip_s : float
@@ -158,7 +158,7 @@ class TimedExecutor:
         from the estimate, and the late package is then only read (real-time drivers only;
         a virtual-time simulator never has late packages). The stall limit still counts
         from the last package: a stream that stops is stopped as before. With
-        ``cycle_lock`` the send-time p99 fell from 0.84-1.15 ms to 0.26-0.35 ms against
+        ``cycle_lock`` the send-time p99 fell from 0.40-1.15 ms to 0.24-0.35 ms against
         the independent peer (docs/execution.md).
 
     Attributes
