@@ -140,8 +140,8 @@ class TimedExecutor:
         ``round_trip_s``. Real-time drivers only (ignored in virtual time). Opt-in (like
         ``coast``): measured against the independent UR peer only, not yet on a real
         controller or on RSI. There, with ``coast`` and ``realtime_priority=5``, it missed
-        fewer cycles than ur_rtde's own ``initPeriod``/``waitPeriod`` pattern (1.2 vs 4.8 %
-        quiet, 2.8 vs 7.1 % beside two busy processes), sent within 0.24-0.35 ms at p99
+        fewer cycles than ur_rtde's own ``initPeriod``/``waitPeriod`` pattern (1.2-1.3 vs
+        4.8-5.1 % quiet, 2.8-3.4 vs 7.1-7.8 % beside two busy processes), sent within 0.24-0.35 ms at p99
         and landed its commands mid-window (docs/execution.md): the recommended setting
         for a UR.
     round_trip_s : float
