@@ -10,7 +10,10 @@ the machine at hand, in the same run, two ways, quiet and beside two busy proces
   ``--priority``. Skipped, with a note, when it is not installed (``apt-get install
   rt-tests``).
 * **python**: the executor's own wait (``timedexec.execution.wait_until``: sleep to
-  just before the deadline, spin the rest) to absolute deadlines every 2 ms, same priority.
+  just before the deadline, spin the rest) to absolute deadlines every 2 ms, same priority,
+  without the PM QoS request;
+* **python+qos**: the same while holding the request (``timedexec._realtime.fast_wakeup``),
+  as the executor does on a real-time driver.
 
 Per phase and source: the lateness after each deadline, p50 / p99 / p99.9 / max, the share of
 cycles later than 0.5 ms, and the hypervisor's steal time over the phase (``/proc/stat``: CPU
@@ -35,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._realtime import realtime
+from timedexec._realtime import fast_wakeup, realtime
 from timedexec.execution import wait_until
 
 PERIOD_S = 0.002
@@ -115,14 +118,21 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for phase, n_busy in (("quiet", 0), ("2 busy", 2)):
         with busy(n_busy):
-            for source in ("os", "python"):
+            for source in ("os", "python", "python+qos"):
                 s0 = steal_jiffies()
                 if source == "os":
                     late = os_lateness(args.seconds, args.priority)
                     note = "" if late is not None else "cyclictest not installed (rt-tests)"
                 else:
-                    late, granted = python_lateness(args.seconds, args.priority)
+                    with (
+                        fast_wakeup()
+                        if source == "python+qos"
+                        else contextlib.nullcontext(False) as qos
+                    ):
+                        late, granted = python_lateness(args.seconds, args.priority)
                     note = "" if granted else "SCHED_FIFO refused: normal priority"
+                    if source == "python+qos" and not qos:
+                        note += " PM QoS request refused"
                 s1 = steal_jiffies()
                 steal = (s1[0] - s0[0]) / max(s1[1] - s0[1], 1)
                 if late is None:
@@ -135,8 +145,10 @@ def main() -> None:
                       f"{100 * steal:.1f} % |{' ' + note if note else ''}", flush=True)  # fmt: skip
     for phase in ("quiet", "2 busy"):
         by = {r["source"]: r for r in rows if r["phase"] == phase}
-        if {"os", "python"} <= by.keys():
-            print(f"{phase}: python/os p99 {by['python']['p99_ms'] / by['os']['p99_ms']:.2f}")
+        if {"os", "python", "python+qos"} <= by.keys():
+            os_p99 = max(by["os"]["p99_ms"], 1e-3)
+            print(f"{phase}: p99 / cyclictest's: python {by['python']['p99_ms'] / os_p99:.2f}, "
+                  f"python+qos {by['python+qos']['p99_ms'] / os_p99:.2f}")  # fmt: skip
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump(rows, f, indent=1)

@@ -180,7 +180,7 @@ class TimedExecutor:
         With a real-time driver: whether the OS keeps the CPUs out of deep idle states while
         connected (Linux PM QoS ``/dev/cpu_dma_latency`` held at 0 µs; root or a udev rule
         granting the file). Without it an idle machine wakes the loop late: the executor's
-        2 ms wait was 3.6 ms late at p99 on a quiet VM, 0.055 ms with it
+        2 ms wait was 0.3-3.7 ms late at p99 on a quiet VM, 0.003-0.23 ms with it
         (``benchmarks/bench_wakeup_latency.py``).
 
     Examples
