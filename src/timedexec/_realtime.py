@@ -55,12 +55,12 @@ def fast_wakeup(max_latency_us: int = 0, path: str = CPU_DMA_LATENCY) -> Iterato
     A 2 ms loop sleeps most of each period; on an idle machine the CPU then drops into a
     deep C-state (on a VM the vCPU is descheduled) and wakes late. Measured here
     (``benchmarks/bench_wakeup_latency.py``, SCHED_FIFO, 2 ms deadlines, quiet machine):
-    the executor's wait was 0.3-3.7 ms late at p99 without (five runs) and 0.003-0.23 ms with
-    this; cyclictest's
-    own 0.08-0.17 ms needs it too (``--laptop``, which skips it: max 14 ms). Beside busy
-    processes the CPUs never idle and it changes nothing. The request is system-wide and
-    lasts while the file is open (root, or a udev rule granting the file). Where it is
-    refused the loop runs as before and the caller says so."""
+    the executor's wait was 0.3-3.7 ms late at p99 without (five runs) and 0.003-0.23 ms
+    with this; cyclictest holds the same request for its own 0.08-0.17 ms (``--laptop``,
+    which skips it: max 14 ms). Beside busy processes the CPUs seldom idle and it changes
+    little. The request is system-wide and lasts while the file is open (root, or a udev
+    rule granting the file). Where it is refused the loop runs as before and the caller
+    says so."""
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
     except OSError:
