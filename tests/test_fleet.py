@@ -3,10 +3,10 @@ as the local run, a worker killed mid-run, a damaged recording, ``--scheduler`` 
 commands that fan out, and the README's scaling section run as written.
 
 Bounded for CI: seven robots of 160 simulated trials (3 repeats; 240 until the suite
-outgrew its 15 minutes; the claims here are mostly bit-for-bit sameness, and the drift
-and accuracy checks held at 160), the median
-and the GP, 5-fold CV, a tiny evaluation; one local run and one cluster shared by the
-module (the test whose robot keeps killing workers has its own cluster).
+outgrew its 15 minutes: the claims here are mostly bit-for-bit sameness, and the drift and
+accuracy checks held at 160), the median and the GP, 5-fold CV, a tiny evaluation; one
+local run and one cluster shared by the module (the test whose robot keeps killing workers
+has its own cluster).
 """
 
 from __future__ import annotations
