@@ -116,12 +116,30 @@ class _Chain(NamedTuple):
     o: FloatArray
 
 
+#: Largest batch whose chain is remembered (see :func:`_chain`).
+_CHAIN_MEMO_ROWS = 8
+#: The last small batch's chain: (robot parameters, configurations' bytes, chain).
+_chain_memo: tuple[_Params, tuple[int, ...], bytes, _Chain] | None = None
+
+
 def _chain(p: _Params, q: FloatArray) -> _Chain:
     """Frames 0..6 for (N, 6) vendor angles.
 
     Standard DH, ``A_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``, applied to the columns
     of the rotation: ``Rz`` mixes x and y, ``Rx`` then mixes the new y with z.
+
+    The chain of the last small batch (at most ``_CHAIN_MEMO_ROWS`` rows) is remembered,
+    read-only: a stepped controller refreshing its pose-dependent parameters asks for the
+    gravity coefficients, the inertia and the joint axes of one pose in a row, and the
+    chain's ~60 small array operations were a fifth of the UR twin's clock thread.
     """
+    global _chain_memo
+    small = q.shape[0] <= _CHAIN_MEMO_ROWS
+    if small:
+        key = q.tobytes()
+        memo = _chain_memo
+        if memo is not None and memo[0] is p and memo[1] == q.shape and memo[2] == key:
+            return memo[3]
     n = q.shape[0]
     theta = (q * p.sign + p.offset).T  # (6, N)
     ct, st = np.cos(theta), np.sin(theta)
@@ -139,7 +157,12 @@ def _chain(p: _Params, q: FloatArray) -> _Chain:
         y[i + 1] = p.ca[i] * y_rot + p.sa[i] * zi
         z[i + 1] = p.ca[i] * zi - p.sa[i] * y_rot
         o[i + 1] = o[i] + p.d[i] * zi + p.a[i] * x_new
-    return _Chain(x, y, z, o)
+    chain = _Chain(x, y, z, o)
+    if small:
+        for a in chain:
+            a.setflags(write=False)
+        _chain_memo = (p, q.shape, key, chain)
+    return chain
 
 
 def _outer(a: FloatArray, b: FloatArray) -> FloatArray:

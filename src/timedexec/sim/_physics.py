@@ -15,6 +15,7 @@ friction, inertia and gains.
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 from dataclasses import dataclass
@@ -284,7 +285,9 @@ class JointChain:
         self.p = params
         c = _coefficients(params, self.dt_s)
         n = len(self._q)
-        columns = [np.broadcast_to(f, (n,)).tolist() for f in c]
+        columns = [
+            [float(f)] * n if np.ndim(f) == 0 else np.broadcast_to(f, (n,)).tolist() for f in c
+        ]
         self._c = [_Coefficients(*(col[j] for col in columns)) for j in range(n)]
         self._rest = [False] * len(self._q)
 
@@ -390,6 +393,17 @@ def pulse_derivative(
     return d_trapezoid(t) - d_trapezoid(t - pulse - pause_s)
 
 
+@functools.lru_cache(maxsize=16)
+def _nominal_inertia(spec: RobotSpec) -> FloatArray:
+    """Each joint's inertia at the robot's home pose, kg·m² (6,), read-only: the pose the
+    drives' gains are tuned for (constant; a stepped controller's parameter refresh
+    recomputed it each time)."""
+    home = np.asarray(spec.home_q_rad, dtype=float)[None, :]
+    out = joint_inertia(spec, home)[0]
+    out.setflags(write=False)
+    return out
+
+
 def joint_params(
     spec: RobotSpec,
     settings: SimSettings,
@@ -412,8 +426,7 @@ def joint_params(
     tau_g = a_nm * np.cos(q_j) + b_nm * np.sin(q_j)
     rotor = np.asarray(spec.rotor_inertia_kgm2)[col]
     j_true_full = joint_inertia(spec, q_start)[rows, col]
-    home = np.broadcast_to(np.asarray(spec.home_q_rad, dtype=float), (1, 6))
-    j_nominal = joint_inertia(spec, home)[0][col]
+    j_nominal = _nominal_inertia(spec)[col]
     inertia = effects.get("inertia")
     if inertia is not None:
         j_true = rotor + inertia.scale * (j_true_full - rotor)  # type: ignore[attr-defined]
