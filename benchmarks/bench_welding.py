@@ -118,7 +118,8 @@ def main() -> None:
         return wall, cpu, steps
 
     what = "all modelled joints" if args.all_joints else "one joint in turn"
-    variants = [("closed form" if spec.name.lower().startswith("ur") else "iterative", True)]
+    # every robot of the catalog has a closed form (UR family, spherical wrist: the KR 5)
+    variants = [("closed form", True)]
     if args.iterative:
         variants.append(("iterative", False))
     p99 = {}

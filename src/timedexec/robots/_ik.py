@@ -20,7 +20,9 @@ need their own conventions checked against these DH tables. ``tests/test_welding
 the round trip to 1e-9 m and the speed (``benchmarks/bench_welding.py``: ~0.1 ms per
 warm-started solve). For the UR family the closed form is derived on these DH tables
 (:mod:`timedexec.robots._ur_ik`, checked against the chain's forward kinematics) and used
-first: exact and about 20x cheaper, which a 500 Hz online tracking cycle needs.
+first: exact and about 20x cheaper, which a 500 Hz online tracking cycle needs. Arms with
+a spherical wrist and a planar arm (the KR 5) have their own closed form, Pieper's
+decoupling on the same tables (:mod:`timedexec.robots._wrist_ik`).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from timedexec.errors import ConfigError
 from timedexec.robots._dynamics import _chain, _params
 from timedexec.robots._spec import RobotSpec, _as_configurations, check_configuration
 from timedexec.robots._ur_ik import ur_closed_form
+from timedexec.robots._wrist_ik import wrist_closed_form
 
 __all__ = ["rotation_error", "solve_ik", "tool_jacobian", "tool_pose"]
 
@@ -198,8 +201,9 @@ def solve_ik(
 ) -> FloatArray:
     """Joint angles that put the tool centre point at ``target``, near ``q_seed``.
 
-    UR arms (their DH structure): the closed form, each branch (shoulder, elbow, wrist) the
-    seed's (:mod:`timedexec.robots._ur_ik`). Otherwise, and near a UR's singularities:
+    UR arms and arms with a spherical wrist (the KR 5): the closed form, each branch
+    (shoulder, elbow, wrist) the seed's (:mod:`timedexec.robots._ur_ik`,
+    :mod:`timedexec.robots._wrist_ik`). Otherwise, and near a singularity:
     damped least squares (Levenberg-Marquardt) on the pose error, from the seed: each step
     solves ``(J Jᵀ + λ² I) y = e``, ``Δq = Jᵀ y`` with the damping ``λ`` raised while a
     step does not reduce the error (Wampler 1986; Nakamura and Hanafusa's damped inverse
@@ -225,7 +229,7 @@ def solve_ik(
     position_only : bool
         Solve the position only (the orientation is free); implied by a (3,) target.
     closed_form : bool
-        Use the UR closed form where it applies (default); False always iterates.
+        Use a closed form where one applies (default); False always iterates.
 
     Returns
     -------
@@ -243,7 +247,8 @@ def solve_ik(
     except (TypeError, ValueError):
         seed = np.empty(0)  # check_configuration names what is wrong with it
     if seed.shape == (6,) and all(
-        lo <= v <= hi for v, lo, hi in zip(seed.tolist(), spec.q_min_rad, spec.q_max_rad, strict=True)
+        lo <= v <= hi
+        for v, lo, hi in zip(seed.tolist(), spec.q_min_rad, spec.q_max_rad, strict=True)
     ):
         q = seed.copy()  # the common case, checked in plain floats (a NaN fails the test)
     else:
@@ -261,13 +266,16 @@ def solve_ik(
         )
     tcp = _tool(tool)
     if closed_form and not position_only:
-        # UR arms: the closed form on the seed's branch (exact, ~15 µs); None near a
-        # singularity or for another arm, and a solution beyond a limit: iterate.
+        # UR and spherical-wrist arms: the closed form on the seed's branch (exact, tens of
+        # µs); None near a singularity or for another arm, and a solution beyond a limit:
+        # iterate.
         flange = pose.copy()
         rot = tcp[:3, :3]
         flange[:3, :3] = pose[:3, :3] @ rot.T
         flange[:3, 3] = pose[:3, 3] - flange[:3, :3] @ tcp[:3, 3]
         closed = ur_closed_form(spec, flange, q)
+        if closed is None:
+            closed = wrist_closed_form(spec, flange, q)
         if closed is not None and all(
             lo <= v <= hi
             for v, lo, hi in zip(closed.tolist(), spec.q_min_rad, spec.q_max_rad, strict=True)
