@@ -444,8 +444,8 @@ def _extract_chunk_inner(
         # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
         sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
         act_se = np.sqrt(
-            on["crb"] ** 2 + on["misfit"] ** 2 + on["bias"] ** 2 + (sd_bias / on["slope"]) ** 2
-            + ACTUATION_SE_FLOOR_S**2
+            on["crb"] ** 2 + on["misfit"] ** 2 + on["bias"] ** 2 + on["conflict"] ** 2
+            + (sd_bias / on["slope"]) ** 2 + ACTUATION_SE_FLOOR_S**2
         )
         missing_onset = on["missing"]
         n_cols = {
