@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 import math
-import operator
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -27,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.effects import EffectSet
 from timedexec.robots import RobotSpec, gravity_torque_coefficients, joint_inertia
+from timedexec.sim._drive import _drive_step
 
 if TYPE_CHECKING:
     from timedexec.sim._settings import SimSettings
@@ -114,63 +114,19 @@ def _coefficients(params: JointParams, dt_s: float) -> _Coefficients:
     )
 
 
-def _scalar_sign(x: float) -> float:
-    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
+#: The two operations :func:`_crossing_time` needs, for arrays (a bank) and floats (a chain).
+_ARRAY_OPS = SimpleNamespace(clip=np.clip, maximum=np.maximum)
+_FLOAT_OPS = SimpleNamespace(clip=lambda x, lo, hi: min(max(x, lo), hi), maximum=max)
 
 
-#: The operations the step needs, for arrays (a bank of trials) and for floats (one joint of
-#: a stepped controller, where numpy's per-call overhead on six elements cost 0.1 ms per
-#: step). Both give bit-identical results (IEEE float64, same operations in the same order;
-#: ``math.cos`` and ``np.cos`` agree bit for bit, checked by tests/test_sim.py).
-_ARRAY_OPS = SimpleNamespace(
-    cos=np.cos,
-    sin=np.sin,
-    clip=np.clip,
-    maximum=np.maximum,
-    where=np.where,
-    sign=np.sign,
-    not_=np.logical_not,
-)
-_FLOAT_OPS = SimpleNamespace(
-    cos=math.cos,
-    sin=math.sin,
-    clip=lambda x, lo, hi: min(max(x, lo), hi),
-    maximum=max,
-    where=lambda cond, a, b: a if cond else b,
-    sign=_scalar_sign,
-    not_=operator.not_,
-)
+@functools.cache
+def _bank_step() -> Any:
+    """The compiled bank step (:mod:`timedexec.sim._kernel`), imported on first use: Numba
+    and the compiled code load only in processes that step a bank (~0.3 s import, ~0.6 s
+    to load the cached machine code, ~2 s to compile it the first time on a machine)."""
+    from timedexec.sim._kernel import bank_step
 
-
-def _drive_step(ops: Any, c: _Coefficients, dt: float, q, v, tau_m, integ, stuck, v_ref):  # type: ignore[no-untyped-def]
-    """One integration step of the drives (see the module docstring), written once for
-    arrays and floats. Returns ``(q, v, tau_m, integ, stuck)`` after the step."""
-    tau_g = c.grav_a * ops.cos(q) + c.grav_b * ops.sin(q)
-    err = v_ref - v
-    integ_new = integ + err * dt
-    tau_cmd = tau_g + c.kp * err + c.ki * integ_new
-    limited = ops.clip(tau_cmd, -c.torque_max, c.torque_max)
-    # Conditional integration (anti-windup): keep the integrator where the limit binds.
-    integ = ops.where(limited == tau_cmd, integ_new, integ)
-    tau_m = tau_m + c.alpha * (limited - tau_m)
-    net = tau_m - tau_g
-    # Breakaway: a stuck joint starts when the net torque beats static friction.
-    breaks = stuck & ((net > c.breakaway_pos) | (net < -c.breakaway_neg))
-    moving = ops.not_(stuck) | breaks
-    direction = ops.where(v != 0.0, ops.sign(v), ops.sign(net))
-    friction = ops.where(direction > 0, c.kinetic_pos, -c.kinetic_neg) + c.viscous * v
-    acc = (net - friction) * c.inv_j
-    v_new = ops.where(moving, v + acc * dt, 0.0)
-    # Stick at a velocity reversal: the joint stops and must break away again.
-    reversal = moving & (v_new * direction < 0.0)
-    # Coming to rest without a reversal (the loop settles asymptotically): stick once the
-    # speed is negligible and the drive torque cannot break the joint free again.
-    settled = moving & (abs(v_new) < 1e-7) & (net <= c.breakaway_pos) & (net >= -c.breakaway_neg)
-    reversal = reversal | settled
-    v_new = ops.where(reversal, 0.0, v_new)
-    stuck = ops.where(moving, reversal, stuck)
-    q = q + 0.5 * (v + v_new) * dt
-    return q, v_new, tau_m, integ, stuck
+    return bank_step
 
 
 def _crossing_time(ops: Any, v, v_new, t_s, threshold: float, dt: float):  # type: ignore[no-untyped-def]
@@ -214,6 +170,8 @@ class JointBank:
         """Replace the physical parameters (e.g. as the pose changes); the state is kept."""
         self.p = params
         self._c = _coefficients(params, self.dt_s)
+        n = self.q.shape[0]
+        self._c_arrays = np.array([np.broadcast_to(f, (n,)) for f in self._c], dtype=np.float64)
 
     def arm_onset(self, mask: NDArray[np.bool_]) -> None:
         """Start watching the elements in ``mask`` for their next motion onset."""
@@ -224,16 +182,13 @@ class JointBank:
         """Advance one step with velocity reference ``v_ref_rad_s`` (n,); ``t_s`` is the time
         at the start of the step (scalar or (n,)), used to time-stamp onsets."""
         v = self.v
-        self.q, v_new, self.tau_m, self.integ, self.stuck = _drive_step(
-            _ARRAY_OPS,
-            self._c,
-            self.dt_s,
-            self.q,
-            v,
-            self.tau_m,
-            self.integ,
-            self.stuck,
-            v_ref_rad_s,
+        v_ref = v_ref_rad_s
+        if not (
+            isinstance(v_ref, np.ndarray) and v_ref.shape == v.shape and v_ref.dtype == np.float64
+        ):
+            v_ref = np.ascontiguousarray(np.broadcast_to(v_ref, v.shape), dtype=np.float64)
+        self.q, v_new, self.tau_m, self.integ, self.stuck = _bank_step()(
+            self._c_arrays, self.dt_s, self.q, v, self.tau_m, self.integ, self.stuck, v_ref
         )
         if self._armed.any():
             crossed = self._armed & (np.abs(v_new) >= self.threshold)
@@ -309,7 +264,7 @@ class JointChain:
             return v
         q, tau_m, integ, stuck = self._q[j], self._tau_m[j], self._integ[j], self._stuck[j]
         q_new, v_new, tau_new, integ_new, stuck_new = _drive_step(
-            _FLOAT_OPS, self._c[j], self.dt_s, q, v, tau_m, integ, stuck, v_ref_rad_s
+            *self._c[j], self.dt_s, q, v, tau_m, integ, stuck, v_ref_rad_s
         )
         self._rest[j] = v_ref_rad_s == 0.0 and (q_new, v_new, tau_new, integ_new, stuck_new) == (
             q,
