@@ -391,10 +391,11 @@ def test_servoj_stream_from_rest_keeps_the_cycle_cost_flat():
 
 @pytest.mark.parametrize("robot", ["ur10", "kr5"])
 def test_joint_chain_steps_bit_identical_to_the_joint_bank(robot: str) -> None:
-    """The stepped controller's float-by-float JointChain and the batch's vectorised
-    JointBank run one step function: the same inputs give the same bits (q, v, stuck,
-    onsets), through breakaway, reversals, torque saturation, rest and onset watches. A joint
-    left at rest is skipped by the chain, so this also checks that skipping is exact."""
+    """The stepped controller's float-by-float JointChain (the step as Python) and the
+    batch's JointBank (the same step compiled by Numba, looped over its elements) give the
+    same bits (q, v, stuck, onsets), through breakaway, reversals, torque saturation, rest
+    and onset watches. A joint left at rest is skipped by the chain, so this also checks
+    that skipping is exact."""
     from timedexec.effects import default_effects
     from timedexec.sim import JointBank, JointChain, joint_params
 
@@ -426,11 +427,49 @@ def test_joint_chain_steps_bit_identical_to_the_joint_bank(robot: str) -> None:
 
 
 def test_float_and_numpy_trigonometry_agree_bit_for_bit() -> None:
-    """JointChain uses math.cos/sin where JointBank uses numpy's: on this platform they give
-    the same bits (the premise of the test above, checked on its own so a numpy build with
-    other vector maths names the cause)."""
+    """math.cos/sin (the chain's step; the bank's compiled step calls the same C library)
+    and numpy's (the holding torques both start from) give the same bits on this platform:
+    checked on its own so a numpy build with other vector maths names the cause."""
     import math
 
     x = np.random.default_rng(2).uniform(-2 * np.pi, 2 * np.pi, 20000)
     assert np.array_equal(np.cos(x), [math.cos(v) for v in x])
     assert np.array_equal(np.sin(x), [math.sin(v) for v in x])
+
+
+def test_ctrl_c_inside_the_compiled_bank_step_is_a_keyboard_interrupt(monkeypatch) -> None:
+    """A Ctrl-C while Numba loads a kernel's cached constants arrives as SystemErrors whose
+    root cause is the KeyboardInterrupt; the bank raises the KeyboardInterrupt (so the CLI
+    exits 130 with its resume command), and any other SystemError unchanged."""
+    from timedexec.effects import default_effects
+    from timedexec.sim import JointBank, joint_params
+
+    spec = get_robot("ur10")
+    settings = default_settings(spec)
+    q0 = np.array(spec.home_q_rad)
+    params, _, _ = joint_params(
+        spec, settings, default_effects("ur10"), np.broadcast_to(q0, (6, 6)), np.arange(1, 7),
+        np.zeros(6),
+    )  # fmt: skip
+    bank = JointBank(params, q0, 1.25e-4, settings.servo.onset_threshold_rad_s)
+
+    def kernel_interrupted(*args):
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as ki:
+                raise SystemError("<function _numba_unpickle> returned a result") from ki
+        except SystemError as inner:
+            raise SystemError("CPUDispatcher(bank_step) returned a result") from inner
+
+    # the fault goes in where the bank looks its kernel up (its module's globals)
+    monkeypatch.setitem(JointBank.step.__globals__, "_bank_step", lambda: kernel_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        bank.step(np.zeros(6), 0.0)
+
+    def kernel_broken(*args):
+        raise SystemError("something else")
+
+    monkeypatch.setitem(JointBank.step.__globals__, "_bank_step", lambda: kernel_broken)
+    with pytest.raises(SystemError, match="something else"):
+        bank.step(np.zeros(6), 0.0)

@@ -119,6 +119,20 @@ _ARRAY_OPS = SimpleNamespace(clip=np.clip, maximum=np.maximum)
 _FLOAT_OPS = SimpleNamespace(clip=lambda x, lo, hi: min(max(x, lo), hi), maximum=max)
 
 
+def _raise_interrupt_inside(exc: BaseException) -> None:
+    """Raise the KeyboardInterrupt (or SystemExit) at the root of ``exc``'s causes, if any.
+
+    A Ctrl-C that lands while Numba's first call of a kernel in a process loads its cached
+    constants surfaces as a chain of ``SystemError("... returned a result with an exception
+    set")`` whose root cause is the KeyboardInterrupt (seen once in `simulate`'s Ctrl-C
+    test: a traceback and exit 1 instead of exit 130 and the resume command)."""
+    root: BaseException = exc
+    while root.__cause__ is not None:
+        root = root.__cause__
+    if isinstance(root, KeyboardInterrupt | SystemExit):
+        raise root.with_traceback(None) from None
+
+
 @functools.cache
 def _bank_step() -> Any:
     """The compiled bank step (:mod:`timedexec.sim._kernel`), imported on first use: Numba
@@ -187,9 +201,13 @@ class JointBank:
             isinstance(v_ref, np.ndarray) and v_ref.shape == v.shape and v_ref.dtype == np.float64
         ):
             v_ref = np.ascontiguousarray(np.broadcast_to(v_ref, v.shape), dtype=np.float64)
-        self.q, v_new, self.tau_m, self.integ, self.stuck = _bank_step()(
-            self._c_arrays, self.dt_s, self.q, v, self.tau_m, self.integ, self.stuck, v_ref
-        )
+        try:
+            self.q, v_new, self.tau_m, self.integ, self.stuck = _bank_step()(
+                self._c_arrays, self.dt_s, self.q, v, self.tau_m, self.integ, self.stuck, v_ref
+            )
+        except SystemError as exc:
+            _raise_interrupt_inside(exc)
+            raise
         if self._armed.any():
             crossed = self._armed & (np.abs(v_new) >= self.threshold)
             if crossed.any():
