@@ -8,15 +8,33 @@ runs tens of thousands of such steps per case. Compiled, one loop over the eleme
 25 / 96 µs per step for 6 / 600 / 4,000 elements (numpy: 59 / ~75 / 223 µs), the same
 bits (no fast-math: no reassociation, no fused multiply-add; ``math.cos`` and ``math.sin``
 are the C library's, as numpy's are). Imported on first use (:func:`_physics._bank_step`);
-the machine code is cached beside the source (``cache=True``).
+the machine code is cached in the user's cache directory (:func:`_cache_dir`).
 """
 
 from __future__ import annotations
 
-import numba
-import numpy as np
+import os
+from pathlib import Path
 
-from timedexec.sim._drive import _drive_step
+
+def _cache_dir() -> str:
+    """Where Numba keeps the compiled code unless the user says (``NUMBA_CACHE_DIR``): the
+    user's cache directory, not beside the source. Beside the source it lands in
+    site-packages for an installed copy, where pip's uninstall leaves it behind and the
+    leftover ``timedexec/sim`` folder then shadows a later editable install (seen in the
+    fresh-checkout check: every test module failed to import ``timedexec.sim``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return str(Path(base) / "timedexec" / "numba")
+
+
+# Read by Numba when it is first imported (a process that imported it before keeps its own
+# setting).
+os.environ.setdefault("NUMBA_CACHE_DIR", _cache_dir())
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+
+from timedexec.sim._drive import _drive_step  # noqa: E402
 
 __all__ = ["bank_step"]
 
