@@ -74,6 +74,7 @@ def _wrist_geometry(spec: RobotSpec) -> _Geometry | None:
         and a[5] == 0.0
         and d[4] == 0.0
         and abs(sa[1]) < 1e-12
+        and ca[1] > 0
         and abs(abs(sa[0]) - 1.0) < 1e-12
         and abs(abs(sa[2]) - 1.0) < 1e-12
         and abs(abs(sa[3]) - 1.0) < 1e-12
