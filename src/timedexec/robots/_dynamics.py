@@ -118,8 +118,9 @@ class _Chain(NamedTuple):
 
 #: Largest batch whose chain is remembered (see :func:`_chain`).
 _CHAIN_MEMO_ROWS = 8
-#: The last small batch's chain: (robot parameters, configurations' bytes, chain).
-_chain_memo: tuple[_Params, tuple[int, ...], bytes, _Chain] | None = None
+#: The last small batch's chain: (robot parameters, configurations' shape and dtype, their
+#: bytes, chain).
+_chain_memo: tuple[_Params, tuple[object, ...], bytes, _Chain] | None = None
 
 
 def _chain(p: _Params, q: FloatArray) -> _Chain:
@@ -136,9 +137,9 @@ def _chain(p: _Params, q: FloatArray) -> _Chain:
     global _chain_memo
     small = q.shape[0] <= _CHAIN_MEMO_ROWS
     if small:
-        key = q.tobytes()
+        layout, key = (q.shape, q.dtype.str), q.tobytes()
         memo = _chain_memo
-        if memo is not None and memo[0] is p and memo[1] == q.shape and memo[2] == key:
+        if memo is not None and memo[0] is p and memo[1] == layout and memo[2] == key:
             return memo[3]
     n = q.shape[0]
     theta = (q * p.sign + p.offset).T  # (6, N)
@@ -161,7 +162,7 @@ def _chain(p: _Params, q: FloatArray) -> _Chain:
     if small:
         for a in chain:
             a.setflags(write=False)
-        _chain_memo = (p, q.shape, key, chain)
+        _chain_memo = (p, layout, key, chain)
     return chain
 
 
