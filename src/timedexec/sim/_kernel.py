@@ -17,19 +17,26 @@ import os
 from pathlib import Path
 
 
-def _cache_dir() -> str:
+def _cache_dir() -> str | None:
     """Where Numba keeps the compiled code unless the user says (``NUMBA_CACHE_DIR``): the
     user's cache directory, not beside the source. Beside the source it lands in
     site-packages for an installed copy, where pip's uninstall leaves it behind and the
     leftover ``timedexec/sim`` folder then shadows a later editable install (seen in the
-    fresh-checkout check: every test module failed to import ``timedexec.sim``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return str(Path(base) / "timedexec" / "numba")
+    fresh-checkout check: every test module failed to import ``timedexec.sim``). None when
+    that directory cannot be made or written (Numba then uses its own default)."""
+    try:
+        base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        path = Path(base) / "timedexec" / "numba"
+        path.mkdir(parents=True, exist_ok=True)
+    except (OSError, RuntimeError):  # no home, read-only file system
+        return None
+    return str(path) if os.access(path, os.W_OK) else None
 
 
 # Read by Numba when it is first imported (a process that imported it before keeps its own
 # setting).
-os.environ.setdefault("NUMBA_CACHE_DIR", _cache_dir())
+if "NUMBA_CACHE_DIR" not in os.environ and (_dir := _cache_dir()) is not None:
+    os.environ["NUMBA_CACHE_DIR"] = _dir
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
