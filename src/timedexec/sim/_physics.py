@@ -18,7 +18,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
@@ -114,11 +113,6 @@ def _coefficients(params: JointParams, dt_s: float) -> _Coefficients:
     )
 
 
-#: The two operations :func:`_crossing_time` needs, for arrays (a bank) and floats (a chain).
-_ARRAY_OPS = SimpleNamespace(clip=np.clip, maximum=np.maximum)
-_FLOAT_OPS = SimpleNamespace(clip=lambda x, lo, hi: min(max(x, lo), hi), maximum=max)
-
-
 def _raise_interrupt_inside(exc: BaseException) -> None:
     """Raise the KeyboardInterrupt (or SystemExit) at the root of ``exc``'s causes, if any.
 
@@ -143,11 +137,12 @@ def _bank_step() -> Any:
     return bank_step
 
 
-def _crossing_time(ops: Any, v, v_new, t_s, threshold: float, dt: float):  # type: ignore[no-untyped-def]
-    """When within a step that started at ``t_s`` the speed crossed ``threshold`` (linear)."""
+def _crossing_time(v, v_new, t_s, threshold: float, dt: float):  # type: ignore[no-untyped-def]
+    """When within a step that started at ``t_s`` the speed crossed ``threshold`` (linear);
+    arrays (a bank) or floats (a chain: numpy's scalars give the same bits)."""
     a0, a1 = abs(v), abs(v_new)
-    frac = (threshold - a0) / ops.maximum(a1 - a0, 1e-300)
-    return t_s + ops.clip(frac, 0.0, 1.0) * dt
+    frac = (threshold - a0) / np.maximum(a1 - a0, 1e-300)
+    return t_s + np.clip(frac, 0.0, 1.0) * dt
 
 
 class JointBank:
@@ -213,7 +208,7 @@ class JointBank:
             if crossed.any():
                 t0 = np.broadcast_to(np.asarray(t_s, dtype=float), v.shape)[crossed]
                 self.onset_s[crossed] = _crossing_time(
-                    _ARRAY_OPS, v[crossed], v_new[crossed], t0, self.threshold, self.dt_s
+                    v[crossed], v_new[crossed], t0, self.threshold, self.dt_s
                 )
                 self._armed &= ~crossed
         self.v = v_new
@@ -292,7 +287,7 @@ class JointChain:
             stuck,
         )
         if self._armed[j] and abs(v_new) >= self.threshold:
-            self._onset[j] = _crossing_time(_FLOAT_OPS, v, v_new, t_s, self.threshold, self.dt_s)
+            self._onset[j] = float(_crossing_time(v, v_new, t_s, self.threshold, self.dt_s))
             self._armed[j] = False
         self._q[j], self._v[j], self._tau_m[j] = q_new, v_new, tau_new
         self._integ[j], self._stuck[j] = integ_new, stuck_new
