@@ -28,6 +28,7 @@ Usage: python benchmarks/bench_welding.py [--robot ur10e] [--cycles 5000] [--ik-
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import time
 
@@ -88,6 +89,8 @@ def main() -> None:
         cpu = np.empty(n)
         wall = np.empty(n)
         q_prev = q
+        gc.collect()
+        gc.freeze()  # as the executor holds it while connected (quiet_gc)
         with model.pinned():
             for i in range(n):
                 t = (i % int(0.8 / period)) * period  # wrap along the 0.8 s seam

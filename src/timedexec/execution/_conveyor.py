@@ -137,19 +137,16 @@ class Seam:
 
         Before the start (``s < 0``) the seam continues straight along its start tangent.
         """
-        s = np.atleast_1d(np.asarray(s_m, dtype=float))
+        s = np.atleast_1d(np.asarray(s_m, dtype=float))[:, None]
         a = self.angle_rad
         t0 = np.array([math.cos(a), math.sin(a), 0.0])
         n0 = np.array([-math.sin(a), math.cos(a), 0.0])
-        p = np.outer(s, t0)
-        tan = np.tile(t0, (len(s), 1))
         if self.kind == "curved":
-            r = self.radius_m
-            on = s > 0
-            phi = s[on] / r
-            p[on] = r * (np.outer(np.sin(phi), t0) + np.outer(1.0 - np.cos(phi), n0))
-            tan[on] = np.outer(np.cos(phi), t0) + np.outer(np.sin(phi), n0)
-        return p, tan
+            phi = np.maximum(s, 0.0) / self.radius_m  # straight along t0 before the start
+            sin, cos = np.sin(phi), np.cos(phi)
+            p = np.where(s > 0, self.radius_m * (sin * t0 + (1.0 - cos) * n0), s * t0)
+            return p, cos * t0 + sin * n0
+        return s * t0, np.broadcast_to(t0, (len(s), 3)).copy()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe form."""
@@ -364,13 +361,14 @@ class SeamPlan:
             horizontal unit normal (to the left of the tangent), base frame.
         """
         t = np.atleast_1d(np.asarray(t_since_sync_s, dtype=float))
-        u = np.asarray(self.cell.conveyor.direction)
-        left = np.array([-u[1], u[0], 0.0])
-        frame = np.column_stack([u, left, [0.0, 0.0, 1.0]])  # part frame -> base
+        ux, uy, _ = self.cell.conveyor.direction
+        frame_t = np.array([[ux, uy, 0.0], [-uy, ux, 0.0], [0.0, 0.0, 1.0]])  # part -> base, ᵀ
         p_part, tan_part = self.seam.point(self.seam.weld_speed_m_s * t)
-        point = self.start_m + np.outer(t, self.cell.conveyor.velocity_m_s) + p_part @ frame.T
-        tangent = tan_part @ frame.T
-        normal = np.column_stack([-tangent[:, 1], tangent[:, 0], np.zeros(len(t))])
+        velocity = np.asarray(self.cell.conveyor.velocity_m_s)
+        point = self.start_m + t[:, None] * velocity + p_part @ frame_t
+        tangent = tan_part @ frame_t
+        normal = np.zeros_like(tangent)
+        normal[:, 0], normal[:, 1] = -tangent[:, 1], tangent[:, 0]
         return point, tangent, normal
 
     def torch_m(self, q_rad: ArrayLike) -> FloatArray:

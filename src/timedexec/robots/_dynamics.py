@@ -9,14 +9,13 @@ accelerates (:func:`joint_inertia`) and what a gyro on the flange sees when one 
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.robots._spec import N_JOINTS, RobotSpec, _as_configurations
+from timedexec.robots._spec import N_JOINTS, RobotSpec, _as_configurations, spec_cache
 
 __all__ = [
     "forward_kinematics",
@@ -81,7 +80,7 @@ class _Params(NamedTuple):
     suffix_mass: FloatArray  # (6,) mass of links j..6 plus payload, for joint j
 
 
-@functools.lru_cache(maxsize=64)
+@spec_cache
 def _params(spec: RobotSpec) -> _Params:
     alpha = np.asarray(spec.dh_alpha_rad)
     mass = np.asarray(spec.link_mass_kg)

@@ -258,7 +258,7 @@ def solve_ik(
         position_only = True
         pose = np.eye(4)
         pose[:3, 3] = tgt
-    elif tgt.shape == (4, 4) and np.all(np.isfinite(tgt)):
+    elif tgt.shape == (4, 4) and math.isfinite(float(tgt.sum())):  # a NaN or inf sums so
         pose = tgt
     else:
         raise ConfigError(
@@ -269,10 +269,13 @@ def solve_ik(
         # UR and spherical-wrist arms: the closed form on the seed's branch (exact, tens of
         # µs); None near a singularity or for another arm, and a solution beyond a limit:
         # iterate.
-        flange = pose.copy()
-        rot = tcp[:3, :3]
-        flange[:3, :3] = pose[:3, :3] @ rot.T
-        flange[:3, 3] = pose[:3, 3] - flange[:3, :3] @ tcp[:3, 3]
+        # flange = pose @ tcp⁻¹ in plain floats (3 x 3 numpy products cost µs each)
+        m, t = pose.tolist(), tcp.tolist()
+        rot = [[sum(m[i][k] * t[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
+        flange = np.array(
+            [[*rot[i], m[i][3] - sum(rot[i][k] * t[k][3] for k in range(3))] for i in range(3)]
+            + [[0.0, 0.0, 0.0, 1.0]]
+        )
         closed = ur_closed_form(spec, flange, q)
         if closed is None:
             closed = wrist_closed_form(spec, flange, q)

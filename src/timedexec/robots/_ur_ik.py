@@ -22,14 +22,13 @@ plain floats (the iteration: 0.2-0.5 ms, three forward kinematics with Jacobians
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.robots._dynamics import _params
-from timedexec.robots._spec import RobotSpec
+from timedexec.robots._spec import RobotSpec, spec_cache
 
 __all__ = ["ur_closed_form"]
 
@@ -41,7 +40,7 @@ _UR_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
 _SINGULAR = 1e-6
 
 
-@functools.lru_cache(maxsize=16)
+@spec_cache
 def _ur_geometry(spec: RobotSpec) -> tuple[float, float, float, float, float, float] | None:
     """``(d1, a2, a3, d4, d5, d6)`` when ``spec``'s DH table has the UR structure, else None."""
     p = _params(spec)

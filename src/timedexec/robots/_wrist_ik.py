@@ -26,14 +26,13 @@ of reach this returns None and :func:`timedexec.robots.solve_ik` iterates.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.robots._dynamics import _params
-from timedexec.robots._spec import RobotSpec
+from timedexec.robots._spec import RobotSpec, spec_cache
 from timedexec.robots._ur_ik import _SINGULAR, _acos_branch, _near, _pick
 
 __all__ = ["wrist_closed_form"]
@@ -57,7 +56,7 @@ class _Geometry:
         self.gamma = math.atan2(self.d4 * self.sa3, self.a3)
 
 
-@functools.lru_cache(maxsize=16)
+@spec_cache
 def _wrist_geometry(spec: RobotSpec) -> _Geometry | None:
     """The chain's constants when ``spec``'s DH table has a planar arm and a spherical wrist
     (see the module docstring), else None."""
