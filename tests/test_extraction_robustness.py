@@ -74,13 +74,15 @@ def test_response_at_10x_noise_is_accurate_and_its_error_honest(tmp_path: Path) 
     """10x noise: the response delay's RMSE <= 0.25 ms and its 95 % intervals cover the
     truth on >= 90 % of trials (measured on 300 trials 0.153 ms and 98 %; before the gyro
     rate was averaged over 12 ms in the response fit 0.298 ms and 78 %, which fails both;
-    48 trials add ~10 % sampling error to the RMSE, a binomial sd of ~2 % to the coverage)."""
+    48 trials add ~10 % sampling error to the RMSE, a binomial sd of ~2 % to the coverage).
+    At least 90 % of the trials kept: the actuation's ``uncertain`` flag takes 4.7 % at 10x
+    on 300 trials (48 trials: a binomial sd of 3 %)."""
     p = write_independent_sweep(tmp_path / "n10.h5", "ur10", N, Conditions(noise_factor=10),
                                 seed=3)  # fmt: skip
     t = extract_recording(p, progress=False).table
     ok = np.array([not f for f in t["flag"]])
     r = (t["response_delay"] - t["true_response_delay"])[ok]
-    assert ok.mean() >= 0.95
+    assert ok.mean() >= 0.9
     assert np.sqrt(np.mean(r**2)) <= 0.25e-3
     assert np.mean(np.abs(r) <= 1.96 * t["response_delay_se"][ok]) >= 0.9
 
