@@ -137,7 +137,7 @@ BENCH_WATCHDOG_S = 2.0
 
 
 def run_executor(
-    host: str, seconds: float, *, lock: bool = True, coast: bool = False
+    host: str, seconds: float, *, lock: bool = True, coast: bool = False, warmup_s: float = 0.0
 ) -> dict[str, Any]:
     with TimedExecutor(
         URDriver(host),
@@ -149,30 +149,40 @@ def run_executor(
         watchdog_timeout_s=BENCH_WATCHDOG_S,
     ) as ex:
         ex.idle(ex.now() + 0.3)
-        ex.log.clear()
         q0 = ex.estimate().q_rad.copy()
-        start = ex.now()
-        end = start + seconds
         k = 0
         faults: list[str] = []
-        while ex.now() < end:
-            target = q0.copy()
-            target[0] += 0.4 if k % 2 == 0 else 0.0
-            target[5] += 0.6 if k % 2 == 0 else 0.0
-            plan = ex.prepare(ex.plan(target, start_q_rad=ex.estimate().q_rad))
-            try:
-                ex.execute(plan, start_time_s=ex.now() + ex.lead_time_s(plan) + 0.01, settle_s=0.02)
-            except (DriverError, ConfigError) as exc:
-                # A loaded machine: a stale stream, a watchdog trip, a start made late by a
-                # re-arm. Counted; recover (at rest, watchdog re-armed) and go on.
-                faults.append(str(exc)[:120])
-                for _ in range(3):
-                    try:
-                        ex.recover()
-                        break
-                    except DriverError as again:
-                        faults.append(f"recover: {str(again)[:100]}")
-            k += 1
+
+        def moves(end: float) -> None:
+            nonlocal k
+            while ex.now() < end:
+                target = q0.copy()
+                target[0] += 0.4 if k % 2 == 0 else 0.0
+                target[5] += 0.6 if k % 2 == 0 else 0.0
+                plan = ex.prepare(ex.plan(target, start_q_rad=ex.estimate().q_rad))
+                try:
+                    ex.execute(
+                        plan, start_time_s=ex.now() + ex.lead_time_s(plan) + 0.01, settle_s=0.02
+                    )
+                except (DriverError, ConfigError) as exc:
+                    # A loaded machine: a stale stream, a watchdog trip, a start made late
+                    # by a re-arm. Counted; recover (at rest, watchdog re-armed) and go on.
+                    faults.append(str(exc)[:120])
+                    for _ in range(3):
+                        try:
+                            ex.recover()
+                            break
+                        except DriverError as again:
+                            faults.append(f"recover: {str(again)[:100]}")
+                k += 1
+
+        # The same moves while the clock line gathers its span (not measured).
+        moves(ex.now() + warmup_s)
+        ex.log.clear()
+        faults.clear()
+        k = 0
+        start = ex.now()
+        moves(start + seconds)
         stop = ex.now()
         log = ex.log.arrays()
         work = ex.log.work()
@@ -180,15 +190,18 @@ def run_executor(
         rt = ex.realtime
         gcp = ex.gc_pauses
         coasted = ex.coasted
+        line = ex.clock_line
     sent = np.isfinite(log["send_s"])
-    # Intended send time: the cycle-locked target (earliest arrival of the package's cycle,
-    # lower envelope over 0.5 s, plus the phase offset).
     from scipy.ndimage import minimum_filter1d
 
     off = np.where(log["coasted"], np.inf, log["arrival_s"] - log["controller_s"])
     env = minimum_filter1d(off, size=250, mode="nearest")
     offset = phase.offset_s if phase is not None else 0.0
-    intended = log["controller_s"] + env + offset
+    # The locked loop logs its target (the clock line's, once it has one); the unlocked
+    # loop's intended time is the package's earliest arrival.
+    intended = np.where(
+        np.isfinite(log["target_s"]), log["target_s"], log["controller_s"] + env + offset
+    )
     err = (log["send_s"] - intended)[sent]
     w = work[np.isfinite(work)]
     if not len(err):
@@ -199,6 +212,7 @@ def run_executor(
         "faults": faults,
         "commands": int(sent.sum()),
         "coasted": coasted,
+        "clock_line": line is not None,
         "realtime": rt,
         "send_error_ms": {f"p{p}": float(np.percentile(err, p) * 1e3) for p in (50, 99)},
         "work_us": {f"p{p}": float(np.percentile(w, p) * 1e6) for p in (50, 99)},
@@ -206,7 +220,7 @@ def run_executor(
     }
 
 
-def run_ur_rtde(host: str, seconds: float) -> dict[str, Any]:
+def run_ur_rtde(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
     """ur_rtde's own pattern: initPeriod / servoJ / waitPeriod."""
     import rtde_control
     import rtde_receive
@@ -272,12 +286,12 @@ def allocations_per_cycle(cycles: int = 1000) -> dict[str, float]:
     return {"net_bytes_per_cycle": grow / cycles, "net_blocks_per_cycle": blocks / cycles}
 
 
-def run_unlocked(host: str, seconds: float) -> dict[str, Any]:
-    return run_executor(host, seconds, lock=False)
+def run_unlocked(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
+    return run_executor(host, seconds, lock=False, warmup_s=warmup_s)
 
 
-def run_coasting(host: str, seconds: float) -> dict[str, Any]:
-    return run_executor(host, seconds, coast=True)
+def run_coasting(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
+    return run_executor(host, seconds, coast=True, warmup_s=warmup_s)
 
 
 RUNS = (
@@ -296,6 +310,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--host", default="127.0.0.52")
+    p.add_argument(
+        "--warmup",
+        type=float,
+        default=0.0,
+        help="seconds each executor loop streams before it is measured: >= 105 lets the "
+        "cycle lock's long-term clock line form (LINE_MIN_SPAN_S + a refit); ur_rtde's "
+        "pattern has no lock and starts at once",
+    )
     p.add_argument("--busy", type=int, default=2, help="busy processes in the loaded phase")
     p.add_argument(
         "--twin-rt",
@@ -320,7 +342,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"--loops: unknown {sorted(unknown)}; choose from {[n for n, _ in RUNS]}")
     runs = [(name, run) for name, run in RUNS if name in args.loops.split(",")]
-    out: dict[str, Any] = {"seconds": args.seconds, "load_average_start": os.getloadavg()[0]}
+    out: dict[str, Any] = {
+        "seconds": args.seconds,
+        "warmup_s": args.warmup,
+        "load_average_start": os.getloadavg()[0],
+    }
     out["controller"] = "independent peer" if args.peer else "UR10e twin"
     out["loops"] = [name for name, _ in runs]
     out["allocations"] = allocations_per_cycle()
@@ -365,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
                 for name, run in runs:
                     c0 = cpu_s(pid)
                     try:
-                        res = run(args.host, args.seconds)
+                        res = run(args.host, args.seconds, args.warmup)
                     except (DriverError, ConfigError) as exc:
                         # a phase that cannot run is reported, the others still measured
                         out[f"{name}_{load}"] = {"error": str(exc)}
@@ -399,7 +425,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report(out: dict[str, Any]) -> None:
-    print(f"{out['controller']}, 500 Hz, {out['seconds']:.0f} s per loop and load; CPUs kept "
+    print(f"{out['controller']}, 500 Hz, {out['seconds']:.0f} s per loop and load (after "
+          f"{out.get('warmup_s', 0):.0f} s of warm-up for the executor's loops); CPUs kept "
           f"out of deep idle (/dev/cpu_dma_latency 0): {'yes' if out['fast_wakeup'] else 'no'}")
     a = out["allocations"]
     print(
@@ -437,6 +464,8 @@ def report(out: dict[str, Any]) -> None:
                 gc_note = f"; {r['gc']['count']} collections, longest {r['gc']['max_ms']:.2f} ms"
             if r.get("coasted"):
                 gc_note += f"; {r['coasted']} of {r['commands']} commands from the estimate"
+            if "clock_line" in r:
+                gc_note += f"; clock line {'in use' if r['clock_line'] else 'not yet'}"
             print(
                 f"{'':17} arrival phase histogram (ms before boundary, 0.2 ms bins): "
                 f"{t.get('phase_histogram')}{gc_note}"

@@ -701,6 +701,58 @@ def test_killed_or_paused_host_stops_the_independent_peer_arm(
     assert rest - t_signal <= bound, rest - t_signal
 
 
+def _arrivals(phase_of, seconds: float, drift_ppm: float, seed: int):
+    """(host arrival, arrival - controller time) of a 500 Hz stream: controller cycle
+    boundaries k·T, a publisher phase ``phase_of(t)`` (s) after each, an exponential wire
+    time (0.05 ms + mean 0.1 ms), and a host clock running ``drift_ppm`` fast, offset 3 s."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, PERIOD_S)
+    wire = 5e-5 + rng.exponential(1e-4, t.size)
+    arrival_ctrl = t + phase_of(t) + wire
+    host = 3.0 + arrival_ctrl * (1 + drift_ppm * 1e-6)
+    return t, host, host - t
+
+
+@pytest.mark.parametrize("shape", ["triangle", "sawtooth", "constant"])
+def test_boundary_line_finds_the_cycle_under_a_wandering_publisher(shape: str) -> None:
+    """The long-term clock line recovers the host time of the cycle boundaries (plus the
+    shortest publish + wire time) when the publisher's phase wanders through the whole
+    period: a 47 s triangle like the twin's, or a sawtooth that wraps every 31 s (a
+    publisher on its own timer, not written after the twin), with the host clock 80 ppm
+    fast. The short envelope follows the phase (off by up to ~1.9 ms); the line stays
+    within 0.1 ms of the truth over the last 80 s (the wire's shortest 0.05 ms and the
+    phase's least value within one 0.5 s bucket: < 0.05 ms each). A steady publisher gives
+    the same line as the envelope. Before 100 s of arrivals: no line."""
+    from timedexec.execution import BoundaryLine
+
+    lo, hi = 0.02 * PERIOD_S, 0.97 * PERIOD_S
+    phase_of = {
+        "triangle": lambda t: lo + (hi - lo) * (1 - np.abs(2 * ((t / 47.0 + 0.3) % 1.0) - 1)),
+        "sawtooth": lambda t: lo + (hi - lo) * ((t / 31.0 + 0.6) % 1.0),
+        "constant": lambda t: np.full_like(t, 0.7 * PERIOD_S),
+    }[shape]
+    t, host, off = _arrivals(phase_of, 200.0, 80.0, seed=4)
+    # The truth: the host time of boundary + least phase + shortest wire, minus the
+    # controller time.
+    least = (lo if shape != "constant" else 0.7 * PERIOD_S) + 5e-5
+    true = 3.0 + (t + least) * (1 + 80e-6) - t
+    line = BoundaryLine()
+    errors, envelope_errors = [], []
+    for i, (h, o) in enumerate(zip(host.tolist(), off.tolist(), strict=True)):
+        line.add(h, o)
+        if h - host[0] < 99.0:  # the span is short of 100 s
+            assert line.line is None
+        elif h - host[0] > 120.0 and i % 50 == 0:
+            errors.append(line.offset_s(h) - true[i])
+            envelope_errors.append(off[max(0, i - 250) : i + 1].min() - true[i])
+    err = np.abs(np.array(errors))
+    assert err.max() < 1e-4, err.max()
+    if shape == "constant":
+        assert np.abs(np.array(envelope_errors)).max() < 1e-4
+    else:
+        assert np.abs(np.array(envelope_errors)).max() > 1e-3  # what the line fixes
+
+
 def test_send_phase_aims_at_the_middle_of_the_intake_window() -> None:
     """The cycle-locked sender leaves half a period minus the round trip after the earliest
     package arrival (0.6 ms at 500 Hz with the default 0.4 ms); a round trip outside

@@ -21,7 +21,7 @@ from timedexec.execution._conveyor import (
     default_cell,
     plan_seam,
 )
-from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase, wait_until
+from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, BoundaryLine, SendPhase, wait_until
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
@@ -70,6 +70,7 @@ __all__ = [
     "REST_SPEED_RAD_S",
     "SEAM_KINDS",
     "SEAM_POSITION_GAIN_1_S",
+    "BoundaryLine",
     "ControllerWatchdog",
     "Conveyor",
     "ConveyorRun",

@@ -21,12 +21,22 @@ spins the rest (``time.sleep`` alone overshoots by 50-100 µs).
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 from collections.abc import Callable
 
 from timedexec.errors import ConfigError
 
-__all__ = ["DEFAULT_ROUND_TRIP_S", "SPIN_S", "SendPhase", "wait_until"]
+__all__ = [
+    "DEFAULT_ROUND_TRIP_S",
+    "LINE_MIN_SPAN_S",
+    "LINE_WINDOW_S",
+    "SPIN_S",
+    "BoundaryLine",
+    "SendPhase",
+    "wait_until",
+]
 
 #: Shortest publish + wire-up + wire-down time of the loopback UR twin, s: the earliest
 #: package arrival lies this much after the cycle boundary a command sent at once would
@@ -34,6 +44,108 @@ __all__ = ["DEFAULT_ROUND_TRIP_S", "SPIN_S", "SendPhase", "wait_until"]
 DEFAULT_ROUND_TRIP_S = 4e-4
 #: The last part of a wait is spun, s.
 SPIN_S = 1.5e-4
+#: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
+#: a publisher whose phase wanders like the twin's (47 s).
+LINE_WINDOW_S = 120.0
+#: Span of arrivals the line needs before it is used, s: until then the short envelope.
+LINE_MIN_SPAN_S = 100.0
+#: The line keeps the earliest arrival of each bucket this long, s.
+LINE_BUCKET_S = 0.5
+#: The line is refitted every this many buckets (5 s): a refit (the hull of up to 240
+#: points) takes ~0.35 ms, so it falls in 1 of 2,500 cycles at 500 Hz.
+LINE_REFIT_BUCKETS = 10
+#: Largest rate between the host and controller clocks the line believes (500 ppm, the
+#: most NTP slews a host clock); a steeper fit is no line.
+LINE_MAX_RATE = 5e-4
+
+
+class BoundaryLine:
+    """Long-term lower envelope of arrival minus controller time: a line, offset + drift.
+
+    The short envelope (:class:`~timedexec.execution._state.StateTracker`, 0.5 s) is the
+    cycle boundary plus the shortest sampling-to-arrival time *now*; where the controller's
+    publisher lets its phase wander against the cycle (the twin's drifts through 2-97 % of
+    the period in 47 s), that follows the phase, and the lock aims anywhere in the cycle.
+    Over a window of several wander periods the phase comes back to its least value again
+    and again, while the host/controller clock drift (tens of ppm) is a straight line: the
+    lower convex hull of the window's earliest arrivals (one per :data:`LINE_BUCKET_S`)
+    touches those returns, and its edge at the window's mean time is the line that lies
+    below every arrival and highest under their mass (the L1 supporting line), refitted
+    every :data:`LINE_REFIT_BUCKETS` buckets. Used once the window spans
+    :data:`LINE_MIN_SPAN_S`; a fit steeper than :data:`LINE_MAX_RATE` is
+    refused (the clocks cannot drift so fast: the arrivals do not fit a line).
+
+    Parameters
+    ----------
+    window_s, min_span_s, bucket_s : float
+        See the module constants, s.
+    """
+
+    def __init__(
+        self,
+        window_s: float = LINE_WINDOW_S,
+        min_span_s: float = LINE_MIN_SPAN_S,
+        bucket_s: float = LINE_BUCKET_S,
+    ) -> None:
+        if not 0 < bucket_s <= min_span_s <= window_s < math.inf:
+            raise ConfigError(
+                f"BoundaryLine: need 0 < bucket_s ({bucket_s!r}) <= min_span_s "
+                f"({min_span_s!r}) <= window_s ({window_s!r}) s, finite"
+            )
+        self.window_s, self.min_span_s, self.bucket_s = window_s, min_span_s, bucket_s
+        self._points: deque[tuple[float, float]] = deque()  # closed buckets' earliest
+        self._bucket_end = -math.inf
+        self._best = (math.nan, math.inf)
+        self._closed = 0
+        #: ``(t_ref, offset_ref, rate)``: the line through (t_ref, offset_ref) with this
+        #: slope (s per s), or None while the window is too short or the fit refused.
+        self.line: tuple[float, float, float] | None = None
+
+    def add(self, t_s: float, offset_s: float) -> None:
+        """One package: host arrival time ``t_s`` and arrival minus controller time, s."""
+        if t_s >= self._bucket_end:
+            if math.isfinite(self._best[1]):
+                self._points.append(self._best)
+                self._closed += 1
+                if self._closed % LINE_REFIT_BUCKETS == 0:
+                    self._refit(t_s)
+            self._bucket_end = t_s + self.bucket_s
+            self._best = (t_s, offset_s)
+        elif offset_s < self._best[1]:
+            self._best = (t_s, offset_s)
+
+    def offset_s(self, t_s: float) -> float:
+        """The line at host time ``t_s``, s (NaN without a line)."""
+        line = self.line
+        if line is None:
+            return math.nan
+        t0, o0, rate = line
+        return o0 + rate * (t_s - t0)
+
+    def _refit(self, now_s: float) -> None:
+        pts = self._points
+        while pts and pts[0][0] < now_s - self.window_s:
+            pts.popleft()
+        if len(pts) < 2 or pts[-1][0] - pts[0][0] < self.min_span_s:
+            self.line = None
+            return
+        # Lower convex hull (Andrew's monotone chain; the points come in time order).
+        hull: list[tuple[float, float]] = []
+        for p in pts:
+            while len(hull) >= 2:
+                (t1, o1), (t2, o2) = hull[-2], hull[-1]
+                if (t2 - t1) * (p[1] - o1) - (o2 - o1) * (p[0] - t1) <= 0.0:
+                    hull.pop()
+                else:
+                    break
+            hull.append(p)
+        t_mean = sum(p[0] for p in pts) / len(pts)
+        k = 1
+        while k < len(hull) - 1 and hull[k][0] < t_mean:
+            k += 1
+        (ta, oa), (tb, ob) = hull[k - 1], hull[k]  # the edge spanning the mean time
+        rate = (ob - oa) / (tb - ta)
+        self.line = (ta, oa, rate) if abs(rate) <= LINE_MAX_RATE else None
 
 
 class SendPhase:

@@ -279,6 +279,12 @@ class TimedExecutor:
         """Controller period, s."""
         return self._period
 
+    @property
+    def clock_line(self) -> tuple[float, float, float] | None:
+        """The cycle lock's long-term clock line ``(t_ref_s, offset_s, rate)`` (see
+        :class:`~timedexec.execution.BoundaryLine`), None until it has one."""
+        return self._state.boundary.line
+
     def connect(self) -> None:
         """Connect the driver (if needed), check the model against it, read a first state,
         arm the controller's watchdog."""
@@ -607,7 +613,9 @@ class TimedExecutor:
         self.watchdog.fed(now)
         self._v_prev = v
         self._last_send_s = now
-        self.log.add(state, now, v, clipped, controller_s=controller_s, work_s=work)
+        self.log.add(
+            state, now, v, clipped, controller_s=controller_s, work_s=work, target_s=target
+        )
 
     def _command(self, plan: JointPlan | None, now: float) -> tuple[FloatArray, bool]:
         """This cycle's speed command (6,), rad/s, and whether a limit clipped it."""

@@ -30,7 +30,8 @@ class CycleLog:
     (controller time stamp of the cycle commanded), ``sequence``, ``send_s`` (host time the
     command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
     ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
-    command went out from the estimate, the row repeats the previous package).
+    command went out from the estimate, the row repeats the previous package), ``target_s``
+    (the cycle-locked send time aimed at; NaN without the lock or without a command).
     :meth:`work` gives the loop's own work per row (s; NaN where not measured).
 
     Rows are written into preallocated arrays (capacity doubling from ``capacity``), so a
@@ -48,6 +49,7 @@ class CycleLog:
             "controller_s": np.empty(cap),
             "sequence": np.empty(cap, np.int64),
             "send_s": np.empty(cap),
+            "target_s": np.empty(cap),
             "clipped": np.empty(cap, bool),
             "coasted": np.empty(cap, bool),
             "qd_cmd": np.empty((cap, 6)),
@@ -72,9 +74,10 @@ class CycleLog:
         *,
         controller_s: float | None = None,
         work_s: float = math.nan,
+        target_s: float = math.nan,
     ) -> None:
         """Append a row (``controller_s``: the cycle commanded, default the package's;
-        ``work_s``: the loop's own work for it, s)."""
+        ``work_s``: the loop's own work for it, s; ``target_s``: the send time aimed at)."""
         i = self._n
         if i >= self._cap:
             self._alloc(2 * self._cap)
@@ -84,6 +87,7 @@ class CycleLog:
         c["controller_s"][i] = ctrl
         c["sequence"][i] = state.sequence
         c["send_s"][i] = send_s
+        c["target_s"][i] = target_s
         c["clipped"][i] = clipped
         c["coasted"][i] = controller_s is not None and controller_s != state.controller_time_s
         if qd_cmd is None:

@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
+from timedexec.execution._cycle import BoundaryLine
 from timedexec.execution._plan import JointPlan
 
 __all__ = [
@@ -127,6 +128,9 @@ class StateTracker:
     offset_min_s : float
         Lower envelope of arrival minus controller time over the last
         :data:`ENVELOPE_S`, s (inf before the first package).
+    boundary : BoundaryLine
+        The same over minutes, as a line: what the cycle lock aims by once it has one
+        (:meth:`earliest_arrival_s`).
     controller_ref_s : float
         Controller time of the first package: cycle 0 of the numbering, s.
     sample : tuple or None
@@ -153,6 +157,7 @@ class StateTracker:
         self.controller_ref_s = math.nan
         self.sample: tuple[float, FloatArray, FloatArray] | None = None
         self._envelope: deque[tuple[float, float]] = deque()
+        self.boundary = BoundaryLine()
 
     def ingest(self, state: RobotState) -> None:
         """Take ``state`` as the newest package: update the clock model and back-date it."""
@@ -170,6 +175,7 @@ class StateTracker:
         while env[0][0] < state.host_time_s - self.envelope_s:
             env.popleft()
         self.offset_min_s = env[0][1]
+        self.boundary.add(state.host_time_s, off)
         gap = state.host_time_s - previous
         # Gaps longer than the ceiling are the caller's (idle, not stepping), not the
         # stream's: only the shorter ones teach the limits.
@@ -196,8 +202,12 @@ class StateTracker:
         return self.controller_ref_s + cycle * period_s
 
     def earliest_arrival_s(self, cycle: int, period_s: float) -> float:
-        """Earliest host time the package of cycle ``cycle`` can arrive (clock model), s."""
-        return self.controller_ref_s + cycle * period_s + self.offset_min_s
+        """Earliest host time the package of cycle ``cycle`` can arrive (clock model), s:
+        by the long-term line where there is one (:class:`BoundaryLine`; never later than
+        the short envelope), else by the short envelope."""
+        t = self.controller_ref_s + cycle * period_s
+        line = self.boundary.offset_s(t + self.offset_min_s)
+        return t + (line if line < self.offset_min_s else self.offset_min_s)
 
     # ------------------------------------------------------------------ back-dated state
     def newest(self) -> tuple[float, FloatArray, FloatArray]:
