@@ -747,6 +747,10 @@ def test_boundary_line_finds_the_cycle_under_a_wandering_publisher(shape: str) -
             envelope_errors.append(off[max(0, i - 250) : i + 1].min() - true[i])
     err = np.abs(np.array(errors))
     assert err.max() < 1e-4, err.max()
+    # The controller restarts (its clock from 0 again): the line starts over, not aims by
+    # the old clock.
+    line.add(host[-1] + PERIOD_S, host[-1] + PERIOD_S)
+    assert line.line is None
     if shape == "constant":
         assert np.abs(np.array(envelope_errors)).max() < 1e-4
     else:
