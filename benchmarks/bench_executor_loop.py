@@ -48,6 +48,7 @@ import sys
 import tempfile
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +57,12 @@ import numpy as np
 from timedexec._realtime import fast_wakeup, realtime
 from timedexec.drivers import SimDriver, URDriver
 from timedexec.errors import ConfigError, DriverError
-from timedexec.execution import FixedDelays, StalenessLimits, TimedExecutor
+from timedexec.execution import (
+    DEFAULT_ROUND_TRIP_S,
+    FixedDelays,
+    StalenessLimits,
+    TimedExecutor,
+)
 from timedexec.twins import URTwin, read_truth
 
 PERIOD_S = 0.002
@@ -137,12 +143,20 @@ BENCH_WATCHDOG_S = 2.0
 
 
 def run_executor(
-    host: str, seconds: float, *, lock: bool = True, coast: bool = False, warmup_s: float = 0.0
+    host: str,
+    seconds: float,
+    *,
+    lock: bool = True,
+    coast: bool = False,
+    warmup_s: float = 0.0,
+    round_trip_s: float = DEFAULT_ROUND_TRIP_S,
+    on_start: Callable[[], None] = lambda: None,
 ) -> dict[str, Any]:
     with TimedExecutor(
         URDriver(host),
         MODEL,
         realtime_priority=RT_PRIORITY,
+        round_trip_s=round_trip_s,
         cycle_lock=lock,
         coast=coast,
         staleness=BENCH_STALENESS,
@@ -181,6 +195,8 @@ def run_executor(
         ex.log.clear()
         faults.clear()
         k = 0
+        coasted0 = ex.coasted
+        on_start()
         start = ex.now()
         moves(start + seconds)
         stop = ex.now()
@@ -189,7 +205,7 @@ def run_executor(
         phase = ex.send_phase
         rt = ex.realtime
         gcp = ex.gc_pauses
-        coasted = ex.coasted
+        coasted = ex.coasted - coasted0
         line = ex.clock_line
     sent = np.isfinite(log["send_s"])
     from scipy.ndimage import minimum_filter1d
@@ -220,7 +236,9 @@ def run_executor(
     }
 
 
-def run_ur_rtde(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
+def run_ur_rtde(
+    host: str, seconds: float, on_start: Callable[[], None] = lambda: None, **_: Any
+) -> dict[str, Any]:
     """ur_rtde's own pattern: initPeriod / servoJ / waitPeriod."""
     import rtde_control
     import rtde_receive
@@ -233,6 +251,7 @@ def run_ur_rtde(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, A
         sends = np.empty(int(seconds / PERIOD_S) + 10)
         ticks = np.empty_like(sends)
         n = 0
+        on_start()
         start = time.monotonic()
         while n < len(sends) - 1 and time.monotonic() - start < seconds:
             t = ctrl.initPeriod()
@@ -286,12 +305,12 @@ def allocations_per_cycle(cycles: int = 1000) -> dict[str, float]:
     return {"net_bytes_per_cycle": grow / cycles, "net_blocks_per_cycle": blocks / cycles}
 
 
-def run_unlocked(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
-    return run_executor(host, seconds, lock=False, warmup_s=warmup_s)
+def run_unlocked(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    return run_executor(host, seconds, lock=False, **kw)
 
 
-def run_coasting(host: str, seconds: float, warmup_s: float = 0.0) -> dict[str, Any]:
-    return run_executor(host, seconds, coast=True, warmup_s=warmup_s)
+def run_coasting(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    return run_executor(host, seconds, coast=True, **kw)
 
 
 RUNS = (
@@ -310,6 +329,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--host", default="127.0.0.52")
+    p.add_argument(
+        "--round-trip",
+        type=float,
+        default=DEFAULT_ROUND_TRIP_S,
+        help="the executor's round_trip_s, s: boundary -> package -> command back (the "
+        "default is the loopback twin's shortest; its median centres the arrivals)",
+    )
     p.add_argument(
         "--warmup",
         type=float,
@@ -345,6 +371,7 @@ def main(argv: list[str] | None = None) -> int:
     out: dict[str, Any] = {
         "seconds": args.seconds,
         "warmup_s": args.warmup,
+        "round_trip_s": args.round_trip,
         "load_average_start": os.getloadavg()[0],
     }
     out["controller"] = "independent peer" if args.peer else "UR10e twin"
@@ -389,9 +416,20 @@ def main(argv: list[str] | None = None) -> int:
             procs = busy(args.busy) if load == "loaded" else []
             try:
                 for name, run in runs:
-                    c0 = cpu_s(pid)
+                    c0 = math.nan
+
+                    def mark() -> None:  # the measured span starts (after any warm-up)
+                        nonlocal c0
+                        c0 = cpu_s(pid)
+
                     try:
-                        res = run(args.host, args.seconds, args.warmup)
+                        res = run(
+                            args.host,
+                            args.seconds,
+                            warmup_s=args.warmup,
+                            round_trip_s=args.round_trip,
+                            on_start=mark,
+                        )
                     except (DriverError, ConfigError) as exc:
                         # a phase that cannot run is reported, the others still measured
                         out[f"{name}_{load}"] = {"error": str(exc)}
@@ -425,9 +463,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report(out: dict[str, Any]) -> None:
-    print(f"{out['controller']}, 500 Hz, {out['seconds']:.0f} s per loop and load (after "
-          f"{out.get('warmup_s', 0):.0f} s of warm-up for the executor's loops); CPUs kept "
-          f"out of deep idle (/dev/cpu_dma_latency 0): {'yes' if out['fast_wakeup'] else 'no'}")
+    print(
+        f"{out['controller']}, 500 Hz, {out['seconds']:.0f} s per loop and load (after "
+        f"{out.get('warmup_s', 0):.0f} s of warm-up for the executor's loops); CPUs kept "
+        f"out of deep idle (/dev/cpu_dma_latency 0): {'yes' if out['fast_wakeup'] else 'no'}"
+    )
     a = out["allocations"]
     print(
         f"executor allocations per cycle (timedexec/execution): "
