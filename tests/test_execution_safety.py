@@ -747,9 +747,15 @@ def test_boundary_line_finds_the_cycle_under_a_wandering_publisher(shape: str) -
             envelope_errors.append(off[max(0, i - 250) : i + 1].min() - true[i])
     err = np.abs(np.array(errors))
     assert err.max() < 1e-4, err.max()
-    # The controller restarts (its clock from 0 again): the line starts over, not aims by
-    # the old clock.
-    line.add(host[-1] + PERIOD_S, host[-1] + PERIOD_S)
+    # A stalled package (100 ms late) is not a new clock; a controller that restarts (its
+    # clock from 0 again) is: the line starts over, not aims by the old clock.
+    t2, host2, off2 = _arrivals(phase_of, 204.0, 80.0, seed=5)
+    for k in range(t.size, t2.size):  # 2 s more of the same stream, one package stalled
+        line.add(host2[k], off2[k] + (0.1 if k == t.size + 300 else 0.0))
+    assert line.line is not None
+    h = host2[-1]
+    for k in range(1, 600):
+        line.add(h + k * PERIOD_S, h + k * PERIOD_S)
     assert line.line is None
     if shape == "constant":
         assert np.abs(np.array(envelope_errors)).max() < 1e-4

@@ -54,9 +54,10 @@ LINE_BUCKET_S = 0.5
 #: The line is refitted every this many buckets (5 s): a refit (the hull of up to 240
 #: points) takes ~0.35 ms, so it falls in 1 of 2,500 cycles at 500 Hz.
 LINE_REFIT_BUCKETS = 10
-#: An arrival this far from the line (either way) is a new clock (the controller
-#: restarted, the link changed): the line starts over, s. A wandering phase stays within
-#: one period (2-12 ms).
+#: A bucket whose earliest arrival lies this far from the line (either way) is a new
+#: clock (the controller restarted, the link changed): the line starts over, s. A
+#: wandering phase stays within one period (2-12 ms); a stall delays single packages (the
+#: twin's reach 90 ms), not a whole bucket's earliest.
 LINE_JUMP_S = 0.05
 #: Largest rate between the host and controller clocks the line believes (500 ppm, the
 #: most NTP slews a host clock); a steeper fit is no line.
@@ -77,8 +78,8 @@ class BoundaryLine:
     below every arrival and highest under their mass (the L1 supporting line), refitted
     every :data:`LINE_REFIT_BUCKETS` buckets. Used once the window spans
     :data:`LINE_MIN_SPAN_S`; a fit steeper than :data:`LINE_MAX_RATE` is
-    refused (the clocks cannot drift so fast: the arrivals do not fit a line), and an
-    arrival :data:`LINE_JUMP_S` off the line starts it over (a new controller clock).
+    refused (the clocks cannot drift so fast: the arrivals do not fit a line), and a
+    bucket :data:`LINE_JUMP_S` off the line starts it over (a new controller clock).
 
     Parameters
     ----------
@@ -108,14 +109,12 @@ class BoundaryLine:
 
     def add(self, t_s: float, offset_s: float) -> None:
         """One package: host arrival time ``t_s`` and arrival minus controller time, s."""
-        line = self.line
-        if line is not None and abs(offset_s - line[1] - line[2] * (t_s - line[0])) > LINE_JUMP_S:
-            self._points.clear()
-            self._bucket_end = -math.inf
-            self._best = (math.nan, math.inf)
-            self.line = None
         if t_s >= self._bucket_end:
             if math.isfinite(self._best[1]):
+                t_best, off_best = self._best
+                if abs(off_best - self.offset_s(t_best)) > LINE_JUMP_S:  # (False if NaN)
+                    self._points.clear()
+                    self.line = None
                 self._points.append(self._best)
                 self._closed += 1
                 if self._closed % LINE_REFIT_BUCKETS == 0:
