@@ -31,6 +31,48 @@ from typing import Any, Protocol
 
 from timedexec.errors import ProtocolError
 
+#: Linux's ``SO_TIMESTAMPNS`` (``SCM_TIMESTAMPNS``, asm-generic/socket.h; the socket module
+#: does not name it): the kernel stamps each received segment with its arrival time.
+_SO_TIMESTAMPNS = 35
+_STAMP_SPACE = socket.CMSG_SPACE(16)
+
+
+def enable_receive_stamps(sock: socket.socket) -> bool:
+    """Ask the kernel to stamp what ``sock`` receives (Linux); False where it cannot."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
+def recv_stamped(sock: socket.socket, n: int) -> tuple[bytes, float]:
+    """Read exactly ``n`` bytes and when they arrived: the kernel's receive stamp of the
+    first ones (:func:`enable_receive_stamps`), as :func:`time.monotonic` seconds, or the
+    time they were read where there is no stamp.
+
+    A controller's intake sees the arrival; a Python reader thread sees its data when it
+    gets the interpreter, in the twin up to the clock thread's whole cycle later.
+    """
+    data, ancillary, _, _ = sock.recvmsg(n, _STAMP_SPACE)
+    mono = time.monotonic()
+    real = time.time()
+    if not data:
+        raise ConnectionResetError("client closed the connection")
+    arrival = mono
+    for level, kind, raw in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(raw) >= 16:
+            sec, nsec = struct.unpack("qq", raw[:16])
+            arrival = min(mono, sec + nsec * 1e-9 - (real - mono))
+    buf = bytearray(data)
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionResetError("client closed the connection")
+        buf += chunk
+    return bytes(buf), arrival
+
+
 __all__ = [
     "RTDE_HEADER_SIZE",
     "RTDE_INPUT_TYPES",
@@ -316,6 +358,9 @@ class _RTDEConnection:
         self.stalled_until = -math.inf
         self.started = False
         self.closed = False
+        #: A package read but not yet handed to the server (the clock's drain waits).
+        self.handling = False
+        enable_receive_stamps(sock)
         self.thread = threading.Thread(target=self._run, name=f"rtde-{conn_id}", daemon=True)
 
     # -- sending ---------------------------------------------------------------------
@@ -353,22 +398,19 @@ class _RTDEConnection:
             self.sock.close()
 
     # -- receiving -------------------------------------------------------------------
-    def _recv_exact(self, n: int) -> bytes:
-        buf = bytearray()
-        while len(buf) < n:
-            chunk = self.sock.recv(n - len(buf))
-            if not chunk:
-                raise ConnectionResetError("client closed the connection")
-            buf += chunk
-        return bytes(buf)
-
     def _run(self) -> None:
         try:
             while not self.closed:
-                size, kind = decode_rtde_header(self._recv_exact(RTDE_HEADER_SIZE))
-                payload = self._recv_exact(size - RTDE_HEADER_SIZE)
-                arrival_s = time.monotonic() - self.server.t0
-                self._handle(kind, payload, arrival_s)
+                self.handling = False
+                header, arrival = recv_stamped(self.sock, RTDE_HEADER_SIZE)
+                self.handling = True
+                size, kind = decode_rtde_header(header)
+                payload = (
+                    recv_stamped(self.sock, size - RTDE_HEADER_SIZE)[0]
+                    if size > RTDE_HEADER_SIZE
+                    else b""
+                )
+                self._handle(kind, payload, arrival - self.server.t0)
         except (OSError, ProtocolError, struct.error) as exc:
             if not self.closed and not isinstance(exc, ConnectionResetError):
                 self.server.log(f"RTDE connection {self.conn_id}: {exc}")

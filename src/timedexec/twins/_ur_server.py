@@ -31,6 +31,12 @@ from typing import Any
 
 import numpy as np
 
+try:  # Unix: the readers' unread bytes at a boundary
+    import fcntl
+    import termios
+except ImportError:  # pragma: no cover
+    fcntl = termios = None  # type: ignore[assignment]
+
 from timedexec._realtime import GcPauses, fast_wakeup, quiet_gc, try_realtime
 from timedexec.errors import ConfigError, ProtocolError
 from timedexec.twins._cartesian import tcp_values
@@ -123,6 +129,21 @@ _LATE_S = 0.5e-3
 _DEFAULT_RT_PRIORITY = 10
 #: Grid on which the gyro twin is handed the flange rate (its nominal sample rate), Hz.
 _GYRO_GRID_HZ = 8000.0
+#: Longest wait at a boundary for the RTDE readers to hand over what has arrived, s.
+_DRAIN_S = 3e-4
+
+
+def _unread(sock: socket.socket) -> int:
+    """Bytes waiting in ``sock``'s receive queue (0 if it cannot say)."""
+    if fcntl is None:
+        return 0
+    try:
+        raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0")
+    except (OSError, ValueError):
+        return 0
+    return int.from_bytes(raw, sys.byteorder, signed=True)
+
+
 #: Interpreter switch interval in the twin process: bounds how long the physics thread
 #: can delay the sender thread, s.
 _SWITCH_INTERVAL_S = 0.2e-3
@@ -262,6 +283,7 @@ class _TwinServer:
             "cycles": 0,
             "late_sends": 0,
             "max_lateness_s": 0.0,
+            "drain_timeouts": 0,
             "peek_mismatches": 0,
             "max_cycle_lag_s": 0.0,
             "max_send_gap_s": 0.0,
@@ -499,6 +521,25 @@ class _TwinServer:
             tool_temperature=30.0,
         )
         return values
+
+    def _drain_inputs(self) -> None:
+        """Let the RTDE readers hand over what reached the socket before this boundary.
+
+        A controller's intake reads the register as the network left it; here a reader
+        thread must first get the interpreter, which the clock thread holds for most of
+        its cycle: a command that arrived (kernel stamp) just before the boundary would be
+        taken a cycle late. Waits while a reader holds a package or a socket holds unread
+        bytes, at most :data:`_DRAIN_S`."""
+        deadline = time.monotonic() + _DRAIN_S
+        while True:
+            with self._lock:
+                conns = list(self._rtde)
+            if not any(c.handling or _unread(c.sock) for c in conns):
+                return
+            if time.monotonic() >= deadline:
+                self.stats["drain_timeouts"] += 1
+                return
+            time.sleep(2e-5)
 
     def _apply_writes(self, boundary_s: float) -> tuple[_Write | None, bool, bool]:
         """Apply the register writes that arrived before this boundary.
@@ -790,6 +831,7 @@ class _TwinServer:
             while not self.stop_event.is_set():
                 boundary_s = float(sim.time_s)
                 _sleep_until(self.t0 + boundary_s)
+                self._drain_inputs()
                 write, disconnected, stop_program = self._apply_writes(boundary_s)
                 self.script.step(
                     boundary_s,
