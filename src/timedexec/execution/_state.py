@@ -4,9 +4,10 @@ A state package describes the robot as it was the predicted response delay befor
 arrived. :class:`StateTracker` keeps the newest package back-dated to that instant, the
 lower-envelope clock model (the smallest arrival minus controller time of the last
 :data:`ENVELOPE_S`: the host time of each controller cycle boundary plus the shortest
-sampling-to-arrival time), the controller cycle numbering and the stream's measured jitter
-(:class:`StreamJitter`: recent inter-arrival gaps and lateness), and extrapolates the
-physical state to any host time (:class:`StateEstimate`).
+sampling-to-arrival time; for the cycle lock also over minutes as a line,
+:class:`~timedexec.execution.BoundaryLine`), the controller cycle numbering and the
+stream's measured jitter (:class:`StreamJitter`: recent inter-arrival gaps and lateness),
+and extrapolates the physical state to any host time (:class:`StateEstimate`).
 
 :class:`StalenessLimits` says when the state is too old to command from, judged by time and
 by the measured jitter of the stream:
