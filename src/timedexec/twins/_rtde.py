@@ -31,6 +31,19 @@ from typing import Any, Protocol
 
 from timedexec.errors import ProtocolError
 
+__all__ = [
+    "RTDE_HEADER_SIZE",
+    "RTDE_INPUT_TYPES",
+    "RTDE_OUTPUT_TYPES",
+    "RTDE_TYPE_CODES",
+    "RTDEPackageType",
+    "RTDERecipe",
+    "decode_rtde_header",
+    "enable_receive_stamps",
+    "encode_rtde_package",
+    "recv_stamped",
+]
+
 #: Linux's ``SO_TIMESTAMPNS`` (``SCM_TIMESTAMPNS``, asm-generic/socket.h; the socket module
 #: does not name it): the kernel stamps each received segment with its arrival time.
 _SO_TIMESTAMPNS = 35
@@ -63,7 +76,9 @@ def recv_stamped(sock: socket.socket, n: int) -> tuple[bytes, float]:
     for level, kind, raw in ancillary:
         if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(raw) >= 16:
             sec, nsec = struct.unpack("qq", raw[:16])
-            arrival = min(mono, sec + nsec * 1e-9 - (real - mono))
+            # Never after now; never more than a second before it (a wall-clock step
+            # between the stamp and now would otherwise move it).
+            arrival = min(mono, max(mono - 1.0, sec + nsec * 1e-9 - (real - mono)))
     buf = bytearray(data)
     while len(buf) < n:
         chunk = sock.recv(n - len(buf))
@@ -72,17 +87,6 @@ def recv_stamped(sock: socket.socket, n: int) -> tuple[bytes, float]:
         buf += chunk
     return bytes(buf), arrival
 
-
-__all__ = [
-    "RTDE_HEADER_SIZE",
-    "RTDE_INPUT_TYPES",
-    "RTDE_OUTPUT_TYPES",
-    "RTDE_TYPE_CODES",
-    "RTDEPackageType",
-    "RTDERecipe",
-    "decode_rtde_header",
-    "encode_rtde_package",
-]
 
 _HEADER = struct.Struct(">HB")
 #: RTDE protocol versions a UR controller accepts (PolyScope 3.x and 5.x: 1 and 2). Any
