@@ -33,7 +33,11 @@ executor's own work per cycle (p50/p99) and its allocations per cycle (tracemall
 the in-process simulator, files of ``timedexec/execution`` only).
 
     python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer]
-        [--loops executor,coasting,unlocked,ur_rtde] [--json F]
+        [--loops executor,coasting,unlocked,ur_rtde] [--warmup 110] [--round-trip 0.0004]
+        [--json F]
+
+``--warmup S`` runs each executor loop S seconds unmeasured first, so that the cycle lock's
+long-term clock line (``BoundaryLine``: 100 s of arrivals) is in use when it is measured.
 """
 
 from __future__ import annotations
@@ -333,8 +337,8 @@ def main(argv: list[str] | None = None) -> int:
         "--round-trip",
         type=float,
         default=DEFAULT_ROUND_TRIP_S,
-        help="the executor's round_trip_s, s: boundary -> package -> command back (the "
-        "default is the loopback twin's shortest; its median centres the arrivals)",
+        help="the executor's round_trip_s, s: boundary -> package -> command back (default: "
+        "the loopback twin's shortest)",
     )
     p.add_argument(
         "--warmup",
