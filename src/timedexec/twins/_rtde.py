@@ -65,7 +65,7 @@ def recv_stamped(sock: socket.socket, n: int) -> tuple[bytes, float]:
     time they were read where there is no stamp.
 
     A controller's intake sees the arrival; a Python reader thread sees its data when it
-    gets the interpreter, in the twin up to the clock thread's whole cycle later.
+    gets the interpreter, in the twin after however long the clock thread holds it.
     """
     data, ancillary, _, _ = sock.recvmsg(n, _STAMP_SPACE)
     mono = time.monotonic()

@@ -526,8 +526,8 @@ class _TwinServer:
         """Let the RTDE readers hand over what reached the socket before this boundary.
 
         A controller's intake reads the register as the network left it; here a reader
-        thread must first get the interpreter, which the clock thread holds for most of
-        its cycle: a command that arrived (kernel stamp) just before the boundary would be
+        thread must first get the interpreter, which the clock thread holds for much of
+        its cycle: a command that arrived (kernel stamp) just before the boundary could be
         taken a cycle late. Waits while a reader holds a package or a socket holds unread
         bytes, at most :data:`_DRAIN_S`."""
         deadline = time.monotonic() + _DRAIN_S
