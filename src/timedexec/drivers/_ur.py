@@ -31,6 +31,19 @@ stays armed until the program stops; after a trip every command fails with a
 :class:`~timedexec.errors.DriverError` saying so, and :meth:`URDriver.arm_watchdog`
 re-uploads the script and re-arms (measured against the twin: ~25 ms for the upload and
 program start, ~5 ms for ``setWatchdog``; a kick costs ~70 µs median).
+
+Nagle's algorithm
+-----------------
+``ur_rtde`` 1.6.5 asks for ``TCP_NODELAY`` on its RTDE socket, then connects it with
+``boost::asio::connect``, which reopens the socket: the connection runs with Nagle's
+algorithm (checked with ``getsockopt`` on its descriptors). A 72-byte command then waits in
+the host's kernel until the controller acknowledges the previous one; a controller that
+delays its ACK to the next state package (the twin's Linux stack does) takes each command
+right after a package leaves, whatever the host's send time, and a cycle-locked sender
+cannot place its commands. The driver sets ``TCP_NODELAY`` on those sockets itself at
+connect (:attr:`URDriver.no_delay_sockets`). Against the UR10e twin, commands sent
+mid-cycle: on the wire (tcpdump) a median 1.35 ms after ``speedJ`` returned, 6 µs after
+the next state package; with the option 0.03 ms.
 """
 
 from __future__ import annotations
@@ -38,6 +51,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import math
+import os
+import socket
 import sys
 import time
 from collections.abc import Sequence
@@ -78,6 +93,56 @@ def _set_timer_slack_ns(slack_ns: int) -> None:
         return
     with contextlib.suppress(Exception):
         ctypes.CDLL(None, use_errno=True).prctl(29, slack_ns, 0, 0, 0)
+
+
+#: RTDE port of a UR controller (the state stream and the command registers).
+RTDE_PORT = 30004
+
+
+def _no_delay_sockets(host: str, port: int = RTDE_PORT) -> int | None:
+    """Set ``TCP_NODELAY`` on this process's TCP sockets connected to ``host:port``;
+    return how many (None where the process's descriptors cannot be listed: not Linux).
+
+    ``ur_rtde`` 1.6.5 sets ``TCP_NODELAY`` on its socket and then connects it with
+    ``boost::asio::connect``, which closes and reopens the socket for each address it
+    tries: the option is lost and Nagle's algorithm holds every small command until the
+    controller has acknowledged the previous one. A controller that acknowledges with its
+    next state package (delayed ACK, as the UR twin's Linux stack does) then takes each
+    command right after a package leaves, whatever the host's send time: against the twin
+    the median command reached it 1.35 ms after ``speedJ`` returned (0.03 ms with the
+    option). Options belong to the socket, so setting them through a duplicate of the
+    descriptor reaches ``ur_rtde``'s own."""
+    try:
+        fds = os.listdir("/proc/self/fd")
+    except OSError:
+        return None
+    try:
+        peers = {info[4][0] for info in socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)}
+    except OSError:
+        return 0
+    done: set[Any] = set()
+    for name in fds:
+        try:
+            if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
+                continue
+            dup = os.dup(int(name))
+        except (OSError, ValueError):
+            continue  # closed meanwhile, or not a descriptor
+        sock = socket.socket(fileno=dup)
+        try:
+            if sock.family not in (socket.AF_INET, socket.AF_INET6):
+                continue
+            if sock.type != socket.SOCK_STREAM:
+                continue
+            peer = sock.getpeername()
+            if peer[1] == port and peer[0] in peers:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                done.add(sock.getsockname())  # a socket may hold several descriptors
+        except OSError:
+            continue  # not connected
+        finally:
+            sock.close()  # closes the duplicate only
+    return len(done)
 
 
 def _hint(host: str) -> str:
@@ -127,6 +192,14 @@ class URDriver(RobotDriver):
         pendant (the driver waits ``program_timeout_s`` and says so every 5 s).
     program_timeout_s : float
         How long to wait for the External Control program to run, s.
+
+    Attributes
+    ----------
+    no_delay_sockets : int or None
+        How many of this process's connections to the controller's RTDE port got
+        ``TCP_NODELAY`` at connect (``ur_rtde`` 1.6.5 loses its own; without it each
+        command waits for the controller's acknowledgement of the previous one: see the
+        module notes). None where it cannot be set (not Linux).
 
     Examples
     --------
@@ -194,6 +267,7 @@ class URDriver(RobotDriver):
         self._stream_period_s = math.nan
         self._link_lost = False
         self._watchdog_s: float | None = None
+        self.no_delay_sockets: int | None = None
 
     # ------------------------------------------------------------------ connection
     @property
@@ -295,6 +369,8 @@ class URDriver(RobotDriver):
         else:
             rate_hz = 500.0 if self.controller_period_s < 0.005 else 125.0
         self._stream_period_s = 1.0 / rate_hz
+        # ur_rtde's own TCP_NODELAY does not survive its connect (see _no_delay_sockets).
+        self.no_delay_sockets = _no_delay_sockets(self.host)
         self._last_ts = float(self._recv.getTimestamp())
         self._first_ts = None
         self._link_lost = False
@@ -554,6 +630,7 @@ class URDriver(RobotDriver):
                 f"controller periods of {period * 1e3:g} ms); e.g. 0.1"
             )
         self._restart_program()
+        self.no_delay_sockets = _no_delay_sockets(self.host)  # in case ur_rtde reconnected
         self._watchdog_s = None
         try:
             self._call("setWatchdog", self._control().setWatchdog, 1.0 / float(timeout_s))
