@@ -138,12 +138,12 @@ class TimedExecutor:
         of its intake window (:mod:`timedexec.execution._cycle`): the earliest arrival of
         the cycle's package (lower-envelope clock model) plus half a period minus
         ``round_trip_s``. Real-time drivers only (ignored in virtual time). Opt-in (like
-        ``coast``): measured against the independent UR peer only, not yet on a real
-        controller or on RSI. There, with ``coast`` and ``realtime_priority=5``, it missed
-        fewer cycles than ur_rtde's own ``initPeriod``/``waitPeriod`` pattern (1.2-1.3 vs
-        4.8-5.1 % quiet, 2.8-3.4 vs 7.1-7.8 % beside two busy processes), sent within
-        0.24-0.35 ms at p99 and landed its commands mid-window (docs/execution.md): the
-        recommended setting for a UR.
+        ``coast``): measured against the independent UR peer and the UR10e twin through
+        ur_rtde, not yet on a real controller or on RSI. Against the twin, with ``coast``,
+        ``realtime_priority=5`` and the long-term clock line formed, it missed 0.08-0.35 %
+        of the cycles where ur_rtde's own ``initPeriod``/``waitPeriod`` pattern missed
+        3.6-12.7 %, sent within 0.20-0.38 ms at p99 and landed its commands mid-window
+        (docs/execution.md): the recommended setting for a UR.
     round_trip_s : float
         Shortest boundary-to-package-arrival-to-command-arrival time, s (default
         0.4 ms, the loopback twin's); used by ``cycle_lock``.
