@@ -6,7 +6,7 @@ the same run, one after the other, quiet and with two busy processes
 
 * **executor**: :class:`TimedExecutor` (cycle-locked sender, SCHED_FIFO 5 where allowed)
   streaming back-and-forth moves of joints 1 and 6, with tolerant staleness limits (200 ms)
-  and watchdog (0.3 s) so that the loop's timing, not its faults, is measured (faults are
+  and watchdog (2 s) so that the loop's timing, not its faults, is measured (faults are
   counted and recovered from);
 * **coasting**: the cycle-locked executor with ``coast=True``: a cycle whose package has
   not arrived by the send time gets its command from the estimate, on time;
