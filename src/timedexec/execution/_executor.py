@@ -599,8 +599,11 @@ class TimedExecutor:
         amax = self.limits.acceleration(self.spec)
         a = ramp_acceleration(v, self._v_prev, amax, self._period)
         work = time.perf_counter() - t_work
-        if target > self.now():
-            now = wait_until(target, self.now)
+        if self.send_phase is not None:
+            # The send time logged is when it leaves: after the target, or now if the work
+            # overran it (the command's content stays computed for the target).
+            clock = self.now()
+            now = wait_until(target, self.now) if target > clock else clock
         try:
             self.driver.speedj(v, a, self._hold_s)
         except DriverError as exc:
