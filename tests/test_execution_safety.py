@@ -638,16 +638,17 @@ def test_stop_through_ur_rtde_returns_at_rest(ur_twin: Any) -> None:
 
 @pytest.mark.realtime_twin
 @pytest.mark.slow
-def test_jittery_ur_stream_for_a_minute_then_dead(ur_twin: Any) -> None:
-    """60 s through ur_rtde with deliveries every 6-24 ms: no false stale stop; then the
+def test_jittery_ur_stream_then_dead(ur_twin: Any) -> None:
+    """20 s through ur_rtde with deliveries every 6-24 ms: no false stale stop; then the
     stream dies and the fault comes within the stall limit in force (+ 10 ms of wake-up
-    on a loaded machine)."""
+    on a loaded machine). The minute runs against the independent peer (next test, not
+    gated: the peer is cheap); here the same path against our twin, shorter for CI's time."""
     from timedexec.drivers import URDriver
 
     drv = GappyDriver(URDriver(ur_twin.host, robot="ur10e"), seed=7)
     before = float(ur_twin.stats()["max_lateness_s"])
     try:
-        _, late_s, _ = run_gappy_then_dead(drv, 60.0)
+        _, late_s, _ = run_gappy_then_dead(drv, 20.0)
     except DriverError as exc:  # a stale fault, or a watchdog trip after a >100 ms stall
         worst = float(ur_twin.stats()["max_lateness_s"])
         # Beyond the scenario: the twin put a package on the wire, or this process woke,
