@@ -102,16 +102,8 @@ RTDE_PORT = 30004
 def _no_delay_sockets(host: str, port: int = RTDE_PORT) -> int | None:
     """Set ``TCP_NODELAY`` on this process's TCP sockets connected to ``host:port``;
     return how many (None where the process's descriptors cannot be listed: not Linux).
-
-    ``ur_rtde`` 1.6.5 sets ``TCP_NODELAY`` on its socket and then connects it with
-    ``boost::asio::connect``, which closes and reopens the socket for each address it
-    tries: the option is lost and Nagle's algorithm holds every small command until the
-    controller has acknowledged the previous one. A controller that acknowledges with its
-    next state package (delayed ACK, as the UR twin's Linux stack does) then takes each
-    command right after a package leaves, whatever the host's send time: against the twin
-    the median command reached it 1.35 ms after ``speedJ`` returned (0.03 ms with the
-    option). Options belong to the socket, so setting them through a duplicate of the
-    descriptor reaches ``ur_rtde``'s own."""
+    Why: the module notes ("Nagle's algorithm"). Options belong to the socket, so setting
+    them through a duplicate of the descriptor reaches ``ur_rtde``'s own."""
     try:
         fds = os.listdir("/proc/self/fd")
     except OSError:
