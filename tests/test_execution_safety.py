@@ -678,7 +678,13 @@ def test_jittery_stream_from_the_independent_peer_for_a_minute_then_dead() -> No
 
     with peer_mod.run_peer("127.0.0.45", model="UR10", version="5.11.1") as peer:
         drv = GappyDriver(URDriver(peer.host, robot="ur10e"), seed=7)
-        _, late_s, fault_s = run_gappy_then_dead(drv, 60.0)
+        try:
+            _, late_s, fault_s = run_gappy_then_dead(drv, 60.0)
+        except DriverError as exc:
+            # Beyond the scenario (as for the twin above): this process woke > 25 ms late.
+            if drv.max_wake_late_s > 0.025:
+                pytest.skip(f"this host woke {drv.max_wake_late_s * 1e3:.0f} ms late: {exc}")
+            raise
         t_fault = peer.to_peer_time(fault_s)
         truth = peer.wait_truth_until(t_fault + 1.0)
     assert drv.delivered > 40 * 60
