@@ -312,8 +312,13 @@ def track_conveyor_seam(
     # Go to the approach's start (at rest), then let the state settle.
     q_now = executor.estimate().q_rad
     if np.max(np.abs(q_now - sp.plan.q_start_rad)) > 1e-4:
-        move = executor.plan(sp.plan.q_start_rad)
-        executor.execute(move, start_time_s=executor.now() + executor.lead_time_s(move) + 3 * executor.period_s)  # fmt: skip
+        # The start is taken after the predictions (a GP's first query) and after a re-arm
+        # of a watchdog that tripped while nobody stepped (a script upload: 25-50 ms);
+        # taken before them, a real-time run started too late (8 ms cycles, 3 periods).
+        move = executor.prepare(executor.plan(sp.plan.q_start_rad))
+        executor.watchdog.rearm_if_tripped(executor.now)
+        lead = executor.lead_time_s(move) + 3 * executor.period_s
+        executor.execute(move, start_time_s=executor.now() + lead)
         executor.idle(executor.now() + 0.2)
     prepared = prepare_shifted(executor, sp.plan, shift_s)
     # The predictions may have kept the loop from reading (a GP's first query): drain the
