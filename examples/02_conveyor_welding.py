@@ -16,15 +16,21 @@ With --onset the same welds run shifted by the *onset* delay (what the delay mod
 the torch then leads the seam by several millimetres, because a moving arm keeps less lag
 than the time it takes to start (docs/welding.md).
 
+With --twin the same seam is then welded once per strategy, with the shifts of the table's
+first weld, through the real client against the robot's protocol twin in its own process
+(UR: ur_rtde against the UR twin; KR 5: RSI XML against the RSI twin, whose position
+corrections keep a lag of their own), the torch measured from the twin's truth; beside each
+row the simulator's per-run range (one twin weld is one publisher phase).
+
     python examples/02_conveyor_welding.py [--robot kr5|ur10|ur10e] [--seam straight|curved]
-        [--runs N] [--onset] [--figure weld.png]
+        [--runs N] [--onset] [--twin] [--figure weld.png]
 """
 
 from __future__ import annotations
 
 import argparse
 
-from timedexec.welding import evaluate_conveyor
+from timedexec.welding import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
 
 
 def main() -> None:
@@ -37,6 +43,9 @@ def main() -> None:
     p.add_argument("--runs", type=int, default=2, help="publisher phases per strategy (stratified)")
     p.add_argument("--onset", action="store_true", help="also shift by the onset delay")
     p.add_argument("--figure", help="write the welder's figure (PNG) here")
+    p.add_argument(
+        "--twin", action="store_true", help="also weld through the real client against the twin"
+    )
     args = p.parse_args()
     # The model bundled for this simulated robot (or a folder from `timedexec train`).
     result = evaluate_conveyor(
@@ -52,10 +61,31 @@ def main() -> None:
         feedback=False,
     )
     print(result.table())
+    if args.twin:
+        twin_table(result, args.robot)
     if args.figure:
         from timedexec.report import fig_welding
 
         print(f"figure: {fig_welding(result.figure_data(), args.figure)}")
+
+
+def twin_table(result: ConveyorEvaluation, robot: str) -> None:
+    """One weld per strategy through the real client against the twin, with the shifts of
+    the simulator's first weld; the simulator's per-run range beside it."""
+    names = [n for n in ("none", "constant", "median", "model", "oracle") if n in result.examples]
+    seam_plan = result.examples[names[0]].seam_plan
+    shifts = {n: None if n == "none" else result.examples[n].shifts_s for n in names}
+    runs = weld_on_twin(seam_plan, f"{robot}-sim", shifts)
+    client = "RSI XML" if robot == "kr5" else "ur_rtde"
+    print(f"\nthrough {client} against the {robot} twin, one weld per strategy (mm):")
+    print(f"{'strategy':10} {'mean':>6} {'RMS':>6} {'max':>6}   simulator, per run")
+    for name, run in runs.items():
+        st = run.errors().stats()
+        sim = result.strategies[name]
+        print(
+            f"{name:10} {st['torch_mean_mm']:6.2f} {st['torch_rms_mm']:6.2f} "
+            f"{st['torch_max_mm']:6.2f}   {sim['run_mean_mm_min']:.2f}-{sim['run_mean_mm_max']:.2f}"
+        )
 
 
 if __name__ == "__main__":
