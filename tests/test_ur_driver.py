@@ -162,11 +162,15 @@ def test_commands_leave_when_sent_not_when_the_controller_acknowledges(
     _, commands = read_truth(twin.truth_path)
     arrivals = np.sort([r["arrival_s"] for r in commands.values() if r["kind"] == "SpeedJ"])
     sent = np.asarray(sends)
-    # The truth lists a command once it is settled: the last may still be missing.
-    nxt = np.searchsorted(arrivals, sent[:-1])
-    assert np.all(nxt < len(arrivals))
-    wire = arrivals[nxt] - sent[:-1]  # a send whose own arrival is missing counts long
-    # Measured: 0.04-0.08 ms with the option, 0.66-1.01 ms without (three runs each).
+    # Each command the twin took, against the last send before it: on a loaded machine two
+    # sends can land in one cycle, and the twin lists only the one it took.
+    arrivals = arrivals[arrivals >= sent[0]]
+    wire = arrivals - sent[np.searchsorted(sent, arrivals, side="right") - 1]
+    assert len(wire) >= 150, len(wire)  # of 300 sends (223-300 taken in the runs here)
+    # Measured: 0.04-0.08 ms with the option (also beside two busy processes). Without it
+    # 0.66-1.09 ms in 4 of 6 runs; in the others the twin's stack acknowledged at once (its
+    # delayed-ACK mode is the kernel's choice), so the option check above is the one that
+    # always fails without the fix.
     assert np.median(wire) < 3e-4
 
 
