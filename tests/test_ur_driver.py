@@ -168,7 +168,7 @@ def test_commands_leave_when_sent_not_when_the_controller_acknowledges(
     wire = arrivals - sent[np.searchsorted(sent, arrivals, side="right") - 1]
     assert len(wire) >= 150, len(wire)  # of 300 sends (223-300 taken in the runs here)
     # Measured: 0.04-0.08 ms with the option (also beside two busy processes). Without it
-    # 0.66-1.09 ms in 4 of 6 runs; in the others the twin's stack acknowledged at once (its
+    # 0.66-1.09 ms in 4 of 8 runs; in the others the twin's stack acknowledged at once (its
     # delayed-ACK mode is the kernel's choice), so the option check above is the one that
     # always fails without the fix.
     assert np.median(wire) < 3e-4
