@@ -368,7 +368,8 @@ def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
     comp = weld_on_twin(sp, "ur10-sim", {"measured": shift}, host="127.0.0.62")["measured"]
     change_s = abs(float(np.mean(measure_tracking_delays(comp) - shift)))
     belt_mm_per_s = 1e3 * default_cell("ur10").conveyor.speed_m_s
-    # + 1 ms: the change's own measurement (the same back-dating as the shift's)
+    # + 1 ms for the change's own measurement error (the same back-dating as the shift's;
+    # a judgment: that error was not measured apart from real changes)
     bound_mm = 3.0 + belt_mm_per_s * (change_s + 1e-3)
     assert comp.errors().stats()["torch_mean_mm"] < bound_mm, change_s
 
