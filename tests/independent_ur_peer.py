@@ -984,6 +984,7 @@ class Controller:
         # boundary of the cycle that took it and when that cycle read it (controller s).
         self.input_log: Any = None
         self.rt_priority = 0  # SCHED_FIFO priority of the cycle thread (0: normal)
+        self.publish_delay_s = 0.0  # s from the cycle boundary to sending its package
         self._arrived: list[float] = []
         if self._truth is not None:
             self._truth.write(
@@ -1127,9 +1128,7 @@ class Controller:
             arrived, self._arrived = self._arrived, []
         if self.input_log is not None and arrived:
             taken = time.monotonic() - self.t0  # when this cycle read them (>= its boundary)
-            self.input_log.write(
-                "".join(f"{a:.6f},{self.now:.6f},{taken:.6f}\n" for a in arrived)
-            )
+            self.input_log.write("".join(f"{a:.6f},{self.now:.6f},{taken:.6f}\n" for a in arrived))
         if self.pending_program is not None and self.cycle >= self.pending_program[0]:
             text = self.pending_program[1]
             self.pending_program = None
@@ -1181,7 +1180,8 @@ class Controller:
         if still != self._was_still:
             self.event("at_rest" if still else "moving")
             self._was_still = still
-        self._publish()
+        if self.publish_delay_s <= 0:
+            self._publish()
         self._write_truth()
 
     def _publish(self) -> None:
@@ -1226,6 +1226,13 @@ class Controller:
                 self.t0 += slip
                 self.event("clock_slip", t0_monotonic=f"{self.t0:.6f}", slip_s=f"{slip:.4f}")
             self.step()
+            if self.publish_delay_s > 0:
+                # A publisher late in the cycle: the package (stamped at the boundary)
+                # leaves publish_delay_s after it.
+                delay = deadline + self.publish_delay_s - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                self._publish()
             with self.lock:
                 self.cycle += 1
         if self._truth is not None:
@@ -1736,6 +1743,13 @@ def main(argv: list[str] | None = None) -> int:
         "arrival, the boundary of the cycle that took it, when that cycle read the inputs)",
     )
     ap.add_argument(
+        "--publish-delay",
+        type=float,
+        default=0.0,
+        help="s from the cycle boundary to sending its state package (below one period; "
+        "0: as soon as the cycle is computed)",
+    )
+    ap.add_argument(
         "--start-delay",
         type=float,
         default=0.1,
@@ -1776,6 +1790,9 @@ def main(argv: list[str] | None = None) -> int:
         installed_program=args.external_control_program,
     )
     ctl.rt_priority = args.rt_priority
+    if not 0 <= args.publish_delay < 1.0 / ctl.rate_hz:
+        ap.error(f"--publish-delay {args.publish_delay} s outside [0, one period)")
+    ctl.publish_delay_s = args.publish_delay
     if args.input_log is not None:
         # line-buffered: a reader sees every package up to the last cycle
         ctl.input_log = open(args.input_log, "a", encoding="ascii", buffering=1)  # noqa: SIM115

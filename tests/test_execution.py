@@ -141,6 +141,19 @@ def test_plan_respects_limits_and_refuses_targets_outside() -> None:
         plan_motion(spec, ExecutionLimits(), q0, bad)
 
 
+def test_plan_sampled_at_a_time_that_is_not_finite_is_refused_not_a_crash() -> None:
+    """Ruckig's ``at_time(nan)`` kills the process (SIGSEGV); an unscheduled plan's start
+    is NaN, so ``host_time - plan.start_time_s`` reaches ``sample`` as NaN by mistake."""
+    spec = get_robot("kr5")
+    q0 = np.array(spec.home_q_rad)
+    plan = plan_motion(spec, ExecutionLimits(), q0, q0 + 0.2)
+    assert math.isnan(plan.start_time_s)
+    with pytest.raises(ConfigError, match=r"plan time must be finite, got nan.*JointPlan.at"):
+        plan.sample(1.0 - plan.start_time_s)
+    with pytest.raises(ConfigError, match="must be finite"):
+        plan.sample_many([0.1, math.nan])
+
+
 def test_cruise_overshoot_beyond_limits_is_refused() -> None:
     """Ruckig ignores position limits; a target next to a limit reached at speed would
     overshoot it while braking, and the plan is refused."""

@@ -13,6 +13,7 @@ import os
 import socket
 import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -204,6 +205,15 @@ class RawRTDE:
             if state[field] == value:
                 return state
         raise AssertionError(f"{field} did not become {value!r} within {timeout_s} s")
+
+    def wait_until(self, test: Callable[[dict], bool], timeout_s: float = 5.0) -> dict:  # type: ignore[type-arg]
+        """Read state packages until ``test(package)``; return that package."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            state = self.state()
+            if test(state):
+                return state
+        raise AssertionError(f"no package passed the test within {timeout_s} s")
 
     def write(self, **values: object) -> None:
         assert self.input is not None
@@ -461,6 +471,37 @@ def test_speedj_time_does_not_expire_and_the_watchdog_stops_it(raw_twin: URTwin)
     assert 0.05 < stops[0]["time_s"] - stops[0]["last_update_s"] <= 0.05 + 0.008 + 1e-9
     # The package sampled at the next boundary is the first to show it.
     assert stopped["timestamp"] == pytest.approx(stops[0]["time_s"] + 0.008, abs=1e-9)
+
+
+def test_speedj_time_paces_when_the_next_target_is_taken(raw_twin: URTwin) -> None:
+    """The speed thread runs ``speedj(target, a, t)``, which returns after ``t``; only then
+    does it take the newest target (URScript's speedj; the ur_rtde 1.6.5 script's speed
+    thread). A second target written 40 ms into a t = 200 ms call acts 200 ms after the
+    first, not at once; with t = one period each target acts at the next boundary."""
+    peer = RawRTDE(
+        RAW_HOST, ["timestamp", "runtime_state", "target_qd"], frequency_hz=125.0,
+        inputs=COMMAND_INPUTS,
+    )  # fmt: skip
+    try:
+        upload(RAW_HOST, PROGRAM)
+        peer.wait_for("runtime_state", 2)
+        peer.write(**command(SPEEDJ, 0.2, 0, 0, 0, 0, 0, 10.0, 0.2))
+        first = peer.wait_until(lambda st: st["target_qd"][0] > 0.19)["timestamp"]
+        time.sleep(0.04)
+        peer.write(**command(SPEEDJ, 0.1, 0, 0, 0, 0, 0, 10.0, 0.008))
+        slow = peer.wait_until(lambda st: st["target_qd"][0] < 0.11, timeout_s=1.0)
+        time.sleep(0.02)
+        peer.write(**command(SPEEDJ, 0.05, 0, 0, 0, 0, 0, 10.0, 0.008))
+        t_write = raw_twin.controller_time_s()
+        slower = peer.wait_until(lambda st: st["target_qd"][0] < 0.06, timeout_s=1.0)
+    finally:
+        peer.close()
+    # 10 rad/s² ramps 0.1 rad/s in 10 ms (2 cycles): the first target was reached one or
+    # two cycles after the call began, which returns 0.2 s after it began.
+    assert 0.2 - 0.016 - 1e-9 <= slow["timestamp"] - first <= 0.2 + 0.016 + 1e-9
+    # With t = 8 ms the thread comes round every cycle: the new target acts within the
+    # cycle it arrives in plus the ramp (< 3 cycles; 20 ms allows the write's wire time).
+    assert slower["timestamp"] - t_write < 0.024 + 0.02
 
 
 def test_read_truth_skips_a_line_being_written(tmp_path: Path) -> None:

@@ -549,7 +549,8 @@ def weld_on_twin(
             for name, shift in shifts_s.items():
                 with TimedExecutor(URDriver(host, robot=spec.name), model,
                                    compensate=shift is not None, stale_periods=stale_periods,
-                                   stop_deceleration_rad_s2=decel) as ex:  # fmt: skip
+                                   stop_deceleration_rad_s2=decel, cycle_lock=True,
+                                   coast=True) as ex:  # fmt: skip
                     run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
                                               shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
                     back = ex.plan(q0)

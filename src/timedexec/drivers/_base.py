@@ -49,6 +49,10 @@ class RobotState:
         The package's raw bytes as received (empty for the in-process simulator).
     sequence : int
         Package counter since connect, 0-based; a gap means a package was lost.
+    target_qd : ndarray, shape (6,), or None
+        The controller's target joint velocities, rad/s, where the protocol reports them
+        (UR RTDE ``target_qd``; None otherwise): the command the controller took, which is
+        how the cycle lock finds the controller's intake (:mod:`timedexec.execution._intake`).
     """
 
     host_time_s: float
@@ -58,6 +62,7 @@ class RobotState:
     raw: bytes = b""
     sequence: int = 0
     extra: dict[str, float] = field(default_factory=dict)
+    target_qd: FloatArray | None = None
 
     def __iter__(self):  # type: ignore[no-untyped-def]
         """Unpack as ``host_time_s, controller_time_s, q, qd``."""
@@ -69,6 +74,12 @@ class RobotDriver(abc.ABC):
 
     #: Robot spec name this driver talks to ("ur10", "ur10e", "kr5").
     robot: str
+    #: Whether ``speedj``'s duration paces the controller's updates rather than holding the
+    #: command as a dead-man: URScript ``speedj(qd, a, t)`` returns after ``t``, and the
+    #: UR control script's speed thread then re-issues it with the newest target, so a new
+    #: target acts only once the previous call's ``t`` has passed. A stream then sends
+    #: ``t`` = one period (as ur_rtde's own examples do).
+    speedj_duration_paces_updates: bool = False
 
     @property
     @abc.abstractmethod
@@ -94,8 +105,8 @@ class RobotDriver(abc.ABC):
     @abc.abstractmethod
     def speedj(self, qd_rad_s: FloatArray, acceleration_rad_s2: float, duration_s: float) -> None:
         """Command joint speeds (rad/s) with the leading axis' acceleration (rad/s²) for
-        ``duration_s`` (s; 0 holds them until the next command, as URScript ``speedj``);
-        returns as soon as the command is sent (non-blocking)."""
+        ``duration_s`` (s; see :attr:`speedj_duration_paces_updates` for what a UR does
+        with it); returns as soon as the command is sent (non-blocking)."""
 
     @abc.abstractmethod
     def stop(self, deceleration_rad_s2: float = 10.0) -> None:

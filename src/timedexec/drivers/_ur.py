@@ -200,6 +200,10 @@ class URDriver(RobotDriver):
     ...     drv.speedj([0, 0.2, 0, 0, 0, 0], 2.0, 0.5)
     """
 
+    #: The control script's speed thread takes a new target when the previous ``speedj``
+    #: returns, after its ``t`` (see :class:`~timedexec.drivers.RobotDriver`).
+    speedj_duration_paces_updates = True
+
     def __init__(
         self,
         host: str,
@@ -413,10 +417,11 @@ class URDriver(RobotDriver):
                 host_time_s = time.monotonic()
                 q = recv.getActualQ()
                 qd = recv.getActualQd()
+                target_qd = recv.getTargetQd()
                 ts_after = recv.getTimestamp()
                 if ts_after != ts:
                     continue  # a newer package landed while reading: take that one
-                return self._state(host_time_s, ts, q, qd)
+                return self._state(host_time_s, ts, q, qd, target_qd)
             if time.monotonic() > deadline:
                 if not recv.isConnected():
                     self._link_lost = True
@@ -432,7 +437,9 @@ class URDriver(RobotDriver):
             if poll > 0:
                 time.sleep(poll)
 
-    def _state(self, host_time_s: float, ts: float, q: Any, qd: Any) -> RobotState:
+    def _state(
+        self, host_time_s: float, ts: float, q: Any, qd: Any, target_qd: Any = None
+    ) -> RobotState:
         self._last_ts = ts
         if self._first_ts is None:
             self._first_ts = ts
@@ -443,6 +450,7 @@ class URDriver(RobotDriver):
             q=np.asarray(q, dtype=float),
             qd=np.asarray(qd, dtype=float),
             sequence=int(sequence),
+            target_qd=None if target_qd is None else np.asarray(target_qd, dtype=float),
         )
 
     # ------------------------------------------------------------------ commands

@@ -23,6 +23,7 @@ from timedexec.execution._conveyor import (
 )
 from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, BoundaryLine, SendPhase, wait_until
 from timedexec.execution._executor import TimedExecutor
+from timedexec.execution._intake import IntakeFix, find_intake_step, probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     BUNDLED_MODELS,
@@ -80,6 +81,7 @@ __all__ = [
     "ExecutionLimits",
     "ExecutionResult",
     "FixedDelays",
+    "IntakeFix",
     "InterceptResult",
     "JointPlan",
     "MeetPlan",
@@ -104,6 +106,7 @@ __all__ = [
     "default_cell",
     "delay_cdf",
     "delay_quantile",
+    "find_intake_step",
     "fit_joint_lags",
     "intercept",
     "load_delay_model",
@@ -113,6 +116,7 @@ __all__ = [
     "plan_seam",
     "predict_delays",
     "prepare_shifted",
+    "probe_intake",
     "solve_position_ik",
     "tool_radius_m",
     "track_conveyor_seam",

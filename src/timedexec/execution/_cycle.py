@@ -25,8 +25,12 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from timedexec.errors import ConfigError
+
+if TYPE_CHECKING:
+    from timedexec.execution._intake import IntakeFix
 
 __all__ = [
     "DEFAULT_ROUND_TRIP_S",
@@ -174,7 +178,11 @@ class SendPhase:
     Attributes
     ----------
     offset_s : float
-        The send time after the cycle's earliest package arrival, s.
+        The send time after the cycle's earliest package arrival, s (without ``intake``).
+    intake : IntakeFix or None
+        The controller's command deadline found by probing it
+        (:func:`~timedexec.execution._intake.probe_intake`): when set, commands are aimed
+        half a period before a deadline instead (:meth:`aim_s`).
     """
 
     def __init__(
@@ -191,11 +199,37 @@ class SendPhase:
         self.round_trip_s = float(round_trip_s)
         self.fraction = float(fraction)
         self.offset_s = (fraction * period_s - round_trip_s) % period_s
+        self.intake: IntakeFix | None = None
+        self._lead: int | None = None
 
     def target_s(self, earliest_arrival_s: float) -> float:
         """Host send time of the command answering the package whose earliest possible
-        arrival is ``earliest_arrival_s``, s."""
+        arrival is ``earliest_arrival_s``, s (by the arrivals alone)."""
         return earliest_arrival_s + self.offset_s
+
+    def aim_s(
+        self, controller_time_s: float, earliest_arrival_s: float, rate: float = 0.0
+    ) -> float:
+        """Host send time of the command answering the package stamped ``controller_time_s``
+        whose earliest possible arrival is ``earliest_arrival_s``, s.
+
+        With an ``intake`` fix: ``fraction`` of a period into the intake window (the period
+        before a deadline), at the first deadline whose aim is not before that arrival (``rate``: the clock line's drift, s per s). The
+        deadline chosen stays the same one cycle after cycle while its aim lies within
+        [arrival - period/4, arrival + period): as the packages' phase wanders past it,
+        one cycle gets no command or two, once, instead of every cycle by chance.
+        """
+        fix = self.intake
+        if fix is None:
+            return earliest_arrival_s + self.offset_s
+        period = self.period_s
+        base = fix.send_time_s(controller_time_s, rate) + (self.fraction - 0.5) * period
+        lead = self._lead
+        if lead is None or not (
+            earliest_arrival_s - 0.25 * period <= base + lead * period < earliest_arrival_s + period
+        ):
+            lead = self._lead = math.ceil((earliest_arrival_s - base) / period)
+        return base + lead * period
 
 
 def wait_until(t_s: float, clock: Callable[[], float] = time.monotonic) -> float:

@@ -40,6 +40,7 @@ from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
 from timedexec.execution._command import SmithPredictor, limit_command, ramp_acceleration
 from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase, wait_until
+from timedexec.execution._intake import IntakeFix, probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     DelayPredictions,
@@ -135,9 +136,11 @@ class TimedExecutor:
         per joint, as the RSI driver does, refuses a stop above a joint's own limit).
     cycle_lock : bool
         Send each command at a fixed phase of the controller's cycle, aimed at the middle
-        of its intake window (:mod:`timedexec.execution._cycle`): the earliest arrival of
-        the cycle's package (lower-envelope clock model) plus half a period minus
-        ``round_trip_s``. Real-time drivers only (ignored in virtual time). Opt-in (like
+        of its intake window: half a period before the controller's command deadline,
+        found at connect by probing it (:meth:`probe_intake`; a UR's ``target_qd``), else
+        the earliest arrival of the cycle's package plus half a period minus
+        ``round_trip_s`` (:mod:`timedexec.execution._cycle`). Real-time drivers only
+        (ignored in virtual time). Opt-in (like
         ``coast``): measured against the independent UR peer and the UR10e twin through
         ur_rtde, not yet on a real controller or on RSI. Against the twin, with ``coast``,
         ``realtime_priority=5`` and the long-term clock line formed, it missed 0.08-0.35 %
@@ -257,6 +260,7 @@ class TimedExecutor:
         self.cycle_lock = bool(cycle_lock) and not virtual
         self.round_trip_s = float(round_trip_s)
         self.send_phase: SendPhase | None = None
+        self.intake_error: str | None = None
         self.realtime_priority = realtime_priority
         self.realtime = False
         self.gc_pauses: GcPauses | None = None
@@ -310,6 +314,68 @@ class TimedExecutor:
             self._session.close()
             self._rt.close()
             raise
+        if self.send_phase is not None and self._state.last is not None:
+            if self._state.last.target_qd is not None:
+                with contextlib.suppress(DriverError):  # the reason: intake_error
+                    self.probe_intake()
+            else:
+                self.intake_error = "the driver's state has no target_qd"
+
+    def probe_intake(self) -> IntakeFix:
+        """Find the controller's command deadline by probing it (arm at rest; ~16 tiny
+        ``speedj`` commands, 0.1-0.5 s; :mod:`timedexec.execution._intake`) and aim the cycle
+        lock by it from now on. Done at connect with ``cycle_lock`` where the state carries
+        ``target_qd`` (UR); call it again after a long idle time if the host clock drifts
+        against the controller's before the clock line forms (:attr:`clock_line`).
+
+        Raises
+        ------
+        DriverError
+            Not at rest, no ``cycle_lock``, or no clean answer (``intake_error`` says why;
+            the lock then aims by the package arrivals).
+        """
+        if self.send_phase is None:
+            raise DriverError("probe_intake needs cycle_lock=True and a real-time driver")
+        if self._plan is not None or np.any(self._v_prev != 0):
+            raise DriverError("probe_intake needs the arm at rest with no plan running")
+        amax = self.limits.acceleration(self.spec)
+
+        def read() -> RobotState:
+            state = self.driver.read_state(timeout_s=self.staleness.idle_timeout_s(self._period))
+            self._state.ingest(state)
+            return state
+
+        def send(v: NDArray[np.float64]) -> None:
+            self.driver.speedj(
+                v, ramp_acceleration(v, np.zeros(6), amax, self._period), self._hold_s
+            )
+            self.watchdog.fed(self.now())
+
+        try:
+            fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s)
+        except DriverError as exc:
+            self.intake_error = str(exc)
+            raise
+        self.send_phase.intake = fix
+        self.intake_error = None
+        return fix
+
+    @property
+    def intake(self) -> IntakeFix | None:
+        """The controller's command deadline the cycle lock aims by (:meth:`probe_intake`),
+        or None (the lock aims by the package arrivals; ``intake_error`` says why)."""
+        return self.send_phase.intake if self.send_phase is not None else None
+
+    def _send_target_s(self, cycle: int) -> float:
+        """Host send time of the command answering the package of ``cycle`` (cycle lock)."""
+        assert self.send_phase is not None
+        st = self._state
+        line = st.boundary.line
+        return self.send_phase.aim_s(
+            st.controller_time_of(cycle, self._period),
+            st.earliest_arrival_s(cycle, self._period),
+            line[2] if line is not None else 0.0,
+        )
 
     def _first_state(self, state: RobotState) -> None:
         self._state.response_s = self._predictions.response_s(state.q)
@@ -518,10 +584,12 @@ class TimedExecutor:
         st = self._state
         coast_at = None
         if streaming and self.coast and math.isfinite(st.controller_ref_s) and self._served >= 0:
-            due = st.earliest_arrival_s(self._served + 1, self._period)
-            coast_at = due + (
-                self.send_phase.offset_s if self.send_phase is not None else 0.5 * self._period
-            )
+            if self.send_phase is not None:
+                coast_at = self._send_target_s(self._served + 1)
+            else:
+                coast_at = (
+                    st.earliest_arrival_s(self._served + 1, self._period) + 0.5 * self._period
+                )
         got = self._read(coast_at)
         if got is None:  # the cycle's package is late: command it from the estimate
             assert st.last is not None
@@ -592,8 +660,7 @@ class TimedExecutor:
         if self.send_phase is not None:
             # Aim at the middle of the intake window of the cycle after this package's; the
             # command is computed for the instant it leaves.
-            cycle = self._state.cycle_of(controller_s, self._period)
-            target = self.send_phase.target_s(self._state.earliest_arrival_s(cycle, self._period))
+            target = self._send_target_s(self._state.cycle_of(controller_s, self._period))
             now = max(now, target)
         v, clipped = self._command(plan, now)
         amax = self.limits.acceleration(self.spec)
@@ -740,6 +807,8 @@ class TimedExecutor:
 
     @property
     def _hold_s(self) -> float:
+        if self.driver.speedj_duration_paces_updates:
+            return self._period  # a UR takes the next target once this has passed
         return self.staleness.command_hold_s(self._period)
 
     def stop(

@@ -177,7 +177,16 @@ class JointPlan:
         )
 
     def sample(self, t_plan_s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Position, velocity and acceleration at plan time ``t_plan_s`` (scalar), each (6,)."""
+        """Position, velocity and acceleration at plan time ``t_plan_s`` (scalar), each (6,).
+
+        Raises ConfigError for a time that is not finite (Ruckig's ``at_time`` crashes the
+        process on NaN, and an unscheduled plan's ``start_time_s`` is NaN).
+        """
+        if not math.isfinite(t_plan_s):
+            raise ConfigError(
+                f"plan time must be finite, got {t_plan_s!r} s (a plan time is a host time minus "
+                "start_time_s, which is NaN until the plan is scheduled with JointPlan.at)"
+            )
         if t_plan_s <= 0.0:
             return (
                 self.q_start_rad + self.qd_start_rad_s * t_plan_s,
@@ -298,7 +307,11 @@ def plan_motion(
     from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
 
     q0 = check_joint_array("start position", q_start_rad)
-    qd0 = np.zeros(6) if qd_start_rad_s is None else check_joint_array("start velocity", qd_start_rad_s)
+    qd0 = (
+        np.zeros(6)
+        if qd_start_rad_s is None
+        else check_joint_array("start velocity", qd_start_rad_s)
+    )
     q1, qd1 = check_target(spec, target_q_rad, target_qd_rad_s)
     vmax, amax, jmax = limits.velocity(spec), limits.acceleration(spec), limits.jerk(spec)
     over = np.abs(qd1) > vmax * (1 + 1e-12)

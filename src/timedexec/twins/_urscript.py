@@ -257,7 +257,8 @@ class _ControlScript:
 
     Follows what the uploaded script does (``ur_rtde`` 1.6.5): ``speedj`` / ``speedl`` are
     re-issued by the script's speed thread with the latest target until a stop, another
-    motion command or a program stop (their time argument never ends the motion); ``servoj``
+    motion command or a program stop (their time argument never ends the motion: it is how
+    long each call runs before the thread takes the next target); ``servoj``
     is re-issued to the last target (the arm converges and stays); ``moveL`` follows a
     straight TCP line (:mod:`timedexec.twins._cartesian`); ``setWatchdog`` arms an RTDE
     watchdog that stops the program (:mod:`timedexec.twins._watchdog`).
@@ -294,6 +295,12 @@ class _ControlScript:
         self._last_motion_id: int | None = None
         self._planning: _Planning | None = None
         self._servo_q: np.ndarray | None = None  # last servoL target, rad
+        #: The speed thread of speedj: when its running ``speedj(target, a, t)`` returns
+        #: (controller time, s; None: no speedj thread), and the newest target the main
+        #: loop put in its globals (speeds, acceleration, t, arrival), issued at that return.
+        self._speedj_returns_s: float | None = None
+        self._speedj_target: tuple[tuple[float, ...], float, float, float] | None = None
+        self._speedj_issued: tuple[tuple[float, ...], float, float, float] | None = None
         #: Program stops not yet reported to the server: dicts with time_s, reason, ...
         self.events: list[dict[str, Any]] = []
         #: Whether the server writes ground truth (then the two maps below are kept).
@@ -344,10 +351,31 @@ class _ControlScript:
             self._submit("StopJ", arrival_s, deceleration_rad_s2=_PROGRAM_STOP_DECELERATION_RAD_S2)
 
     def _cancel_motion(self) -> None:
-        """End the Cartesian motion (and a moveL still being planned): the script kills the
-        thread that runs it when another command or a stop comes."""
+        """End the Cartesian motion (and a moveL still being planned) and the speedj thread:
+        the script kills the thread that runs it when another command or a stop comes."""
         self.motion = None
         self._planning = None
+        self._speedj_returns_s = None
+        self._speedj_target = None
+
+    def _issue_speedj(self, boundary_s: float) -> None:
+        """The speed thread's ``speedj(target, a, t)`` with the newest target, from this
+        boundary: it returns after ``t`` (rounded up to whole cycles, at least one), or
+        with ``t`` = 0 once the target speed is reached (the leading joint's ramp at
+        ``a``)."""
+        target = self._speedj_target
+        assert target is not None
+        qd, accel, t_s, arrival = target
+        if t_s > 0:
+            span = t_s
+        else:
+            ref = np.asarray(getattr(self.sim, "_ref_v", np.zeros(6)), dtype=float)
+            span = float(np.max(np.abs(np.asarray(qd) - ref))) / max(accel, 1e-9)
+        cycles = max(1, math.ceil(span / self.period_s - 1e-9))
+        self._speedj_returns_s = boundary_s + cycles * self.period_s
+        if self._speedj_issued is not target:
+            self._speedj_issued = target
+            self._submit("SpeedJ", arrival, qd_rad_s=np.array(qd), acceleration_rad_s2=accel)
 
     def stop_program(self, time_s: float, reason: str, **details: Any) -> None:
         """Stop the program at controller time ``time_s``: runtime state STOPPED, the arm
@@ -435,18 +463,26 @@ class _ControlScript:
                 self.log(f"command {cmd} is not simulated; acknowledged as done without motion")
                 self.out_int[0] = _SIGNAL_DONE
             return
+        if cmd == _CMD_SPEEDJ:
+            # The main loop puts the target in the speed thread's globals; the thread takes
+            # it when its running speedj(target, a, t) returns, t after it began, and
+            # re-issues speedj with it (t never ends the motion: only a stop or another
+            # motion command does). A new thread starts at once.
+            if self._speedj_returns_s is None:
+                self._cancel_motion()
+                self.pending_op = None
+                self._servo_q = None
+            self._speedj_target = (q, self._reg_d(6), self._reg_d(7), arrival)
+            if self._speedj_returns_s is None or boundary_s >= self._speedj_returns_s - 1e-9:
+                self._issue_speedj(boundary_s)
+            self.out_int[0] = _SIGNAL_READY
+            return
         # Every other motion command or stop ends what the script's threads were doing.
         self._cancel_motion()
         self.pending_op = None
         if cmd != _CMD_SERVOL:
             self._servo_q = None
-        if cmd == _CMD_SPEEDJ:
-            # The speed thread re-issues speedj(target, a, t) until stopped: t never ends it.
-            self._submit(
-                "SpeedJ", arrival, qd_rad_s=np.array(q), acceleration_rad_s2=self._reg_d(6)
-            )
-            self.out_int[0] = _SIGNAL_READY
-        elif cmd == _CMD_SERVOJ:
+        if cmd == _CMD_SERVOJ:
             self._submit(
                 "ServoJ",
                 arrival,
@@ -572,8 +608,11 @@ class _ControlScript:
         self._last_motion_id = None
 
     def _tick(self, boundary_s: float) -> None:
-        """The Cartesian threads' work for this cycle: start a planned moveL, then hand the
-        controller the joint command of the coming cycle."""
+        """The threads' work for this cycle: re-issue speedj when its call returns; start
+        a planned moveL, then hand the controller the joint command of the coming cycle."""
+        returns = self._speedj_returns_s
+        if returns is not None and boundary_s >= returns - 1e-9:
+            self._issue_speedj(boundary_s)
         planning = self._planning
         if planning is not None and planning.done:
             self._planning = None

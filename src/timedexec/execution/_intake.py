@@ -1,0 +1,238 @@
+"""The controller's intake, found by asking the controller: when a command must leave.
+
+A controller takes its command register once per cycle. Where that intake lies against
+the state packages the host sees depends on when the controller's publisher sends them
+within the cycle, which the host cannot see. The envelope lock (:mod:`._cycle`) assumes a
+package leaves right after the boundary; a host that answers each package at once assumes
+the same. Where a package leaves late in the cycle (the twin's publisher wanders through
+2-97 % of the period; a UR10 weld with the package 7.4 ms into an 8 ms cycle put every
+command 0.03-0.6 ms before the intake), the commands reach the controller right at the
+boundary, one cycle gets two and the next none, and a velocity stream integrates the
+difference: the tracking lag of that weld changed by up to 15 ms on some joints.
+
+The UR's state carries ``target_qd``, the speed the controller is commanding, so the
+controller tells which cycle took a command. :func:`probe_intake`, with the arm at rest,
+sends one tiny ``speedj`` (1e-4 rad/s, signs alternating: the arm moves by microradians) at
+each of ``phases`` send times spread over a cycle after a package and counts the cycles
+until ``target_qd`` shows it. The count steps up by one where the send time crosses the
+intake: that is the deadline of each cycle on the host clock, independent of when the
+packages leave. The lock then aims half a period before it (:class:`IntakeFix`), and a
+clock line keeps it on the host clock as the clocks drift (:class:`~._cycle.BoundaryLine`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from timedexec.drivers import RobotState
+from timedexec.errors import DriverError
+from timedexec.execution._cycle import wait_until
+
+__all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "IntakeFix", "find_intake_step", "probe_intake"]
+
+#: Speed of each probe command, rad/s (every joint; 1e-4 rad/s for a few cycles moves a
+#: joint by microradians, and signs alternate so the arm ends where it started).
+PROBE_SPEED_RAD_S = 1e-4
+#: Send times tried over one cycle: the deadline is known to half of period / phases.
+PROBE_PHASES = 16
+#: Packages to wait for a probe's echo before the trial counts as lost.
+ECHO_PACKAGES = 12
+#: Trials that may disagree with the single step the fit finds (host jitter right at the
+#: deadline can put one trial on the other side).
+MAX_MISMATCHES = 2
+
+
+@dataclass(frozen=True)
+class IntakeFix:
+    """The controller's command deadline on the host clock, from :func:`probe_intake`.
+
+    A command sent before ``controller_time + deadline_offset_s`` (host time; the
+    controller time of any cycle's package) makes that cycle's intake, one sent after makes
+    the next.
+
+    Attributes
+    ----------
+    deadline_offset_s : float
+        Host send deadline minus the cycle's controller time stamp, s (at ``probed_at_s``).
+    period_s : float
+        Controller period, s.
+    probed_at_s : float
+        Host time of the probe, s.
+    resolution_s : float
+        Half the spacing of the send times tried: the deadline's uncertainty, s.
+    package_lead_s : float
+        Where the packages arrive in the intake cycle: the earliest arrival minus the
+        preceding deadline, s, in [0, period) (small: packages arrive just after a deadline,
+        so answering at once straddles it).
+    trials : int
+        Probe commands whose echo was seen.
+    mismatches : int
+        Trials on the other side of the fitted step.
+    """
+
+    deadline_offset_s: float
+    period_s: float
+    probed_at_s: float
+    resolution_s: float
+    package_lead_s: float
+    trials: int
+    mismatches: int
+
+    def send_time_s(self, controller_time_s: float, rate: float = 0.0, lead: int = 0) -> float:
+        """Host time half a period before the deadline that follows the package stamped
+        ``controller_time_s`` by ``lead`` cycles, s (``rate``: host/controller clock drift
+        since the probe, s per s)."""
+        # The clocks drift by rate x elapsed since the probe (elapsed in host time; the
+        # difference between host and controller time of that is second order).
+        offset = self.deadline_offset_s + rate * (
+            controller_time_s + self.deadline_offset_s - self.probed_at_s
+        )
+        return controller_time_s + offset + (lead - 0.5) * self.period_s
+
+    def summary(self) -> dict[str, float | int]:
+        """JSON-safe description (times in ms)."""
+        return {
+            "deadline_offset_ms": self.deadline_offset_s * 1e3,
+            "resolution_ms": self.resolution_s * 1e3,
+            "package_lead_ms": self.package_lead_s * 1e3,
+            "trials": self.trials,
+            "mismatches": self.mismatches,
+        }
+
+
+def find_intake_step(
+    phases_s: Sequence[float], latencies: Sequence[int | None], period_s: float
+) -> tuple[float, int, int]:
+    """The send phase where the echo latency steps up by one cycle.
+
+    ``latencies[m]`` (cycles, None for a lost trial) of a command sent ``phases_s[m]``
+    after a reference (ascending, in [0, period)). Over one period the latency is ``base``
+    before the deadline and ``base + 1`` after it (the step may also lie between the last
+    phase and the period, where every trial shows ``base``).
+
+    Returns
+    -------
+    (phase_s, mismatches, trials) : the deadline's phase (middle of the bracketing pair),
+        the trials off the fitted step, the trials with an echo.
+    """
+    ph = [float(p) for p, lat in zip(phases_s, latencies, strict=True) if lat is not None]
+    lat = [int(v) for v in latencies if v is not None]
+    if not ph:
+        return math.nan, 0, 0
+    best: tuple[int, float] | None = None
+    for base in sorted(set(lat)):
+        for j in range(1, len(ph) + 1):  # the step lies after ph[j - 1] (j == len: wrap)
+            miss = sum(v != base + (i >= j) for i, v in enumerate(lat))
+            edge = ph[j] if j < len(ph) else period_s + ph[0]
+            phase = 0.5 * (ph[j - 1] + edge) % period_s
+            if best is None or miss < best[0]:
+                best = (miss, phase)
+    assert best is not None
+    return best[1], best[0], len(ph)
+
+
+def probe_intake(
+    read: Callable[[], RobotState],
+    send: Callable[[np.ndarray], None],
+    clock: Callable[[], float],
+    period_s: float,
+    reference_offset_s: float,
+    *,
+    phases: int = PROBE_PHASES,
+    speed_rad_s: float = PROBE_SPEED_RAD_S,
+) -> IntakeFix:
+    """Find the controller's command deadline (see the module docstring). The arm must be at
+    rest and the state must carry ``target_qd``.
+
+    Parameters
+    ----------
+    read : callable
+        The next state package (the caller's clock model ingests it).
+    send : callable
+        Sends a joint speed (6,), rad/s, as a ``speedj`` that ramps within one cycle.
+    clock : callable
+        Host time, s.
+    period_s : float
+        Controller period, s.
+    reference_offset_s : float
+        The earliest package arrival minus controller time at the start (the clock model's
+        envelope), s: the send times are ``controller_time + reference_offset_s + phase``.
+
+    Raises
+    ------
+    DriverError
+        The state has no ``target_qd``, the echoes do not show one clean step (the
+        controller filters its target, or the link is too jittery), or the stream stalls.
+    """
+    step = period_s / phases
+    trial_phases = [m * step for m in range(phases)]
+    latencies: list[int | None] = []
+    leads: list[float] = []
+    sign = 1.0
+    try:
+        for phase in trial_phases:
+            lat = None
+            for _attempt in range(3):  # a package later than the send time: try the next
+                ref = read()
+                if ref.target_qd is None:
+                    raise DriverError(
+                        "the controller's state has no target_qd: the intake cannot be probed "
+                        "(the cycle lock aims by the package arrivals instead)"
+                    )
+                leads.append(ref.host_time_s - ref.controller_time_s)
+                target = ref.controller_time_s + reference_offset_s + phase
+                if clock() >= target:
+                    continue
+                wait_until(target, clock)
+                send(np.full(6, sign * speed_rad_s))
+                lat = _echo_latency(read, ref.controller_time_s, sign * speed_rad_s, period_s)
+                break
+            latencies.append(lat)
+            sign = -sign
+    finally:
+        send(np.zeros(6))
+    _settle(read, speed_rad_s)
+    phase, miss, trials = find_intake_step(trial_phases, latencies, period_s)
+    if trials < phases // 2 or miss > MAX_MISMATCHES:
+        seen = ", ".join("-" if v is None else str(v) for v in latencies)
+        raise DriverError(
+            f"intake probe: the echo latencies over {phases} send phases ({seen} cycles) show "
+            f"no single step ({trials} echoes, {miss} off the best step): the controller's "
+            "target_qd does not follow the commands cycle by cycle, or the link jitters by "
+            "more than a period; the cycle lock aims by the package arrivals instead"
+        )
+    deadline = reference_offset_s + phase
+    lead = (min(leads) - deadline) % period_s
+    return IntakeFix(
+        deadline_offset_s=deadline,
+        period_s=period_s,
+        probed_at_s=clock(),
+        resolution_s=0.5 * step,
+        package_lead_s=lead,
+        trials=trials,
+        mismatches=miss,
+    )
+
+
+def _echo_latency(
+    read: Callable[[], RobotState], ref_controller_s: float, speed: float, period_s: float
+) -> int | None:
+    """Cycles from the reference package to the first whose ``target_qd`` shows ``speed``."""
+    for _ in range(ECHO_PACKAGES):
+        state = read()
+        tqd = state.target_qd
+        if tqd is not None and float(np.mean(tqd)) * math.copysign(1.0, speed) > 0.5 * abs(speed):
+            return round((state.controller_time_s - ref_controller_s) / period_s)
+    return None
+
+
+def _settle(read: Callable[[], RobotState], speed: float) -> None:
+    """Read until the target speed is back at zero (the last probe's ramp down)."""
+    for _ in range(ECHO_PACKAGES):
+        tqd = read().target_qd
+        if tqd is None or float(np.max(np.abs(tqd))) < 0.5 * abs(speed):
+            return
