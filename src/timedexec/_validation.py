@@ -56,9 +56,7 @@ def check_joint_array(name: str, value: ArrayLike) -> NDArray[np.float64]:
     """``value`` as a finite float array of shape (6,) (a joint vector)."""
     arr = np.asarray(value, dtype=float)
     if arr.shape != (N_JOINTS,):
-        raise ConfigError(
-            f"{name}: incorrect vector length: expected {N_JOINTS}, got {arr.size}"
-        )
+        raise ConfigError(f"{name}: incorrect vector length: expected {N_JOINTS}, got {arr.size}")
     if not np.all(np.isfinite(arr)):
         raise ConfigError(f"{name}: values must be finite, got {arr.tolist()}")
     return arr
@@ -79,4 +77,3 @@ class DictMixin:
             else:
                 out[f.name] = v
         return out
-

@@ -155,7 +155,11 @@ class Direction(Effect):
     asymmetry: tuple[float, ...] = (0.2, 0.15, 0.2, 0.2, 0.2, 0.2)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "asymmetry", check_joint_tuple(f"effect {self.name!r}", "asymmetry", self.asymmetry))
+        object.__setattr__(
+            self,
+            "asymmetry",
+            check_joint_tuple(f"effect {self.name!r}", "asymmetry", self.asymmetry),
+        )
         self._check_finite()
         if any(abs(a) >= 0.9 for a in self.asymmetry):
             raise ConfigError(f"direction: asymmetry {self.asymmetry} must lie in (-0.9, 0.9)")
@@ -233,7 +237,11 @@ class JointOffset(Effect):
     offsets_s: tuple[float, ...] = (0.0, 0.0015, 0.0008, 0.0004, 0.0012, 0.0002)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "offsets_s", check_joint_tuple(f"effect {self.name!r}", "offsets_s", self.offsets_s))
+        object.__setattr__(
+            self,
+            "offsets_s",
+            check_joint_tuple(f"effect {self.name!r}", "offsets_s", self.offsets_s),
+        )
         self._check_finite()
         if any(not 0.0 <= o <= 0.05 for o in self.offsets_s):
             raise ConfigError(f"joint_offset: offsets_s {self.offsets_s} must lie in [0, 0.05] s")

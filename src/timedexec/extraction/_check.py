@@ -303,16 +303,21 @@ def _deep_problems(reader: RecordingReader, contract: Contract) -> list[str]:
                    f"{still.shape[0]} samples in blocks of {contract.block} make "
                    f"{still.shape[0] // contract.block}")  # fmt: skip
     trial = np.asarray(reader.read("trial"))
-    n_plan = min(len(reader.static(name)) for name in ("plan_q_start_rad", "plan_joint",
-                                                         "plan_direction"))
+    n_plan = min(
+        len(reader.static(name)) for name in ("plan_q_start_rad", "plan_joint", "plan_direction")
+    )
     outside = int(np.sum((trial < 0) | (trial >= n_plan)))
     if outside:
-        out.append(f"field 'trial': {outside} trial(s) index no row of the plan arrays "
-                   f"(plan_q_start_rad, plan_joint, plan_direction hold {n_plan} rows)")
+        out.append(
+            f"field 'trial': {outside} trial(s) index no row of the plan arrays "
+            f"(plan_q_start_rad, plan_joint, plan_direction hold {n_plan} rows)"
+        )
     repeated = int(trial.size - np.unique(trial).size)
     if repeated:
-        out.append(f"field 'trial': {repeated} plan index(es) recorded more than once; each "
-                   "trial is one row")
+        out.append(
+            f"field 'trial': {repeated} plan index(es) recorded more than once; each "
+            "trial is one row"
+        )
     bad_blocks = bad_counters = flat = 0
     for chunk in reader.iter_chunks(1024, names=["gyro_block_host_time_s", "gyro_counter",
                                                  "gyro_raw"]):  # fmt: skip

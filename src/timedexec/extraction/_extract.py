@@ -166,8 +166,10 @@ def _pre_stats(
 ) -> tuple[FloatArray, FloatArray]:
     """Sum (rad/s, sensor axes) and count of each row's kept samples among its first
     ``m_pre`` sample positions (the zero-rate samples before the command)."""
-    c16 = counter if counter.dtype == np.uint16 else (counter.astype(np.int64) % 65536).astype(
-        np.uint16
+    c16 = (
+        counter
+        if counter.dtype == np.uint16
+        else (counter.astype(np.int64) % 65536).astype(np.uint16)
     )
     clean = np.all(np.diff(c16, axis=1) == 1, axis=1)
     pre = np.ones((len(counter), m_pre), dtype=bool)
@@ -316,8 +318,10 @@ def _extract_chunk_inner(
 
     session = chunk["session"] if "session" in chunk else np.zeros(n, np.int64)
     raw = chunk["gyro_raw"]
-    clipped = np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2)) if raw.dtype.kind == "i" else (
-        np.zeros(n, bool)
+    clipped = (
+        np.any((raw >= 32767) | (raw <= -32767), axis=(1, 2))
+        if raw.dtype.kind == "i"
+        else (np.zeros(n, bool))
     )
     rates, have, _ = _grid(raw, chunk["gyro_counter"])  # as stored (counts or a rate unit)
     g = rates.shape[1]
@@ -444,8 +448,12 @@ def _extract_chunk_inner(
         # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
         sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
         act_se = np.sqrt(
-            on["crb"] ** 2 + on["misfit"] ** 2 + on["bias"] ** 2 + on["conflict"] ** 2
-            + (sd_bias / on["slope"]) ** 2 + ACTUATION_SE_FLOOR_S**2
+            on["crb"] ** 2
+            + on["misfit"] ** 2
+            + on["bias"] ** 2
+            + on["conflict"] ** 2
+            + (sd_bias / on["slope"]) ** 2
+            + ACTUATION_SE_FLOOR_S**2
         )
         missing_onset = on["missing"]
         n_cols = {

@@ -304,9 +304,10 @@ def response_increments(
     if smooth_samples > 1:
         y = uniform_filter1d(y, smooth_samples, axis=1, mode="nearest")
     edge = (smooth_samples // 2) * d  # the ends, where the average is padded
-    angle = np.concatenate(
-        [np.zeros((n, 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1
-    ) * d
+    angle = (
+        np.concatenate([np.zeros((n, 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1)
+        * d
+    )
     first = t_g[:, :1]
     ok = np.isfinite(host) & np.isfinite(q_rel)
     # Pair each valid package with the previous valid one.

@@ -25,8 +25,6 @@ def bundled_model_dir(name: str) -> Path:
         If ``name`` is not a shipped model.
     """
     if name not in BUNDLED_MODELS:
-        raise ModelError(
-            f"{name!r} is not a bundled model; bundled: {', '.join(BUNDLED_MODELS)}"
-        )
+        raise ModelError(f"{name!r} is not a bundled model; bundled: {', '.join(BUNDLED_MODELS)}")
     # Works in a wheel and in an editable install (pyproject maps models/ to the package).
     return Path(str(importlib.resources.files("timedexec.models") / name))

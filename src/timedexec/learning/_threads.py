@@ -78,7 +78,6 @@ class BlasPin:
                     if n != 1:
                         lib.set_num_threads(n)
 
-
     def __enter__(self) -> BlasPin:
         """Hold the pin for a block (a control loop): per-call pins inside then only count."""
         self.enter()

@@ -124,7 +124,7 @@ class GyroHeader(DictMixin):
                 f"{', '.join(sorted(known))}"
             )
         units = data.get("units", {})
-        for key, unit in (units.items() if isinstance(units, dict) else []):
+        for key, unit in units.items() if isinstance(units, dict) else []:
             if key in cls.UNITS and unit not in (cls.UNITS[key], "s" if key.endswith("_s") else ""):
                 raise ConfigError(
                     f"{source}: gyro {key} is given in {unit!r}; state it in {cls.UNITS[key]}"
@@ -133,8 +133,8 @@ class GyroHeader(DictMixin):
         try:
             for k in known:
                 if k in data:
-                    kw[k] = int(data[k]) if k in ("full_scale_dps", "block_samples") else float(
-                        data[k]
+                    kw[k] = (
+                        int(data[k]) if k in ("full_scale_dps", "block_samples") else float(data[k])
                     )
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{source}: gyro {k} = {data[k]!r} is not a number") from exc

@@ -341,7 +341,9 @@ def fig_welding(data: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     top.set_aspect("equal", adjustable="datalim")
     top.set_xlabel("on the part, across the belt (mm)")
     top.set_ylabel("on the part, along the belt (mm)")
-    top.set_title(f"{data['robot']}: {data['seam']} seam, belt {speed:g} m/s (top view on the part)")
+    top.set_title(
+        f"{data['robot']}: {data['seam']} seam, belt {speed:g} m/s (top view on the part)"
+    )
     top.legend(fontsize=8)
     settle, cruise = float(data.get("settle_s", np.nan)), float(data.get("cruise_s", np.nan))
     for ax in (ax_across, ax_along):
