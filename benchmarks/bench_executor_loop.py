@@ -38,6 +38,9 @@ the in-process simulator, files of ``timedexec/execution`` only).
 
 ``--warmup S`` runs each executor loop S seconds unmeasured first, so that the cycle lock's
 long-term clock line (``BoundaryLine``: 100 s of arrivals) is in use when it is measured.
+Since the eleventh session the lock aims by the controller's probed intake from connect
+(``TimedExecutor.probe_intake``), which needs no warm-up; each executor row says whether
+the probe answered.
 """
 
 from __future__ import annotations
@@ -211,6 +214,7 @@ def run_executor(
         gcp = ex.gc_pauses
         coasted = ex.coasted - coasted0
         line = ex.clock_line
+        intake = ex.intake.summary() if ex.intake is not None else {"error": ex.intake_error}
     sent = np.isfinite(log["send_s"])
     from scipy.ndimage import minimum_filter1d
 
@@ -233,6 +237,7 @@ def run_executor(
         "commands": int(sent.sum()),
         "coasted": coasted,
         "clock_line": line is not None,
+        "intake": intake,
         "realtime": rt,
         "send_error_ms": {f"p{p}": float(np.percentile(err, p) * 1e3) for p in (50, 99)},
         "work_us": {f"p{p}": float(np.percentile(w, p) * 1e6) for p in (50, 99)},
@@ -532,6 +537,14 @@ def report(out: dict[str, Any]) -> None:
                 gc_note += f"; {r['coasted']} of {r['commands']} commands from the estimate"
             if "clock_line" in r:
                 gc_note += f"; clock line {'in use' if r['clock_line'] else 'not yet'}"
+            intake = r.get("intake") or {}
+            if "deadline_offset_ms" in intake:
+                gc_note += (
+                    f"; intake probed ({intake['trials']} echoes, {intake['mismatches']} off"
+                    f" the step, packages {intake['package_lead_ms']:.2f} ms after a deadline)"
+                )
+            elif intake:
+                gc_note += f"; intake not probed: {intake.get('error')}"
             print(
                 f"{'':17} arrival phase histogram (ms before boundary, 0.2 ms bins): "
                 f"{t.get('phase_histogram')}{gc_note}"

@@ -69,6 +69,95 @@ def test_the_lock_aims_half_a_period_before_a_deadline_and_keeps_it() -> None:
     assert phase.aim_s(10.0, 10.0009, rate=1e-4) == pytest.approx(10.0013, abs=1e-6)
 
 
+class FakeController:
+    """A controller on a virtual host clock for :func:`probe_intake`: packages stamped
+    ``k * period`` arrive ``offset + stamp + publish_s + wire_s``; a command sent before
+    ``offset + stamp + deadline_s`` is taken by that cycle and shows in ``target_qd`` two
+    packages later (a pipeline). ``echo``: "exact", "smoothed" (a first-order filter on
+    the target), "frozen" (always zero) or "none" (no target_qd)."""
+
+    def __init__(self, deadline_s: float, publish_s: float, *, echo: str = "exact") -> None:
+        self.offset, self.deadline_s, self.publish_s, self.wire_s = (
+            100.0,
+            deadline_s,
+            publish_s,
+            5e-5,
+        )
+        self.t = self.offset
+        self.k = 0
+        self.sent: list[tuple[float, np.ndarray]] = []
+        self.echo = echo
+        self.target = np.zeros(6)
+
+    def clock(self) -> float:
+        self.t += 1e-6  # a virtual clock that moves when read (wait_until spins on it)
+        return self.t
+
+    def arrival(self, k: int) -> float:
+        return self.offset + k * PERIOD_S + self.publish_s + self.wire_s
+
+    def read(self) -> Any:
+        from timedexec.drivers import RobotState
+
+        self.k += 1
+        self.t = max(self.t, self.arrival(self.k))
+        taken = [
+            v for s, v in self.sent if s < self.offset + (self.k - 2) * PERIOD_S + self.deadline_s
+        ]
+        newest = taken[-1] if taken else np.zeros(6)
+        if self.echo == "smoothed":
+            self.target = 0.5 * (self.target + newest)
+        elif self.echo == "exact":
+            self.target = newest
+        return RobotState(
+            host_time_s=self.t, controller_time_s=self.k * PERIOD_S, q=np.zeros(6),
+            qd=np.zeros(6), target_qd=None if self.echo == "none" else self.target.copy(),
+        )  # fmt: skip
+
+    def send(self, v: np.ndarray) -> None:
+        self.sent.append((self.t, np.asarray(v, float).copy()))
+
+
+@pytest.mark.parametrize(
+    ("deadline_s", "echo"), [(0.0003, "exact"), (0.0011, "exact"), (0.0019, "smoothed")]
+)
+def test_probe_finds_the_deadline_wherever_the_packages_arrive(
+    deadline_s: float, echo: str
+) -> None:
+    """On a virtual controller whose package leaves 1.2 ms into its 2 ms cycle, the probe
+    finds the command deadline to within its resolution (period / 32) wherever in the
+    cycle it lies, also where the target is smoothed (a constant extra delay of the echo
+    moves no step); the packages' lead says where they arrive after it."""
+    from timedexec.execution import probe_intake
+
+    ctl = FakeController(deadline_s, 0.0012, echo=echo)
+    ctl.read()
+    ref = ctl.arrival(1) - PERIOD_S  # earliest arrival minus controller time
+    fix = probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ref)
+    assert fix.mismatches == 0
+    assert fix.trials >= 14  # the first phase can fall before the package: lost
+    # Deadlines repeat every period: compare modulo one (the spins move the clock by µs).
+    off = (fix.deadline_offset_s - (ctl.offset + deadline_s) + PERIOD_S / 2) % PERIOD_S
+    assert abs(off - PERIOD_S / 2) <= fix.resolution_s + 2e-6
+    assert fix.package_lead_s == pytest.approx((0.0012 + 5e-5 - deadline_s) % PERIOD_S, abs=1e-4)
+    assert np.all(ctl.sent[-1][1] == 0)  # ends on a zero speed
+    assert max(float(np.max(np.abs(v))) for _, v in ctl.sent) <= 1e-4  # tiny probes
+
+
+@pytest.mark.parametrize(
+    ("echo", "message"), [("frozen", "no single step"), ("none", "no target_qd")]
+)
+def test_probe_refuses_a_controller_whose_target_does_not_answer(echo: str, message: str) -> None:
+    """No echo (a target that never shows the probes, or none reported): a DriverError
+    saying so, not a guessed deadline."""
+    from timedexec.errors import DriverError
+    from timedexec.execution import probe_intake
+
+    ctl = FakeController(0.0011, 0.0012, echo=echo)
+    with pytest.raises(DriverError, match=message):
+        probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ctl.arrival(1) - PERIOD_S)
+
+
 # ------------------------------------------------------------------ against the peer
 MODEL = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuation_std_s=6e-4)
 #: The peer's package leaves 1.2 ms into its 2 ms cycle: a command answering it at once or

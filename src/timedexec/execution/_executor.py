@@ -316,8 +316,10 @@ class TimedExecutor:
             raise
         if self.send_phase is not None and self._state.last is not None:
             if self._state.last.target_qd is not None:
-                with contextlib.suppress(DriverError):  # the reason: intake_error
+                try:
                     self.probe_intake()
+                except DriverError as exc:  # the lock aims by the package arrivals
+                    self.intake_error = str(exc)
             else:
                 self.intake_error = "the driver's state has no target_qd"
 
@@ -331,12 +333,15 @@ class TimedExecutor:
         Raises
         ------
         DriverError
-            Not at rest, no ``cycle_lock``, or no clean answer (``intake_error`` says why;
-            the lock then aims by the package arrivals).
+            Not at rest, no ``cycle_lock``, or no clean answer (the lock keeps what it had;
+            at connect the message goes to ``intake_error`` and the lock aims by the
+            package arrivals).
         """
         if self.send_phase is None:
             raise DriverError("probe_intake needs cycle_lock=True and a real-time driver")
-        if self._plan is not None or np.any(self._v_prev != 0):
+        last = self._state.last
+        moving = last is not None and float(np.max(np.abs(last.qd))) > REST_SPEED_RAD_S
+        if self._plan is not None or np.any(self._v_prev != 0) or moving:
             raise DriverError("probe_intake needs the arm at rest with no plan running")
         amax = self.limits.acceleration(self.spec)
 
@@ -351,11 +356,7 @@ class TimedExecutor:
             )
             self.watchdog.fed(self.now())
 
-        try:
-            fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s)
-        except DriverError as exc:
-            self.intake_error = str(exc)
-            raise
+        fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s)
         self.send_phase.intake = fix
         self.intake_error = None
         return fix
