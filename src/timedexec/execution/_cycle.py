@@ -201,11 +201,24 @@ class SendPhase:
         self.offset_s = (fraction * period_s - round_trip_s) % period_s
         self.intake: IntakeFix | None = None
         self._lead: int | None = None
+        self._work_peak_s = 0.0
 
     def target_s(self, earliest_arrival_s: float) -> float:
         """Host send time of the command answering the package whose earliest possible
         arrival is ``earliest_arrival_s``, s (by the arrivals alone)."""
         return earliest_arrival_s + self.offset_s
+
+    def note_work(self, work_s: float) -> None:
+        """The time a command took to compute, s: a decaying peak of it (halves in ~140
+        cycles) is how early a coasting loop gives up waiting for the package."""
+        self._work_peak_s = max(float(work_s), 0.995 * self._work_peak_s)
+
+    @property
+    def coast_lead_s(self) -> float:
+        """How long before the send time a coasting loop stops waiting for the package and
+        computes the command from the estimate, s: the recent peak work (a quarter period
+        at most), so the command is ready when it is due rather than late by its work."""
+        return min(self._work_peak_s, 0.25 * self.period_s)
 
     def aim_s(
         self, controller_time_s: float, earliest_arrival_s: float, rate: float = 0.0

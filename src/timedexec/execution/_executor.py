@@ -586,7 +586,8 @@ class TimedExecutor:
         coast_at = None
         if streaming and self.coast and math.isfinite(st.controller_ref_s) and self._served >= 0:
             if self.send_phase is not None:
-                coast_at = self._send_target_s(self._served + 1)
+                lead = self.send_phase.coast_lead_s  # the command is ready when due
+                coast_at = self._send_target_s(self._served + 1) - lead
             else:
                 coast_at = (
                     st.earliest_arrival_s(self._served + 1, self._period) + 0.5 * self._period
@@ -668,6 +669,7 @@ class TimedExecutor:
         a = ramp_acceleration(v, self._v_prev, amax, self._period)
         work = time.perf_counter() - t_work
         if self.send_phase is not None:
+            self.send_phase.note_work(work)
             # The send time logged is when it leaves: after the target, or now if the work
             # overran it (the command's content stays computed for the target).
             clock = self.now()
