@@ -142,11 +142,11 @@ class TimedExecutor:
         ``round_trip_s`` (:mod:`timedexec.execution._cycle`). Real-time drivers only
         (ignored in virtual time). Opt-in (like
         ``coast``): measured against the independent UR peer and the UR10e twin through
-        ur_rtde, not yet on a real controller or on RSI. Against the twin, with ``coast``,
-        ``realtime_priority=5`` and the long-term clock line formed, it missed 0.08-0.35 %
-        of the cycles where ur_rtde's own ``initPeriod``/``waitPeriod`` pattern missed
-        3.6-12.7 %, sent within 0.20-0.38 ms at p99 and landed its commands mid-window
-        (docs/execution.md): the recommended setting for a UR.
+        ur_rtde, not yet on a real controller or on RSI. With the probe, ``coast`` and
+        ``realtime_priority=5`` it missed 0.03-0.19 % of the cycles from connect where
+        ur_rtde's own ``initPeriod``/``waitPeriod`` pattern missed 1.8-6.1 %, sent within
+        0.02-0.15 ms at p99 and landed its commands mid-window (docs/execution.md): the
+        recommended setting for a UR.
     round_trip_s : float
         Shortest boundary-to-package-arrival-to-command-arrival time, s (default
         0.4 ms, the loopback twin's); used by ``cycle_lock``.
