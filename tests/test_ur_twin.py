@@ -8,12 +8,13 @@ wide enough for a loaded two-core CI machine and are justified next to each asse
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -338,6 +339,18 @@ def raw_twin(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyp
         yield twin
 
 
+@contextlib.contextmanager
+def playing(outputs: list[str], host: str = RAW_HOST) -> Iterator[RawRTDE]:
+    """A raw RTDE peer (125 Hz, the command inputs) with the test program playing."""
+    peer = RawRTDE(host, outputs, frequency_hz=125.0, inputs=COMMAND_INPUTS)
+    try:
+        upload(host, PROGRAM)
+        peer.wait_for("runtime_state", 2)
+        yield peer
+    finally:
+        peer.close()
+
+
 def test_twin_lifecycle_verbs(raw_twin: URTwin) -> None:
     """URTwin is driven like every twin; drop() closes the open connections and the twin
     keeps serving new ones; a negative stall is refused with a message."""
@@ -406,21 +419,13 @@ def test_truth_records_are_appended_and_read_back(raw_twin: URTwin) -> None:
     it arrived; the ground truth goes to a JSON-lines file (meta line first, one line per
     new or changed record, flushed) and ``read_truth`` keeps the latest record per
     command id."""
-    peer = RawRTDE(
-        RAW_HOST, ["timestamp", "runtime_state", "actual_qd"], frequency_hz=125.0,
-        inputs=COMMAND_INPUTS,
-    )  # fmt: skip
-    try:
-        upload(RAW_HOST, PROGRAM)
-        peer.wait_for("runtime_state", 2)
+    with playing(["timestamp", "runtime_state", "actual_qd"]) as peer:
         t_cmd = raw_twin.controller_time_s()
         peer.write(**command(SPEEDJ, 0.3, 0, 0, 0, 0, 0, 2.0, 0.0))
         rec = command_record(raw_twin.truth_path, "SpeedJ", t_cmd)
         # 0.1 s after the onset the joint runs at about 0.23 rad/s (2 rad/s² ramp).
         moving = [s["actual_qd"][0] for s in peer.states_until(rec["onset_s"][0] + 0.1)]
         peer.write(**command(SPEED_STOP, 5.0))
-    finally:
-        peer.close()
     meta, commands = read_truth(raw_twin.truth_path)
     assert meta["robot"] == "ur10"
     assert meta["period_s"] == pytest.approx(0.008)
@@ -443,13 +448,7 @@ def test_speedj_time_does_not_expire_and_the_watchdog_stops_it(raw_twin: URTwin)
     on the command register, action "stop") stops the program once the register is not
     written for 1/f: runtime_state leaves PLAYING and the arm comes to rest. The stop is
     in the ground truth as a ``program_stop`` line."""
-    peer = RawRTDE(
-        RAW_HOST, ["timestamp", "runtime_state", "actual_qd"], frequency_hz=125.0,
-        inputs=COMMAND_INPUTS,
-    )  # fmt: skip
-    try:
-        upload(RAW_HOST, PROGRAM)
-        peer.wait_for("runtime_state", 2)
+    with playing(["timestamp", "runtime_state", "actual_qd"]) as peer:
         t_cmd = raw_twin.controller_time_s()
         peer.write(**command(SPEEDJ, 0.3, 0, 0, 0, 0, 0, 3.0, 0.05))  # t = 50 ms
         # 0.5 s later (controller time) the joint still runs at the commanded speed.
@@ -458,8 +457,6 @@ def test_speedj_time_does_not_expire_and_the_watchdog_stops_it(raw_twin: URTwin)
         peer.write(**command(SET_WATCHDOG, 20.0))  # 20 Hz: 50 ms of silence allowed
         stopped = peer.wait_for("runtime_state", 1, timeout_s=2.0)
         rest = peer.states_until(stopped["timestamp"] + 0.3)[-1]
-    finally:
-        peer.close()
     assert all(v == 0.0 for v in rest["actual_qd"])  # 0.3 rad/s at 4 rad/s²: 75 ms ramp
     stops = [
         r
@@ -478,13 +475,7 @@ def test_speedj_time_paces_when_the_next_target_is_taken(raw_twin: URTwin) -> No
     does it take the newest target (URScript's speedj; the ur_rtde 1.6.5 script's speed
     thread). A second target written 40 ms into a t = 200 ms call acts 200 ms after the
     first, not at once; with t = one period each target acts at the next boundary."""
-    peer = RawRTDE(
-        RAW_HOST, ["timestamp", "runtime_state", "target_qd"], frequency_hz=125.0,
-        inputs=COMMAND_INPUTS,
-    )  # fmt: skip
-    try:
-        upload(RAW_HOST, PROGRAM)
-        peer.wait_for("runtime_state", 2)
+    with playing(["timestamp", "runtime_state", "target_qd"]) as peer:
         peer.write(**command(SPEEDJ, 0.2, 0, 0, 0, 0, 0, 10.0, 0.2))
         first = peer.wait_until(lambda st: st["target_qd"][0] > 0.19)["timestamp"]
         time.sleep(0.04)
@@ -494,8 +485,6 @@ def test_speedj_time_paces_when_the_next_target_is_taken(raw_twin: URTwin) -> No
         peer.write(**command(SPEEDJ, 0.05, 0, 0, 0, 0, 0, 10.0, 0.008))
         t_write = raw_twin.controller_time_s()
         slower = peer.wait_until(lambda st: st["target_qd"][0] < 0.06, timeout_s=1.0)
-    finally:
-        peer.close()
     # 10 rad/s² ramps 0.1 rad/s in 10 ms (2 cycles): the first target was reached one or
     # two cycles after the call began, which returns 0.2 s after it began.
     assert 0.2 - 0.016 - 1e-9 <= slow["timestamp"] - first <= 0.2 + 0.016 + 1e-9
