@@ -227,10 +227,11 @@ class SendPhase:
         whose earliest possible arrival is ``earliest_arrival_s``, s.
 
         With an ``intake`` fix: ``fraction`` of a period into the intake window (the period
-        before a deadline), at the first deadline whose aim is not before that arrival (``rate``: the clock line's drift, s per s). The
-        deadline chosen stays the same one cycle after cycle while its aim lies within
-        [arrival - period/4, arrival + period): as the packages' phase wanders past it,
-        one cycle gets no command or two, once, instead of every cycle by chance.
+        before a deadline), at the first deadline whose aim is not before that arrival
+        (``rate``: the clock line's drift, s per s). The deadline chosen stays the same
+        one cycle after cycle while its aim lies within [arrival - period/4, arrival +
+        period): as the packages' phase wanders past it, one cycle gets no command or two,
+        once, instead of every cycle by chance.
         """
         fix = self.intake
         if fix is None:
