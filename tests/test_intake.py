@@ -5,8 +5,9 @@ puts every command at the intake boundary."""
 
 from __future__ import annotations
 
-import math
 import tempfile
+import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -166,9 +167,21 @@ MODEL = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuati
 PUBLISH_DELAY_S = 0.0012
 
 
-def run_on_late_publisher(host: str, *, probed: bool) -> tuple[TimedExecutor, np.ndarray, Any]:
-    """One 1.2 s motion through ur_rtde against the peer with a late publisher; returns the
-    executor, each command's intake minus arrival (peer s) and the peer's truth."""
+@dataclass
+class LateRun:
+    """One motion through ur_rtde against the peer with a late publisher."""
+
+    ex: TimedExecutor
+    plan: Any  # the scheduled plan that ran
+    waits_s: np.ndarray  # each command's intake minus arrival, s
+    truth: Any  # the peer's truth (peer time)
+    span: tuple[float, float]  # the motion, peer time
+    peer_t0_s: float  # host time of the peer's time 0
+
+
+def run_on_late_publisher(host: str, *, probed: bool) -> LateRun:
+    """A 0.4 s motion of all joints through ur_rtde against the peer whose package leaves
+    :data:`PUBLISH_DELAY_S` into its cycle; ``probed=False`` aims by the arrivals."""
     pytest.importorskip("rtde_control")
     peer_mod = pytest.importorskip("independent_ur_peer")
     from timedexec.drivers import URDriver
@@ -183,26 +196,24 @@ def run_on_late_publisher(host: str, *, probed: bool) -> tuple[TimedExecutor, np
             q0 = ex.estimate().q_rad
             plan = ex.plan(q0 + np.array([0.3, -0.2, 0.2, 0.3, 0.3, 0.3]))
             start = ex.now() + ex.lead_time_s(plan) + 0.05
-            ex.scheduled = ex.execute(plan, start_time_s=start).plan  # type: ignore[attr-defined]
-            span = (peer.to_peer_time(start), peer.to_peer_time(ex.now()))
+            ran = ex.execute(plan, start_time_s=start).plan
+            now = time.monotonic()
+            t0 = now - peer.to_peer_time(now)
+            span = (start - t0, ex.now() - t0)
         truth = peer.wait_truth_until(span[1])
-        segments = peer._clock_segments()
     rows = np.loadtxt(log, delimiter=",", ndmin=2)
     during = (rows[:, 0] > span[0]) & (rows[:, 0] < span[1])
-    ex.peer_t0_s = segments[0][1]  # type: ignore[attr-defined]
-    ex.truth_span = span  # type: ignore[attr-defined]
-    return ex, rows[during, 1] - rows[during, 0], truth
+    return LateRun(ex, ran, rows[during, 1] - rows[during, 0], truth, span, t0)
 
 
-def residual_after_lag_rad(ex: TimedExecutor, truth: Any) -> float:
+def residual_after_lag_rad(run: LateRun) -> float:
     """Largest RMS over joints of the peer's arm against the plan once each joint's lag is
     fitted out, rad: what the arm did that no delay explains."""
     from timedexec.execution import fit_joint_lags
 
-    plan = ex.scheduled  # type: ignore[attr-defined]
-    lo, hi = ex.truth_span  # type: ignore[attr-defined]
-    keep = (truth.t > lo) & (truth.t < hi + 0.05)
-    host_t = truth.t[keep] + ex.peer_t0_s  # type: ignore[attr-defined]
+    truth, plan = run.truth, run.plan
+    keep = (truth.t > run.span[0]) & (truth.t < run.span[1] + 0.05)
+    host_t = truth.t[keep] + run.peer_t0_s
     q = truth.q[keep]
     lag = fit_joint_lags(plan, host_t, q)
     err = [
@@ -232,20 +243,20 @@ def test_probed_lock_lands_mid_cycle_where_the_arrival_lock_straddles_the_intake
       ``t`` and the executor sends ``t`` = one period, so the arm follows the plan up to
       a lag per joint (with the 84 ms hold sent before, the speed changed every 42
       cycles: a staircase)."""
-    ex, waits, truth = run_on_late_publisher("127.0.0.193", probed=True)
-    intake = ex.intake
-    assert intake is not None, ex.intake_error
+    run = run_on_late_publisher("127.0.0.193", probed=True)
+    intake = run.ex.intake
+    assert intake is not None, run.ex.intake_error
     assert intake.mismatches <= 2
     assert intake.trials >= 14
-    before_boundary = (ex.peer_t0_s - intake.deadline_offset_s) % PERIOD_S  # type: ignore[attr-defined]
+    before_boundary = (run.peer_t0_s - intake.deadline_offset_s) % PERIOD_S
     assert 0.0 <= before_boundary <= 4e-4, before_boundary
+    waits = run.waits_s
     assert len(waits) > 150  # a 0.42 s motion: 210 commands
     assert 7e-4 <= float(np.median(waits)) <= 1.3e-3, np.median(waits)
     assert near_boundary(waits) < 2.0
     # What no lag explains: 0.001-0.45 mrad over 7 runs (a cycle with no command or two
     # holds a speed a period too long); with the 84 ms hold sent before, 8.7 mrad.
-    assert residual_after_lag_rad(ex, truth) < 2e-3
+    assert residual_after_lag_rad(run) < 2e-3
 
-    _, waits_arrival, _ = run_on_late_publisher("127.0.0.194", probed=False)
-    assert near_boundary(waits_arrival) > 50.0, near_boundary(waits_arrival)
-    assert math.isfinite(float(np.median(waits_arrival)))
+    arrival = run_on_late_publisher("127.0.0.194", probed=False)
+    assert near_boundary(arrival.waits_s) > 50.0, near_boundary(arrival.waits_s)
