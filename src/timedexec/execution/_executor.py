@@ -325,7 +325,7 @@ class TimedExecutor:
 
     def probe_intake(self) -> IntakeFix:
         """Find the controller's command deadline by probing it (arm at rest; ~16 tiny
-        ``speedj`` commands, 0.1-0.5 s; :mod:`timedexec.execution._intake`) and aim the cycle
+        ``speedj`` commands, 0.2-0.7 s; :mod:`timedexec.execution._intake`) and aim the cycle
         lock by it from now on. Done at connect with ``cycle_lock`` where the state carries
         ``target_qd`` (UR); call it again after a long idle time if the host clock drifts
         against the controller's before the clock line forms (:attr:`clock_line`).
