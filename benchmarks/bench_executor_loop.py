@@ -69,6 +69,7 @@ from timedexec.execution import (
     FixedDelays,
     StalenessLimits,
     TimedExecutor,
+    intake_echo,
 )
 from timedexec.twins import URTwin, read_truth
 
@@ -238,6 +239,7 @@ def run_executor(
         "coasted": coasted,
         "clock_line": line is not None,
         "intake": intake,
+        "echo": intake_echo(log),
         "realtime": rt,
         "send_error_ms": {f"p{p}": float(np.percentile(err, p) * 1e3) for p in (50, 99)},
         "work_us": {f"p{p}": float(np.percentile(w, p) * 1e6) for p in (50, 99)},
@@ -537,6 +539,13 @@ def report(out: dict[str, Any]) -> None:
                 gc_note += f"; {r['coasted']} of {r['commands']} commands from the estimate"
             if "clock_line" in r:
                 gc_note += f"; clock line {'in use' if r['clock_line'] else 'not yet'}"
+            echo = r.get("echo") or {}
+            if echo.get("matched"):
+                gc_note += (
+                    f"; target_qd echo: {100 * echo['missed_fraction']:.2f} % of {echo['matched']}"
+                    f" cycles ({100 * echo['coverage']:.0f} % of the packages) took no new"
+                    f" command, {echo['overwritten']} overwritten"
+                )
             intake = r.get("intake") or {}
             if "deadline_offset_ms" in intake:
                 gc_note += (

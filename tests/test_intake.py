@@ -70,6 +70,29 @@ def test_the_lock_aims_half_a_period_before_a_deadline_and_keeps_it() -> None:
     assert phase.aim_s(10.0, 10.0009, rate=1e-4) == pytest.approx(10.0013, abs=1e-6)
 
 
+def test_the_echo_counts_cycles_that_took_no_command_or_two() -> None:
+    """Commands 0..9 (distinct speeds), one per cycle; the packages show command k at
+    cycle k + 2, except that cycle 5 shows command 2 again (no new command taken) and
+    command 6 never shows (overwritten by 7 within one cycle)."""
+    from timedexec.drivers import RobotState
+    from timedexec.execution import CycleLog, intake_echo
+
+    log = CycleLog()
+    shown = [None, None, 0, 1, 2, 2, 3, 4, 5, 7, 8]
+    for cycle, k in enumerate(shown):
+        target = np.full(6, np.nan) if k is None else np.full(6, 0.01 * (k + 1))
+        state = RobotState(
+            host_time_s=cycle * PERIOD_S + 1e-4, controller_time_s=cycle * PERIOD_S,
+            q=np.zeros(6), qd=np.zeros(6), sequence=cycle, target_qd=target,
+        )  # fmt: skip
+        log.add(state, cycle * PERIOD_S + 2e-4, np.full(6, 0.01 * (cycle + 1)), False)
+    echo = intake_echo(log.arrays())
+    assert echo["repeats"] == 1
+    assert echo["overwritten"] == 1
+    assert echo["matched"] == 8  # pairs among the 9 packages with a target
+    assert echo["missed_fraction"] == pytest.approx(1 / 8)
+
+
 class FakeController:
     """A controller on a virtual host clock for :func:`probe_intake`: packages stamped
     ``k * period`` arrive ``offset + stamp + publish_s + wire_s``; a command sent before

@@ -24,7 +24,7 @@ from timedexec.execution._conveyor import (
 from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, BoundaryLine, SendPhase, wait_until
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._intake import IntakeFix, find_intake_step, probe_intake
-from timedexec.execution._log import CycleLog, ExecutionResult
+from timedexec.execution._log import CycleLog, ExecutionResult, intake_echo
 from timedexec.execution._model import (
     BUNDLED_MODELS,
     DelayPredictions,
@@ -108,6 +108,7 @@ __all__ = [
     "delay_quantile",
     "find_intake_step",
     "fit_joint_lags",
+    "intake_echo",
     "intercept",
     "load_delay_model",
     "measure_tracking_delays",

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from timedexec.drivers import RobotState
 from timedexec.execution._plan import JointPlan
 
-__all__ = ["CycleLog", "ExecutionResult"]
+__all__ = ["CycleLog", "ExecutionResult", "intake_echo"]
 
 FloatArray = NDArray[np.float64]
 
@@ -31,7 +31,9 @@ class CycleLog:
     command left; NaN when none was sent), ``qd_cmd`` (n, 6), ``q`` (n, 6) reported,
     ``clipped`` (a limit clipped the command), ``coasted`` (the cycle's package was late: the
     command went out from the estimate, the row repeats the previous package), ``target_s``
-    (the cycle-locked send time aimed at; NaN without the lock or without a command).
+    (the cycle-locked send time aimed at; NaN without the lock or without a command),
+    ``target_qd`` (n, 6): the controller's target speed in the package (NaN where the
+    protocol has none; :func:`intake_echo`).
     :meth:`work` gives the loop's own work per row (s; NaN where not measured).
 
     Rows are written into preallocated arrays (capacity doubling from ``capacity``), so a
@@ -54,6 +56,7 @@ class CycleLog:
             "coasted": np.empty(cap, bool),
             "qd_cmd": np.empty((cap, 6)),
             "q": np.empty((cap, 6)),
+            "target_qd": np.empty((cap, 6)),
             "work_s": np.empty(cap),
         }
         if old is not None:
@@ -95,6 +98,11 @@ class CycleLog:
         else:
             c["qd_cmd"][i] = qd_cmd
         c["q"][i] = state.q
+        tqd = state.target_qd
+        if tqd is None:
+            c["target_qd"][i] = math.nan
+        else:
+            c["target_qd"][i] = tqd
         c["work_s"][i] = work_s
         self._n = i + 1
 
@@ -207,3 +215,50 @@ class ExecutionResult:
         """Controller cycles without a handled package during the execution."""
         seq = self.log["sequence"]
         return int(np.sum(np.maximum(np.diff(seq) - 1, 0))) if len(seq) > 1 else 0
+
+
+def intake_echo(log: dict[str, NDArray[Any]], *, depth: int = 16) -> dict[str, float]:
+    """Which command each controller cycle took, read back from the packages' ``target_qd``
+    (a UR reports the speed it commands; the speedj ramp the executor sends reaches each
+    command within a cycle): the controller-side view of missed cycles, without its truth.
+
+    Each package's target is matched to the one command among the last ``depth`` sent
+    before it with exactly that value (packages whose target matches none, or several
+    equal commands, are left out). Between two consecutive matched packages the command
+    index should step by one: a step of 0 is a cycle that took no new command (``repeats``),
+    a step of k > 1 means k - 1 commands were overwritten before a cycle took them
+    (``overwritten``).
+
+    Returns
+    -------
+    dict
+        ``packages``, ``matched`` (consecutive matched pairs), ``coverage`` (matched pairs
+        / package pairs: low where targets do not equal commands, e.g. after a missed
+        cycle the next ramp does not finish within one), ``repeats``, ``overwritten``,
+        ``missed_fraction`` (repeats / matched pairs; NaN without pairs).
+    """
+    sent = np.isfinite(log["send_s"])
+    send_s, cmds = log["send_s"][sent], log["qd_cmd"][sent]
+    keep = ~log["coasted"] & np.all(np.isfinite(log["target_qd"]), axis=1)
+    seq, arrival, target = log["sequence"][keep], log["arrival_s"][keep], log["target_qd"][keep]
+    _, first = np.unique(seq, return_index=True)  # a package logged twice counts once
+    index = np.full(len(first), -1)
+    for n, k in enumerate(np.sort(first)):
+        hi = int(np.searchsorted(send_s, arrival[k]))
+        lo = max(0, hi - depth)
+        scale = np.maximum(1.0, np.abs(target[k]))
+        same = np.flatnonzero(np.all(np.abs(cmds[lo:hi] - target[k]) <= 1e-9 * scale, axis=1))
+        if len(same) == 1:
+            index[n] = lo + int(same[0])
+    pairs = (index[1:] >= 0) & (index[:-1] >= 0)
+    step = (index[1:] - index[:-1])[pairs]
+    repeats, over = int(np.sum(step == 0)), int(np.sum(np.maximum(step - 1, 0)))
+    n_pairs = int(pairs.sum())
+    return {
+        "packages": len(first),
+        "matched": n_pairs,
+        "coverage": n_pairs / (len(first) - 1) if len(first) > 1 else math.nan,
+        "repeats": repeats,
+        "overwritten": over,
+        "missed_fraction": repeats / n_pairs if n_pairs else math.nan,
+    }
