@@ -14,7 +14,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from timedexec.execution import FixedDelays, IntakeFix, SendPhase, TimedExecutor, find_intake_step
+from timedexec.execution import (
+    FixedDelays,
+    IntakeFix,
+    SendPhase,
+    TimedExecutor,
+    find_intake_step,
+    intake_echo,
+)
 
 PERIOD_S = 0.002
 PHASES = [m * PERIOD_S / 16 for m in range(16)]
@@ -75,7 +82,7 @@ def test_the_echo_counts_cycles_that_took_no_command_or_two() -> None:
     cycle k + 2, except that cycle 5 shows command 2 again (no new command taken) and
     command 6 never shows (overwritten by 7 within one cycle)."""
     from timedexec.drivers import RobotState
-    from timedexec.execution import CycleLog, intake_echo
+    from timedexec.execution import CycleLog
 
     log = CycleLog()
     shown = [None, None, 0, 1, 2, 2, 3, 4, 5, 7, 8]
@@ -281,6 +288,12 @@ def test_probed_lock_lands_mid_cycle_where_the_arrival_lock_straddles_the_intake
     # What no lag explains: 0.001-0.45 mrad over 7 runs (a cycle with no command or two
     # holds a speed a period too long); with the 84 ms hold sent before, 8.7 mrad.
     assert residual_after_lag_rad(run) < 2e-3
+    # The executor's own view, from the peer's target_qd (intake_echo): no cycle without a
+    # new command in 2 runs (0 of 195 pairs); 2 % leaves ~4 for a loaded machine. 80 % of
+    # the packages match a single command (the rest: equal zero commands at rest).
+    echo = intake_echo(run.ex.log.arrays())
+    assert echo["coverage"] > 0.5, echo
+    assert echo["missed_fraction"] <= 0.02, echo
 
     arrival = run_on_late_publisher("127.0.0.194", probed=False)
     assert near_boundary(arrival.waits_s) > 50.0, near_boundary(arrival.waits_s)
