@@ -21,9 +21,15 @@ from timedexec.execution._conveyor import (
     default_cell,
     plan_seam,
 )
-from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, BoundaryLine, SendPhase, wait_until
+from timedexec.execution._cycle import (
+    DEFAULT_ROUND_TRIP_S,
+    BoundaryLine,
+    IntakeFix,
+    SendPhase,
+    wait_until,
+)
 from timedexec.execution._executor import TimedExecutor
-from timedexec.execution._intake import IntakeFix, find_intake_step, probe_intake
+from timedexec.execution._intake import find_intake_step, probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult, intake_echo
 from timedexec.execution._model import (
     BUNDLED_MODELS,

@@ -17,6 +17,10 @@ shortest publish + wire time up, wire time down; ``round_trip_s``, default
 :data:`DEFAULT_ROUND_TRIP_S` as measured on the loopback twin). The command's content is
 computed for the instant it leaves. :func:`wait_until` sleeps to just before the target and
 spins the rest (``time.sleep`` alone overshoots by 50-100 µs).
+
+Where the controller has told where its intake is (:class:`IntakeFix`, found by
+:func:`~timedexec.execution._intake.probe_intake`), :meth:`SendPhase.aim_s` aims by that
+deadline instead of by the arrivals.
 """
 
 from __future__ import annotations
@@ -25,12 +29,9 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 from timedexec.errors import ConfigError
-
-if TYPE_CHECKING:
-    from timedexec.execution._intake import IntakeFix
 
 __all__ = [
     "DEFAULT_ROUND_TRIP_S",
@@ -38,6 +39,7 @@ __all__ = [
     "LINE_WINDOW_S",
     "SPIN_S",
     "BoundaryLine",
+    "IntakeFix",
     "SendPhase",
     "wait_until",
 ]
@@ -160,6 +162,64 @@ class BoundaryLine:
         (ta, oa), (tb, ob) = hull[k - 1], hull[k]  # the edge spanning the mean time
         rate = (ob - oa) / (tb - ta)
         self.line = (ta, oa, rate) if abs(rate) <= LINE_MAX_RATE else None
+
+
+@dataclass(frozen=True)
+class IntakeFix:
+    """The controller's command deadline on the host clock, from :func:`probe_intake`.
+
+    A command sent before ``controller_time + deadline_offset_s`` (host time; the
+    controller time of any cycle's package) makes that cycle's intake, one sent after makes
+    the next.
+
+    Attributes
+    ----------
+    deadline_offset_s : float
+        Host send deadline minus the cycle's controller time stamp, s (at ``probed_at_s``).
+    period_s : float
+        Controller period, s.
+    probed_at_s : float
+        Host time of the probe, s.
+    resolution_s : float
+        Half the spacing of the send times tried: the deadline's uncertainty, s.
+    package_lead_s : float
+        Where the packages arrive in the intake cycle: the earliest arrival minus the
+        preceding deadline, s, in [0, period) (small: packages arrive just after a deadline,
+        so answering at once straddles it).
+    trials : int
+        Probe commands whose echo was seen.
+    mismatches : int
+        Trials on the other side of the fitted step.
+    """
+
+    deadline_offset_s: float
+    period_s: float
+    probed_at_s: float
+    resolution_s: float
+    package_lead_s: float
+    trials: int
+    mismatches: int
+
+    def send_time_s(self, controller_time_s: float, rate: float = 0.0, lead: int = 0) -> float:
+        """Host time half a period before the deadline that follows the package stamped
+        ``controller_time_s`` by ``lead`` cycles, s (``rate``: host/controller clock drift
+        since the probe, s per s)."""
+        # The clocks drift by rate x elapsed since the probe (elapsed in host time; the
+        # difference between host and controller time of that is second order).
+        offset = self.deadline_offset_s + rate * (
+            controller_time_s + self.deadline_offset_s - self.probed_at_s
+        )
+        return controller_time_s + offset + (lead - 0.5) * self.period_s
+
+    def summary(self) -> dict[str, float | int]:
+        """JSON-safe description (times in ms)."""
+        return {
+            "deadline_offset_ms": self.deadline_offset_s * 1e3,
+            "resolution_ms": self.resolution_s * 1e3,
+            "package_lead_ms": self.package_lead_s * 1e3,
+            "trials": self.trials,
+            "mismatches": self.mismatches,
+        }
 
 
 class SendPhase:

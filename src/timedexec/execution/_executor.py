@@ -39,8 +39,8 @@ from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
 from timedexec.execution._command import SmithPredictor, limit_command, ramp_acceleration
-from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, SendPhase, wait_until
-from timedexec.execution._intake import IntakeFix, probe_intake
+from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, IntakeFix, SendPhase, wait_until
+from timedexec.execution._intake import probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult
 from timedexec.execution._model import (
     DelayPredictions,

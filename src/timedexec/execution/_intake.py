@@ -14,7 +14,8 @@ The UR's state carries ``target_qd``, the speed the controller is commanding, so
 controller tells which cycle took a command. :func:`probe_intake`, with the arm at rest,
 sends one tiny ``speedj`` (1e-4 rad/s, signs alternating: the arm moves by microradians) at
 each of ``phases`` send times spread over a cycle after a package and counts the cycles
-until ``target_qd`` shows it. The count steps up by one where the send time crosses the
+until ``target_qd`` shows it (another round of ``phases``, up to three, while the answer
+is not clean: a loaded host or controller blurs the trials near the deadline). The count steps up by one where the send time crosses the
 intake: that is the deadline of each cycle on the host clock, independent of when the
 packages leave. The lock then aims half a period before it (:class:`IntakeFix`), and a
 clock line keeps it on the host clock as the clocks drift (:class:`~._cycle.BoundaryLine`).
@@ -24,15 +25,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from timedexec.drivers import RobotState
 from timedexec.errors import DriverError
-from timedexec.execution._cycle import wait_until
+from timedexec.execution._cycle import IntakeFix, wait_until
 
-__all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "IntakeFix", "find_intake_step", "probe_intake"]
+__all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "find_intake_step", "probe_intake"]
 
 #: Speed of each probe command, rad/s (every joint; 1e-4 rad/s for a few cycles moves a
 #: joint by microradians, and signs alternate so the arm ends where it started).
@@ -42,66 +42,11 @@ PROBE_PHASES = 16
 #: Packages to wait for a probe's echo before the trial counts as lost.
 ECHO_PACKAGES = 12
 #: Trials that may disagree with the single step the fit finds (host jitter right at the
-#: deadline can put one trial on the other side).
+#: deadline can put one trial on the other side), or one in eight where more.
 MAX_MISMATCHES = 2
-
-
-@dataclass(frozen=True)
-class IntakeFix:
-    """The controller's command deadline on the host clock, from :func:`probe_intake`.
-
-    A command sent before ``controller_time + deadline_offset_s`` (host time; the
-    controller time of any cycle's package) makes that cycle's intake, one sent after makes
-    the next.
-
-    Attributes
-    ----------
-    deadline_offset_s : float
-        Host send deadline minus the cycle's controller time stamp, s (at ``probed_at_s``).
-    period_s : float
-        Controller period, s.
-    probed_at_s : float
-        Host time of the probe, s.
-    resolution_s : float
-        Half the spacing of the send times tried: the deadline's uncertainty, s.
-    package_lead_s : float
-        Where the packages arrive in the intake cycle: the earliest arrival minus the
-        preceding deadline, s, in [0, period) (small: packages arrive just after a deadline,
-        so answering at once straddles it).
-    trials : int
-        Probe commands whose echo was seen.
-    mismatches : int
-        Trials on the other side of the fitted step.
-    """
-
-    deadline_offset_s: float
-    period_s: float
-    probed_at_s: float
-    resolution_s: float
-    package_lead_s: float
-    trials: int
-    mismatches: int
-
-    def send_time_s(self, controller_time_s: float, rate: float = 0.0, lead: int = 0) -> float:
-        """Host time half a period before the deadline that follows the package stamped
-        ``controller_time_s`` by ``lead`` cycles, s (``rate``: host/controller clock drift
-        since the probe, s per s)."""
-        # The clocks drift by rate x elapsed since the probe (elapsed in host time; the
-        # difference between host and controller time of that is second order).
-        offset = self.deadline_offset_s + rate * (
-            controller_time_s + self.deadline_offset_s - self.probed_at_s
-        )
-        return controller_time_s + offset + (lead - 0.5) * self.period_s
-
-    def summary(self) -> dict[str, float | int]:
-        """JSON-safe description (times in ms)."""
-        return {
-            "deadline_offset_ms": self.deadline_offset_s * 1e3,
-            "resolution_ms": self.resolution_s * 1e3,
-            "package_lead_ms": self.package_lead_s * 1e3,
-            "trials": self.trials,
-            "mismatches": self.mismatches,
-        }
+#: Rounds of ``phases`` trials at most: another round while the step is not clean (a
+#: loaded host or controller jitters the trials near the deadline).
+PROBE_ROUNDS = 3
 
 
 def find_intake_step(
@@ -169,41 +114,35 @@ def probe_intake(
         controller filters its target, or the link is too jittery), or the stream stalls.
     """
     step = period_s / phases
-    trial_phases = [m * step for m in range(phases)]
-    latencies: list[int | None] = []
+    # (phase actually sent at, latency) per trial: a send the host made late (preempted
+    # between the wait and the call) is placed where it went, a period or more late
+    # counted as that many cycles of latency.
+    observed: list[tuple[float, int | None]] = []
     leads: list[float] = []
     sign = 1.0
     try:
-        for phase in trial_phases:
-            lat = None
-            for _attempt in range(3):  # a package later than the send time: try the next
-                ref = read()
-                if ref.target_qd is None:
-                    raise DriverError(
-                        "the controller's state has no target_qd: the intake cannot be probed "
-                        "(the cycle lock aims by the package arrivals instead)"
-                    )
-                leads.append(ref.host_time_s - ref.controller_time_s)
-                target = ref.controller_time_s + reference_offset_s + phase
-                if clock() >= target:
-                    continue
-                wait_until(target, clock)
-                send(np.full(6, sign * speed_rad_s))
-                lat = _echo_latency(read, ref.controller_time_s, sign * speed_rad_s, period_s)
+        for _round in range(PROBE_ROUNDS):
+            for m in range(phases):
+                seen = _trial(read, send, clock, base_s=reference_offset_s, phase_s=m * step,
+                              speed=sign * speed_rad_s, period_s=period_s, leads=leads)  # fmt: skip
+                observed.append(seen)
+                sign = -sign
+            observed.sort(key=lambda o: o[0])
+            latencies = [lat for _, lat in observed]
+            phase, miss, trials = find_intake_step([p for p, _ in observed], latencies, period_s)
+            if trials >= len(observed) // 2 and miss <= max(MAX_MISMATCHES, trials // 8):
                 break
-            latencies.append(lat)
-            sign = -sign
     finally:
         send(np.zeros(6))
     _settle(read, speed_rad_s)
-    phase, miss, trials = find_intake_step(trial_phases, latencies, period_s)
-    if trials < phases // 2 or miss > MAX_MISMATCHES:
-        seen = ", ".join("-" if v is None else str(v) for v in latencies)
+    if trials < len(observed) // 2 or miss > max(MAX_MISMATCHES, trials // 8):
+        seen_text = ", ".join("-" if v is None else str(v) for v in latencies)
         raise DriverError(
-            f"intake probe: the echo latencies over {phases} send phases ({seen} cycles) show "
-            f"no single step ({trials} echoes, {miss} off the best step): the controller's "
-            "target_qd does not follow the commands cycle by cycle, or the link jitters by "
-            "more than a period; the cycle lock aims by the package arrivals instead"
+            f"intake probe: the echo latencies over {len(observed)} sends ({seen_text} "
+            f"cycles, by send phase) show no single step ({trials} echoes, {miss} off the "
+            "best step): the controller's target_qd does not follow the commands cycle by "
+            "cycle, or the link jitters by more than a period; the cycle lock aims by the "
+            "package arrivals instead"
         )
     deadline = reference_offset_s + phase
     lead = (min(leads) - deadline) % period_s
@@ -216,6 +155,40 @@ def probe_intake(
         trials=trials,
         mismatches=miss,
     )
+
+
+def _trial(
+    read: Callable[[], RobotState],
+    send: Callable[[np.ndarray], None],
+    clock: Callable[[], float],
+    *,
+    base_s: float,
+    phase_s: float,
+    speed: float,
+    period_s: float,
+    leads: list[float],
+) -> tuple[float, int | None]:
+    """One probe command ``phase_s`` after a package's earliest arrival (``controller time
+    + base_s``): (the phase it was actually sent at, in [0, period), the echo's latency in
+    cycles or None). A package that comes after the send time: the next one (3 tries)."""
+    for _attempt in range(3):
+        ref = read()
+        if ref.target_qd is None:
+            raise DriverError(
+                "the controller's state has no target_qd: the intake cannot be probed "
+                "(the cycle lock aims by the package arrivals instead)"
+            )
+        leads.append(ref.host_time_s - ref.controller_time_s)
+        base = ref.controller_time_s + base_s
+        if clock() >= base + phase_s:
+            continue
+        wait_until(base + phase_s, clock)
+        sent = clock() - base
+        send(np.full(6, speed))
+        lat = _echo_latency(read, ref.controller_time_s, speed, period_s)
+        wraps = math.floor(sent / period_s)
+        return sent - wraps * period_s, None if lat is None else lat - wraps
+    return phase_s, None
 
 
 def _echo_latency(
