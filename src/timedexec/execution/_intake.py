@@ -15,9 +15,9 @@ controller tells which cycle took a command. :func:`probe_intake`, with the arm 
 sends one tiny ``speedj`` (1e-4 rad/s, signs alternating: the arm moves by microradians) at
 each of ``phases`` send times spread over a cycle after a package and counts the cycles
 until ``target_qd`` shows it (another round of ``phases``, up to three, while the answer
-is not clean: a loaded host or controller blurs the trials near the deadline). The count steps up by one where the send time crosses the
-intake: that is the deadline of each cycle on the host clock, independent of when the
-packages leave. The lock then aims half a period before it (:class:`IntakeFix`), and a
+is not clean: a loaded host or controller blurs the trials near the deadline). The count
+steps up by one where the send time crosses the intake: that is the deadline of each
+cycle on the host clock, independent of when the packages leave. The lock then aims half a period before it (:class:`IntakeFix`), and a
 clock line keeps it on the host clock as the clocks drift (:class:`~._cycle.BoundaryLine`).
 """
 
