@@ -1944,6 +1944,19 @@ class PeerHandle:
                 break
         return t
 
+    def to_host_times(self, peer_s: list[float]) -> list[float]:
+        """Convert controller times (s) to ``time.monotonic()`` on this machine: the inverse
+        of :meth:`to_peer_time`, each time by the clock segment it falls in."""
+        segs = self._clock_segments()
+        out = []
+        for t in peer_s:
+            t0 = segs[0][1]
+            for t_slip, t0_slip in segs[1:]:
+                if t >= t_slip:
+                    t0 = t0_slip
+            out.append(t + t0)
+        return out
+
     def wait_event(self, kind: str, timeout: float = 5.0, after: float = -1.0) -> PeerEvent:
         """Wait (s) for an event of ``kind`` at controller time > ``after``."""
         end = time.monotonic() + timeout
