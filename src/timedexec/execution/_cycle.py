@@ -200,16 +200,12 @@ class IntakeFix:
     trials: int
     mismatches: int
 
-    def send_time_s(self, controller_time_s: float, rate: float = 0.0, lead: int = 0) -> float:
-        """Host time half a period before the deadline that follows the package stamped
-        ``controller_time_s`` by ``lead`` cycles, s (``rate``: host/controller clock drift
-        since the probe, s per s)."""
-        # The clocks drift by rate x elapsed since the probe (elapsed in host time; the
-        # difference between host and controller time of that is second order).
-        offset = self.deadline_offset_s + rate * (
-            controller_time_s + self.deadline_offset_s - self.probed_at_s
-        )
-        return controller_time_s + offset + (lead - 0.5) * self.period_s
+    def deadline_s(self, controller_time_s: float, rate: float = 0.0) -> float:
+        """Host send deadline of the cycle whose package is stamped ``controller_time_s``, s
+        (``rate``: host/controller clock drift since the probe, s per s; the elapsed time is
+        taken in host time, the difference being second order)."""
+        elapsed = controller_time_s + self.deadline_offset_s - self.probed_at_s
+        return controller_time_s + self.deadline_offset_s + rate * elapsed
 
     def summary(self) -> dict[str, float | int]:
         """JSON-safe description (times in ms)."""
@@ -297,7 +293,7 @@ class SendPhase:
         if fix is None:
             return earliest_arrival_s + self.offset_s
         period = self.period_s
-        base = fix.send_time_s(controller_time_s, rate) + (self.fraction - 0.5) * period
+        base = fix.deadline_s(controller_time_s, rate) - (1.0 - self.fraction) * period
         lead = self._lead
         if lead is None or not (
             earliest_arrival_s - 0.25 * period <= base + lead * period < earliest_arrival_s + period

@@ -110,8 +110,9 @@ def probe_intake(
     Raises
     ------
     DriverError
-        The state has no ``target_qd``, the echoes do not show one clean step (the
-        controller filters its target, or the link is too jittery), or the stream stalls.
+        The state has no ``target_qd``, the echoes do not show one clean step after
+        :data:`PROBE_ROUNDS` rounds (a target that does not show the commands, or a host,
+        link or controller that jitters by cycles), or the stream stalls.
     """
     step = period_s / phases
     # (phase actually sent at, latency) per trial: a send the host made late (preempted
@@ -130,12 +131,13 @@ def probe_intake(
             observed.sort(key=lambda o: o[0])
             latencies = [lat for _, lat in observed]
             phase, miss, trials = find_intake_step([p for p, _ in observed], latencies, period_s)
-            if trials >= len(observed) // 2 and miss <= max(MAX_MISMATCHES, trials // 8):
+            clean = trials >= len(observed) // 2 and miss <= max(MAX_MISMATCHES, trials // 8)
+            if clean:
                 break
     finally:
         send(np.zeros(6))
     _settle(read, speed_rad_s)
-    if trials < len(observed) // 2 or miss > max(MAX_MISMATCHES, trials // 8):
+    if not clean:
         seen_text = ", ".join("-" if v is None else str(v) for v in latencies)
         raise DriverError(
             f"intake probe: the echo latencies over {len(observed)} sends ({seen_text} "
