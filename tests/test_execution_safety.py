@@ -813,7 +813,8 @@ def test_boundary_line_finds_the_cycle_under_a_wandering_publisher(shape: str) -
 def test_send_phase_aims_at_the_middle_of_the_intake_window() -> None:
     """The cycle-locked sender leaves half a period minus the round trip after the earliest
     package arrival (0.6 ms at 500 Hz with the default 0.4 ms); a round trip outside
-    [0, period) is a ConfigError naming it; virtual-time drivers never wait."""
+    [0, period) is a ConfigError naming it; a virtual-time driver without ``wait_until``
+    cannot be waited on, so the lock is off."""
     from timedexec.execution import SendPhase
 
     phase = SendPhase(PERIOD_S)
@@ -821,5 +822,5 @@ def test_send_phase_aims_at_the_middle_of_the_intake_window() -> None:
     assert phase.target_s(10.0) == pytest.approx(10.0006)
     with pytest.raises(ConfigError, match=r"round_trip_s=0.003 outside \[0, 0.002\)"):
         SendPhase(PERIOD_S, 0.003)
-    ex = TimedExecutor(sim(), MODEL, cycle_lock=True)
-    assert ex.cycle_lock is False
+    assert TimedExecutor(sim(), MODEL, cycle_lock=True).cycle_lock is True
+    assert TimedExecutor(PlainDriver(sim()), MODEL, cycle_lock=True).cycle_lock is False

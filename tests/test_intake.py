@@ -9,6 +9,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from timedexec.execution import (
     TimedExecutor,
     find_intake_step,
     intake_echo,
+    sampling_times_s,
 )
 
 PERIOD_S = 0.002
@@ -311,6 +313,21 @@ def test_probed_lock_lands_mid_cycle_where_the_arrival_lock_straddles_the_intake
     echo = intake_echo(run.ex.log.arrays())
     assert echo["matched"] >= 40, echo
     assert echo["missed_fraction"] <= 0.03, echo
+
+    # The packages' sampling instants from the probed deadline (what dates the reported
+    # positions for tracking and back-dates the executor's state): the peer samples at
+    # its boundary and stamps it, so the truth is the stamp on the peer's clock. Within
+    # 0.4 ms: the deadline lies 0-0.4 ms before the boundary (above), the assumed wire
+    # time is 0.2 ms, the probe's resolution 0.06 ms.
+    log = run.ex.log.arrays()
+    keep = ~log["coasted"] & (log["arrival_s"] > run.plan.start_time_s)
+    ctrl = log["controller_s"][keep]
+    packages = SimpleNamespace(host_s=log["arrival_s"][keep], controller_s=ctrl,
+                               plan=run.plan, intake=intake, clock_rate=0.0)  # fmt: skip
+    dated = sampling_times_s(packages)
+    truth = np.interp(ctrl, run.truth.t, run.truth_host_s)
+    assert len(dated) > 100
+    assert np.max(np.abs(dated - truth)) < 4e-4, np.abs(dated - truth).max()
 
     arrival = run_on_late_publisher("127.0.0.194", probed=False)
     assert near_boundary(arrival.waits_s) > 50.0, near_boundary(arrival.waits_s)

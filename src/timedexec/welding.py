@@ -171,7 +171,11 @@ def run_weld(
         seed=seed,
     )
     with TimedExecutor(
-        drv, model, compensate=compensate, position_gain_1_s=position_gain_1_s
+        drv,
+        model,
+        compensate=compensate,
+        position_gain_1_s=position_gain_1_s,
+        cycle_lock=True,
     ) as ex:
         return track_conveyor_seam(
             ex, cell, seam_plan.seam, seam_plan=seam_plan, shift_s=shift_s,

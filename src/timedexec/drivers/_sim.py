@@ -163,6 +163,7 @@ class SimDriver(RobotDriver):
             q=pkt.q_rad,
             qd=pkt.qd_rad_s,
             sequence=pkt.cycle,
+            target_qd=pkt.qd_target_rad_s,
         )
         heapq.heappush(self._queue, (arrival, pkt.cycle, state, pkt.sample_time_s))
         if self._gyro is not None:
@@ -197,6 +198,7 @@ class SimDriver(RobotDriver):
             q=state.q,
             qd=state.qd,
             sequence=self._sequence - 1,
+            target_qd=state.target_qd,
         )
 
     def _send(self, command: SpeedJ | SpeedStop) -> float:

@@ -22,6 +22,7 @@ from timedexec.execution._conveyor import (
     plan_seam,
 )
 from timedexec.execution._cycle import (
+    COMMAND_UPLINK_S,
     DEFAULT_ROUND_TRIP_S,
     BoundaryLine,
     IntakeFix,
@@ -61,7 +62,12 @@ from timedexec.execution._tasks import (
     track_seam,
 )
 from timedexec.execution._timing import MeetPlan
-from timedexec.execution._tracking import TrackingDelays, fit_joint_lags, measure_tracking_delays
+from timedexec.execution._tracking import (
+    TrackingDelays,
+    fit_joint_lags,
+    measure_tracking_delays,
+    sampling_times_s,
+)
 from timedexec.execution._welding import (
     ConveyorRun,
     TorchErrors,
@@ -71,6 +77,7 @@ from timedexec.execution._welding import (
 
 __all__ = [
     "BUNDLED_MODELS",
+    "COMMAND_UPLINK_S",
     "DEFAULT_ROUND_TRIP_S",
     "DEFAULT_WATCHDOG_TIMEOUT_S",
     "REST_PACKAGES",
@@ -124,6 +131,7 @@ __all__ = [
     "predict_delays",
     "prepare_shifted",
     "probe_intake",
+    "sampling_times_s",
     "solve_position_ik",
     "tool_radius_m",
     "track_conveyor_seam",

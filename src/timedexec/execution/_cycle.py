@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from timedexec.errors import ConfigError
 
 __all__ = [
+    "COMMAND_UPLINK_S",
     "DEFAULT_ROUND_TRIP_S",
     "LINE_MIN_SPAN_S",
     "LINE_WINDOW_S",
@@ -48,6 +49,10 @@ __all__ = [
 #: package arrival lies this much after the cycle boundary a command sent at once would
 #: reach. Measure it for a real cell (the twin's truth gives it; see docs/execution.md).
 DEFAULT_ROUND_TRIP_S = 4e-4
+#: Time from a command leaving the host to the controller's register, s: half the
+#: loopback twin's shortest round trip (a host cannot split a round trip; a wrong split
+#: moves every sampling instant found by :meth:`IntakeFix.sampled_s` by the same amount).
+COMMAND_UPLINK_S = 0.5 * DEFAULT_ROUND_TRIP_S
 #: The last part of a wait is spun, s.
 SPIN_S = 1.5e-4
 #: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
@@ -206,6 +211,24 @@ class IntakeFix:
         taken in host time, the difference being second order)."""
         elapsed = controller_time_s + self.deadline_offset_s - self.probed_at_s
         return controller_time_s + self.deadline_offset_s + rate * elapsed
+
+    def sampled_s(
+        self,
+        controller_time_s: float,
+        near_s: float,
+        rate: float = 0.0,
+        uplink_s: float = COMMAND_UPLINK_S,
+    ) -> float:
+        """Host time at which the package stamped ``controller_time_s`` was sampled, s.
+
+        The controller samples its state at the cycle boundary, which a command reaches
+        ``uplink_s`` after leaving at the deadline: a deadline plus ``uplink_s``, the
+        whole periods chosen nearest to ``near_s`` (the arrival minus the mean response
+        delay; right while the run's publisher phase is within half a period of the mean
+        one). Unlike ``near_s`` it does not move with the publisher's phase.
+        """
+        boundary = self.deadline_s(controller_time_s, rate) + uplink_s
+        return boundary + round((near_s - boundary) / self.period_s) * self.period_s
 
     def summary(self) -> dict[str, float | int]:
         """JSON-safe description (times in ms)."""

@@ -139,14 +139,11 @@ class TimedExecutor:
         of its intake window: half a period before the controller's command deadline,
         found at connect by probing it (:meth:`probe_intake`; a UR's ``target_qd``), else
         the earliest arrival of the cycle's package plus half a period minus
-        ``round_trip_s`` (:mod:`timedexec.execution._cycle`). Real-time drivers only
-        (ignored in virtual time). Opt-in (like
-        ``coast``): measured against the independent UR peer and the UR10e twin through
-        ur_rtde, not yet on a real controller or on RSI. With the probe, ``coast`` and
-        ``realtime_priority=5`` it missed 0.03-0.19 % of the cycles from connect where
-        ur_rtde's own ``initPeriod``/``waitPeriod`` pattern missed 1.8-6.1 %, sent within
-        0.02-0.15 ms at p99 and landed its commands mid-window (docs/execution.md): the
-        recommended setting for a UR.
+        ``round_trip_s`` (:mod:`timedexec.execution._cycle`); in virtual time the driver
+        waits (the clock jumps). Opt-in, the recommended setting for a UR: with the probe,
+        ``coast`` and ``realtime_priority=5`` it missed 0.03-0.19 % of the cycles where
+        ur_rtde's ``initPeriod``/``waitPeriod`` pattern missed 1.8-6.1 % (independent UR
+        peer and UR10e twin; not yet a real controller or RSI; docs/execution.md).
     round_trip_s : float
         Shortest boundary-to-package-arrival-to-command-arrival time, s (default
         0.4 ms, the loopback twin's); used by ``cycle_lock``.
@@ -155,14 +152,12 @@ class TimedExecutor:
         threads it starts, which inherit it), where the OS allows it (Linux, root or
         CAP_SYS_NICE; otherwise normal scheduling, ``ex.realtime`` False). None: never ask.
     coast : bool
-        While streaming, send each cycle's command on the controller's clock
-        even when its package is late: if no package has arrived half a period after the earliest time
-        the cycle's package can arrive (lower-envelope clock model), the command goes out
-        from the estimate, and the late package is then only read (real-time drivers only;
-        a virtual-time simulator never has late packages). The stall limit still counts
-        from the last package: a stream that stops is stopped as before. With
-        ``cycle_lock`` the send-time p99 fell from 0.40-1.15 ms to 0.24-0.35 ms against
-        the independent peer (docs/execution.md).
+        While streaming, send each cycle's command on the controller's clock even when its
+        package is late: if none has arrived by the send time (clock model), the command
+        goes out from the estimate and the late package is only read (real-time drivers;
+        a virtual-time simulator has no late packages). The stall limit still counts from
+        the last package. With ``cycle_lock`` the send-time p99 fell from 0.40-1.15 ms to
+        0.24-0.35 ms against the independent peer (docs/execution.md).
 
     Attributes
     ----------
@@ -257,7 +252,8 @@ class TimedExecutor:
         self._served = -1  # last controller cycle a command was sent for
         virtual = self._virtual = bool(getattr(driver, "virtual", False))
         self.coast = bool(coast) and not virtual
-        self.cycle_lock = bool(cycle_lock) and not virtual
+        # A virtual clock is waited on through its driver's wait_until.
+        self.cycle_lock = bool(cycle_lock) and (not virtual or hasattr(driver, "wait_until"))
         self.round_trip_s = float(round_trip_s)
         self.send_phase: SendPhase | None = None
         self.intake_error: str | None = None
@@ -348,6 +344,7 @@ class TimedExecutor:
         def read() -> RobotState:
             state = self.driver.read_state(timeout_s=self.staleness.idle_timeout_s(self._period))
             self._state.ingest(state)
+            self.watchdog.kick_if_due(state.host_time_s)  # echoes take 7 cycles at 12 ms
             return state
 
         def send(v: NDArray[np.float64]) -> None:
@@ -356,8 +353,9 @@ class TimedExecutor:
             )
             self.watchdog.fed(self.now())
 
-        fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s)
-        self.send_phase.intake = fix
+        fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s,
+                           wait=self._wait_until)  # fmt: skip
+        self.send_phase.intake = self._state.intake = fix
         self.intake_error = None
         return fix
 
@@ -407,6 +405,12 @@ class TimedExecutor:
     def now(self) -> float:
         """The host clock the driver stamps with, s."""
         return self._clock()
+
+    def _wait_until(self, t_s: float) -> float:
+        if self._virtual:  # a virtual clock does not run while the host spins
+            self.driver.wait_until(t_s)  # type: ignore[attr-defined]
+            return self.now()
+        return wait_until(t_s, self.now)
 
     def _decel(self) -> float:
         if self._stop_decel is not None:
@@ -673,7 +677,7 @@ class TimedExecutor:
             # The send time logged is when it leaves: after the target, or now if the work
             # overran it (the command's content stays computed for the target).
             clock = self.now()
-            now = wait_until(target, self.now) if target > clock else clock
+            now = self._wait_until(target) if target > clock else clock
         try:
             self.driver.speedj(v, a, self._hold_s)
         except DriverError as exc:

@@ -89,6 +89,7 @@ def probe_intake(
     *,
     phases: int = PROBE_PHASES,
     speed_rad_s: float = PROBE_SPEED_RAD_S,
+    wait: Callable[[float], object] | None = None,
 ) -> IntakeFix:
     """Find the controller's command deadline (see the module docstring). The arm must be at
     rest and the state must carry ``target_qd``.
@@ -106,6 +107,9 @@ def probe_intake(
     reference_offset_s : float
         The earliest package arrival minus controller time at the start (the clock model's
         envelope), s: the send times are ``controller_time + reference_offset_s + phase``.
+    wait : callable, optional
+        Lets the host clock reach a time (default: sleep and spin on ``clock``; a virtual
+        clock needs its driver's).
 
     Raises
     ------
@@ -115,6 +119,11 @@ def probe_intake(
         link or controller that jitters by cycles), or the stream stalls.
     """
     step = period_s / phases
+    if wait is None:
+
+        def wait(t_s: float) -> object:
+            return wait_until(t_s, clock)
+
     # (phase actually sent at, latency) per trial: a send the host made late (preempted
     # between the wait and the call) is placed where it went, a period or more late
     # counted as that many cycles of latency.
@@ -124,7 +133,7 @@ def probe_intake(
     try:
         for _round in range(PROBE_ROUNDS):
             for m in range(phases):
-                seen = _trial(read, send, clock, base_s=reference_offset_s, phase_s=m * step,
+                seen = _trial(read, send, clock, wait, base_s=reference_offset_s, phase_s=m * step,
                               speed=sign * speed_rad_s, period_s=period_s, leads=leads)  # fmt: skip
                 observed.append(seen)
                 sign = -sign
@@ -163,6 +172,7 @@ def _trial(
     read: Callable[[], RobotState],
     send: Callable[[np.ndarray], None],
     clock: Callable[[], float],
+    wait: Callable[[float], object],
     *,
     base_s: float,
     phase_s: float,
@@ -184,7 +194,7 @@ def _trial(
         base = ref.controller_time_s + base_s
         if clock() >= base + phase_s:
             continue
-        wait_until(base + phase_s, clock)
+        wait(base + phase_s)
         sent = clock() - base
         send(np.full(6, speed))
         lat = _echo_latency(read, ref.controller_time_s, speed, period_s)

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
-from timedexec.execution._cycle import BoundaryLine
+from timedexec.execution._cycle import BoundaryLine, IntakeFix
 from timedexec.execution._plan import JointPlan
 
 __all__ = [
@@ -99,7 +99,7 @@ class StateEstimate:
         Estimated physical joint positions and speeds.
     sample_time_s : float
         Host time the newest package describes (its arrival minus the predicted response
-        delay), s.
+        delay, or its sampling boundary where the intake is probed), s.
     response_delay_s : float
         The predicted response delay used to back-date it, s.
     horizon_s : float
@@ -139,6 +139,10 @@ class StateTracker:
         joint positions (rad) and speeds (rad/s), (6,) each.
     jitter : StreamJitter
         The stream's recent gaps and lateness (gaps up to ``max_gap_s``, s).
+    intake : IntakeFix or None
+        The controller's probed command deadline: packages are then dated at the cycle
+        boundary they were sampled at (:meth:`IntakeFix.sampled_s`), not by
+        ``response_s`` alone, which carries the publisher's phase.
     """
 
     def __init__(
@@ -159,6 +163,7 @@ class StateTracker:
         self.sample: tuple[float, FloatArray, FloatArray] | None = None
         self._envelope: deque[tuple[float, float]] = deque()
         self.boundary = BoundaryLine()
+        self.intake: IntakeFix | None = None
 
     def ingest(self, state: RobotState) -> None:
         """Take ``state`` as the newest package: update the clock model and back-date it."""
@@ -185,6 +190,10 @@ class StateTracker:
         if not math.isfinite(self.controller_ref_s):
             self.controller_ref_s = state.controller_time_s
         t_phys = state.host_time_s - self.response_s
+        if self.intake is not None:
+            line = self.boundary.line
+            rate = line[2] if line is not None else 0.0
+            t_phys = self.intake.sampled_s(state.controller_time_s, t_phys, rate)
         self.sample = (t_phys, np.asarray(state.q, float), np.asarray(state.qd, float))
 
     # ------------------------------------------------------------------ the clock model

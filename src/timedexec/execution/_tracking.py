@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
+from timedexec.execution._cycle import COMMAND_UPLINK_S
 from timedexec.execution._model import (
     DelayPredictions,
     DelayPredictor,
@@ -52,7 +53,7 @@ from timedexec.execution._model import (
 )
 from timedexec.execution._plan import JointPlan
 
-__all__ = ["TrackingDelays", "fit_joint_lags", "measure_tracking_delays"]
+__all__ = ["TrackingDelays", "fit_joint_lags", "measure_tracking_delays", "sampling_times_s"]
 
 FloatArray = NDArray[np.float64]
 
@@ -113,14 +114,37 @@ def fit_joint_lags(
     return np.where(den > 1e-12, lag, np.nan)
 
 
+def sampling_times_s(
+    run: Any, *, response_s: float | None = None, uplink_s: float = COMMAND_UPLINK_S
+) -> FloatArray:
+    """Host time at which each state package of a run was sampled, s (n,).
+
+    With the controller's intake probed (``run.intake``): the cycle boundary each package
+    was sampled at (:meth:`~timedexec.execution.IntakeFix.sampled_s`), which does not move
+    with where the publisher sends in its cycle. Without: the arrival minus the response
+    delay (``response_s``, default the executor's, ``run.plan.meta["response_s"]``), which
+    carries the run's publisher phase.
+    """
+    resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
+    near = np.asarray(run.host_s, dtype=float) - resp
+    fix = getattr(run, "intake", None)
+    if fix is None:
+        return near
+    rate = float(getattr(run, "clock_rate", 0.0))
+    ctrl = np.asarray(run.controller_s, dtype=float).tolist()
+    return np.array(
+        [fix.sampled_s(c, n, rate, uplink_s) for c, n in zip(ctrl, near.tolist(), strict=True)]
+    )
+
+
 def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> FloatArray:
     """Tracking delay per joint (6,), s, from a tracking run's reported positions.
 
-    The reported positions over the run's cruise window, back-dated by ``response_s``
-    (default: the response delay the executor used, ``run.plan.meta["response_s"]``),
-    are aligned with the plan per joint (:func:`fit_joint_lags`); the shift that ran is
-    added back, so the result is the shift that would have put the joints on time (phase-
-    free; see the module docstring).
+    The reported positions over the run's cruise window, at their sampling instants
+    (:func:`sampling_times_s`: by the probed intake where the run has one, else back-dated
+    by ``response_s``), are aligned with the plan per joint (:func:`fit_joint_lags`); the
+    shift that ran is added back, so the result is the shift that would have put the
+    joints on time (see the module docstring).
 
     Parameters
     ----------
@@ -129,8 +153,7 @@ def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> Flo
     response_s : float, optional
         Response delay to back-date by, s.
     """
-    resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
-    t = run.host_s - resp
+    t = sampling_times_s(run, response_s=response_s)
     since = t - run.sync_time_s
     keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
     lag = fit_joint_lags(run.plan, t[keep], run.reported_q[keep])
@@ -143,8 +166,10 @@ class TrackingDelays:
 
     ``predict_many`` answers as the base model, with ``actuation_mean`` replaced by
     ``base - correction_s[joint - 1]`` (at least 0): the shift a velocity stream needs
-    once the arm moves. Hand it to :class:`~timedexec.execution.TimedExecutor` for tracking
-    tasks.
+    once the arm moves. A joint the base model does not cover (a sweep of joints 1, 2, 3,
+    5) gets its own measured tracking delay, ``measured_s`` (the onset model knows nothing
+    of it; its other figures are the mean of the covered joints'). Hand it to
+    :class:`~timedexec.execution.TimedExecutor` for tracking tasks.
 
     Parameters
     ----------
@@ -152,19 +177,25 @@ class TrackingDelays:
         The onset-delay model (or a bundle path / bundled name).
     correction_s : 6 floats
         Onset minus tracking delay per joint, s (:meth:`calibrate`).
+    measured_s : 6 floats, optional
+        Measured tracking delay per joint, s: used for the joints the base does not cover
+        (without it, those get the covered joints' mean prediction minus their correction).
     """
 
     base: Any
     correction_s: tuple[float, ...]
+    measured_s: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
-        c = tuple(float(x) for x in np.asarray(self.correction_s, dtype=float).reshape(-1))
-        if len(c) != 6 or not all(np.isfinite(c)):
-            raise ConfigError(
-                f"TrackingDelays.correction_s needs 6 finite values (s), got {self.correction_s!r}"
-            )
-        object.__setattr__(self, "correction_s", c)
+        for name in ("correction_s", "measured_s"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            c = tuple(float(x) for x in np.asarray(value, dtype=float).reshape(-1))
+            if len(c) != 6 or not all(np.isfinite(c)):
+                raise ConfigError(f"TrackingDelays.{name} needs 6 finite values (s), got {value!r}")
+            object.__setattr__(self, name, c)
 
     @property
     def robot(self) -> str:
@@ -173,8 +204,14 @@ class TrackingDelays:
 
     @property
     def joints(self) -> tuple[int, ...]:
-        """The joints the base model covers."""
-        return tuple(getattr(self.base, "joints", (1, 2, 3, 5)))
+        """The joints answered: all six with ``measured_s``, else the base model's."""
+        if self.measured_s is not None:
+            return (1, 2, 3, 4, 5, 6)
+        return self._covered
+
+    @property
+    def _covered(self) -> tuple[int, ...]:
+        return tuple(int(j) for j in getattr(self.base, "joints", (1, 2, 3, 5)))
 
     @property
     def controller_period_s(self) -> float:
@@ -184,16 +221,30 @@ class TrackingDelays:
 
     def predict_many(self, joint: Any, direction: Any, q: Any) -> DelayPredictions:
         """The base model's predictions with the tracking correction applied."""
-        p = predict_delays(self.base, joint, direction, q)
         j = np.atleast_1d(np.asarray(joint, dtype=np.int64))
-        j = np.broadcast_to(j, p.actuation_mean.shape)
-        corr = np.asarray(self.correction_s)[j - 1]
-        return DelayPredictions(
-            actuation_mean=np.maximum(p.actuation_mean - corr, 0.0),
-            actuation_std=p.actuation_std,
-            response_mean=p.response_mean,
-            response_std=p.response_std,
-        )
+        d = np.atleast_1d(np.asarray(direction, dtype=np.int64))
+        qq = np.asarray(q, dtype=float).reshape(-1, 6)
+        n = max(len(j), len(d), len(qq))
+        j, d = np.broadcast_to(j, (n,)), np.broadcast_to(d, (n,))
+        qq = np.broadcast_to(qq, (n, 6))
+        covered = np.array(self._covered, dtype=np.int64)
+        inside = np.isin(j, covered) | (self.measured_s is None)
+        names = ("actuation_mean", "actuation_std", "response_mean", "response_std")
+        out = {name: np.empty(n) for name in names}
+        if inside.any():
+            p = predict_delays(self.base, j[inside], d[inside], qq[inside])
+            for name in names:
+                out[name][inside] = getattr(p, name)
+            corr = np.asarray(self.correction_s)[j[inside] - 1]
+            out["actuation_mean"][inside] = np.maximum(p.actuation_mean - corr, 0.0)
+        for r in np.flatnonzero(~inside):
+            k = len(covered)
+            p = predict_delays(self.base, covered, np.full(k, d[r]), np.tile(qq[r], (k, 1)))
+            for name in names:
+                out[name][r] = float(np.mean(getattr(p, name)))
+            assert self.measured_s is not None
+            out["actuation_mean"][r] = max(self.measured_s[j[r] - 1], 0.0)
+        return DelayPredictions(**out)
 
     @classmethod
     def calibrate(
@@ -202,7 +253,8 @@ class TrackingDelays:
         onset_s: Sequence[ArrayLike],
         tracking_s: Sequence[ArrayLike],
     ) -> TrackingDelays:
-        """The per-joint median of ``onset - tracking`` over calibration runs.
+        """The per-joint median of ``onset - tracking`` over calibration runs (and of
+        ``tracking``, for the joints the base does not cover).
 
         Parameters
         ----------
@@ -229,4 +281,10 @@ class TrackingDelays:
         diff = on - tr
         corr = np.nanmedian(diff, axis=0)
         corr = np.where(np.isfinite(corr), corr, float(np.nanmedian(diff)))
-        return cls(base=base, correction_s=tuple(float(x) for x in corr))
+        measured = np.nanmedian(tr, axis=0)
+        measured = np.where(np.isfinite(measured), measured, float(np.nanmedian(tr)))
+        return cls(
+            base=base,
+            correction_s=tuple(float(x) for x in corr),
+            measured_s=tuple(float(x) for x in measured),
+        )

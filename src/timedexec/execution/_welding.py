@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec.drivers import RobotState
 from timedexec.errors import ConfigError
 from timedexec.execution._conveyor import Seam, SeamPlan, WeldCell, plan_seam
+from timedexec.execution._cycle import IntakeFix
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import ExecutionResult
 from timedexec.execution._plan import JointPlan
@@ -127,6 +128,11 @@ class ConveyorRun:
     physical : bool
         Whether ``truth_q`` is the physical truth.
     execution : ExecutionResult
+    intake : IntakeFix or None
+        The controller's probed command deadline the run was sent by (executor with
+        ``cycle_lock``), None without.
+    clock_rate : float
+        The host/controller clock drift the executor's clock line had, s per s.
     """
 
     seam_plan: SeamPlan
@@ -143,6 +149,8 @@ class ConveyorRun:
     estimate_q: FloatArray
     physical: bool
     execution: ExecutionResult = field(repr=False)
+    intake: IntakeFix | None = None
+    clock_rate: float = 0.0
 
     @property
     def shifts_s(self) -> FloatArray:
@@ -364,4 +372,6 @@ def track_conveyor_seam(
         estimate_q=q_est,
         physical=probe is not None,
         execution=result,
+        intake=executor.intake,
+        clock_rate=line[2] if (line := executor.clock_line) is not None else 0.0,
     )
