@@ -87,6 +87,14 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 #: Seed offsets so that evaluated runs, oracle draws and calibration never share a phase.
+#: Parts welded before each measured weld by default (:func:`run_weld`,
+#: :func:`weld_on_twin`, :func:`evaluate_conveyor`): none, every weld from a fresh start.
+#: A joint's velocity loop keeps its integrator at rest, so a weld's lag depends on the
+#: motion before it: the first weld after a start differs from every later one (the
+#: simulated UR10's joints by -1.0 to +2.1 ms, the KR 5's by up to +5 ms), one previous
+#: weld reaches the steady state, and there the lag also depends on the strategy the
+#: previous part was welded with (docs/welding.md, "Weld after weld").
+PREVIOUS_WELDS = 0
 _ORACLE_SEED = 5_000
 _CAL_SEED = 9_000
 #: Warm robot time for the onset oracle and calibration trials (4 h into a sweep), s.
@@ -155,8 +163,11 @@ def run_weld(
     effects: EffectSet | None = None,
     settle_s: float = 0.15,
     cruise_s: float = 0.6,
+    previous_welds: int = PREVIOUS_WELDS,
 ) -> ConveyorRun:
-    """One weld on ``sim://`` (virtual time), starting at rest at the approach's start.
+    """One weld on ``sim://`` (virtual time): the arm starts at rest where the weld ends,
+    welds ``previous_welds`` parts the same way (not measured), then the one returned; each
+    weld begins with the move to the approach's start.
 
     ``seed`` sets the controller's publisher phase and the network jitter; ``shift_s``
     (6,), s, the command shifts (None: the model's onset prediction).
@@ -166,7 +177,7 @@ def run_weld(
     cell = seam_plan.cell
     drv = SimDriver(
         cell.robot,
-        q0_rad=seam_plan.plan.q_start_rad,
+        q0_rad=seam_plan.plan.q_end_rad,
         effects=effects if effects is not None else warm(cell.robot),
         seed=seed,
     )
@@ -177,10 +188,12 @@ def run_weld(
         position_gain_1_s=position_gain_1_s,
         cycle_lock=True,
     ) as ex:
-        return track_conveyor_seam(
-            ex, cell, seam_plan.seam, seam_plan=seam_plan, shift_s=shift_s,
-            settle_s=settle_s, cruise_s=cruise_s,
-        )  # fmt: skip
+        for _ in range(int(previous_welds) + 1):
+            run = track_conveyor_seam(
+                ex, cell, seam_plan.seam, seam_plan=seam_plan, shift_s=shift_s,
+                settle_s=settle_s, cruise_s=cruise_s,
+            )  # fmt: skip
+        return run
 
 
 def physical_tracking_delays(run: ConveyorRun) -> FloatArray:
@@ -350,6 +363,7 @@ def evaluate_conveyor(
     onset: bool = True,
     feedback: bool = True,
     progress: bool = False,
+    previous_welds: int = PREVIOUS_WELDS,
 ) -> ConveyorEvaluation:
     """Physical torch error of the compensation strategies on the simulated conveyor weld.
 
@@ -378,6 +392,8 @@ def evaluate_conveyor(
     feedback : bool
         Also run ``model + feedback`` (tracking shift and the Smith-predictor position
         correction at :data:`~timedexec.execution.SEAM_POSITION_GAIN_1_S`).
+    previous_welds : int
+        Parts welded the same way before each measured weld (:func:`run_weld`).
 
     Raises
     ------
@@ -389,7 +405,7 @@ def evaluate_conveyor(
         raise ConfigError(f"seam={seam!r}; choose one of {', '.join(SEAM_KINDS)}")
     for name, value, low in (
         ("cells", cells, 1), ("seeds", seeds, 1), ("oracle_draws", oracle_draws, 1),
-        ("calibration_runs", calibration_runs, 1),
+        ("calibration_runs", calibration_runs, 1), ("previous_welds", previous_welds, 0),
     ):  # fmt: skip
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
             raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
@@ -412,7 +428,7 @@ def evaluate_conveyor(
 
     def weld(sp: SeamPlan, k: int, **kw: Any) -> ConveyorRun:
         run = run_weld(sp, kw.pop("model", predictor), seed=k, effects=effects,
-                       settle_s=settle_s, cruise_s=cruise_s, **kw)  # fmt: skip
+                       settle_s=settle_s, cruise_s=cruise_s, previous_welds=previous_welds, **kw)  # fmt: skip
         bar.update(1)
         return run
 
@@ -480,6 +496,7 @@ def evaluate_conveyor(
         "n_runs": cells * seeds,
         "oracle_draws": oracle_draws,
         "calibration_runs": calibration_runs,
+        "previous_welds": previous_welds,
         "seed": seed,
         "tracking_ms": {
             "constant": constant * 1e3,
@@ -516,6 +533,7 @@ def weld_on_twin(
     settle_s: float = 0.15,
     cruise_s: float = 0.6,
     truth_dir: str | os.PathLike[str] | None = None,
+    previous_welds: int = PREVIOUS_WELDS,
 ) -> dict[str, ConveyorRun]:
     """The same welds through a real client against a protocol twin, with its ground truth.
 
@@ -524,8 +542,9 @@ def weld_on_twin(
     :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
     weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s, or None for no
-    compensation), one twin for all, the robot brought back to the approach's start between
-    welds. The torch truth: the reported angles are the twin's physical angles at each
+    compensation), one twin for all, which starts where the weld ends: every weld begins
+    with the move to the approach's start, and each measured weld follows
+    ``previous_welds`` of the same strategy, as in production and in :func:`run_weld`. The torch truth: the reported angles are the twin's physical angles at each
     package's sampling instant, and the twin publishes the host time of its controller time
     0 (:meth:`ConveyorRun.with_truth`).
 
@@ -535,7 +554,7 @@ def weld_on_twin(
     cell = seam_plan.cell
     spec = cell.spec
     effects = warm(spec.name)
-    q0 = seam_plan.plan.q_start_rad
+    q0 = seam_plan.plan.q_end_rad
     out: dict[str, ConveyorRun] = {}
     model = load_delay_model(model)  # once: a GP's first query takes seconds
     check_model_robot(model, spec.name, spec.controller_period_s)
@@ -555,10 +574,9 @@ def weld_on_twin(
                                    compensate=shift is not None, stale_periods=stale_periods,
                                    stop_deceleration_rad_s2=decel, cycle_lock=True,
                                    coast=True) as ex:  # fmt: skip
-                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
-                    back = ex.plan(q0)
-                    ex.execute(back, start_time_s=ex.now() + ex.lead_time_s(back) + 0.05)
+                    for _ in range(int(previous_welds) + 1):
+                        run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                                  shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
                 out[name] = run.with_truth(twin.t0_monotonic_s)
         return out
     from timedexec.drivers import KukaRSIDriver
@@ -572,10 +590,9 @@ def weld_on_twin(
                 ex = TimedExecutor(drv, model, compensate=shift is not None,
                                    stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
                 ex.connect()
-                run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                          shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
-                back = ex.plan(q0)
-                ex.execute(back, start_time_s=ex.now() + ex.lead_time_s(back) + 0.05)
+                for _ in range(int(previous_welds) + 1):
+                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
                 last: Any = ex.last_state
                 # Driver controller time counts from its first IPOC; the twin's from its start.
                 offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s

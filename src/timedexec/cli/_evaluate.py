@@ -112,6 +112,13 @@ def add_parser(sub: Any) -> None:
         default=2,
         help="--task conveyor: work points (the built-in one, then moved by up to 5 cm)",
     )
+    p.add_argument(
+        "--previous-welds",
+        type=int_arg(0),
+        default=0,
+        help="--task conveyor: parts welded the same way before each measured weld (0: every "
+        "weld from a fresh start; 1 reaches the steady state of weld after weld)",
+    )
     add_scheduler(p, what="the evaluation (as one task)")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -140,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
                 oracle_draws=args.runs,
                 seed=args.seed,
                 progress=progress,
+                previous_welds=args.previous_welds,
             )
             emit(args, weld.to_dict(), weld.table())
             return 0

@@ -29,7 +29,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from timedexec.errors import ConfigError
 
@@ -195,6 +195,14 @@ class IntakeFix:
         Probe commands whose echo was seen.
     mismatches : int
         Trials on the other side of the fitted step.
+    arrival_offset_s : float
+        The earliest package arrival minus its controller time stamp during the probe, s.
+    sample_offset_s : float
+        Host time a package was sampled at minus its controller time stamp, s (NaN until
+        :meth:`dated`): its cycle boundary, which does not move with the publisher's phase.
+    sample_margin_s : float
+        How far the probe's earliest response was from flipping the boundary chosen by a
+        whole period (half a period minus its distance from the mean response), s.
     """
 
     deadline_offset_s: float
@@ -204,6 +212,9 @@ class IntakeFix:
     package_lead_s: float
     trials: int
     mismatches: int
+    arrival_offset_s: float = math.nan
+    sample_offset_s: float = math.nan
+    sample_margin_s: float = math.nan
 
     def deadline_s(self, controller_time_s: float, rate: float = 0.0) -> float:
         """Host send deadline of the cycle whose package is stamped ``controller_time_s``, s
@@ -212,23 +223,33 @@ class IntakeFix:
         elapsed = controller_time_s + self.deadline_offset_s - self.probed_at_s
         return controller_time_s + self.deadline_offset_s + rate * elapsed
 
-    def sampled_s(
-        self,
-        controller_time_s: float,
-        near_s: float,
-        rate: float = 0.0,
-        uplink_s: float = COMMAND_UPLINK_S,
-    ) -> float:
-        """Host time at which the package stamped ``controller_time_s`` was sampled, s.
+    def dated(self, response_s: float, uplink_s: float = COMMAND_UPLINK_S) -> IntakeFix:
+        """This fix with the packages' sampling instant (``sample_offset_s``).
 
-        The controller samples its state at the cycle boundary, which a command reaches
-        ``uplink_s`` after leaving at the deadline: a deadline plus ``uplink_s``, the
-        whole periods chosen nearest to ``near_s`` (the arrival minus the mean response
-        delay; right while the run's publisher phase is within half a period of the mean
-        one). Unlike ``near_s`` it does not move with the publisher's phase.
+        The controller samples its state at the cycle boundary, which a command leaving at
+        the deadline reaches ``uplink_s`` later: a deadline plus ``uplink_s``, whole periods
+        back from the probe's earliest arrival by the number that leaves a response
+        nearest ``response_s`` (the model's mean response delay). Chosen once: the
+        boundary's place on the controller clock does not move as the publisher's phase
+        wanders, so a package stamped ``t`` is dated ``t + sample_offset_s`` from then on.
+        Wrong by a whole period only if the probe saw a response more than half a period
+        from the mean (``sample_margin_s`` < 0).
         """
-        boundary = self.deadline_s(controller_time_s, rate) + uplink_s
-        return boundary + round((near_s - boundary) / self.period_s) * self.period_s
+        boundary = self.deadline_offset_s + uplink_s
+        response = self.arrival_offset_s - boundary
+        whole = round((response - response_s) / self.period_s)
+        off = response - whole * self.period_s - response_s
+        return replace(
+            self,
+            sample_offset_s=boundary + whole * self.period_s,
+            sample_margin_s=0.5 * self.period_s - abs(off),
+        )
+
+    def sampled_s(self, controller_time_s: float, rate: float = 0.0) -> float:
+        """Host time the package stamped ``controller_time_s`` was sampled at, s (NaN
+        before :meth:`dated`; ``rate`` as in :meth:`deadline_s`)."""
+        t = controller_time_s + self.sample_offset_s
+        return t + rate * (t - self.probed_at_s)
 
     def summary(self) -> dict[str, float | int]:
         """JSON-safe description (times in ms)."""
@@ -238,6 +259,8 @@ class IntakeFix:
             "package_lead_ms": self.package_lead_s * 1e3,
             "trials": self.trials,
             "mismatches": self.mismatches,
+            "sample_offset_ms": self.sample_offset_s * 1e3,
+            "sample_margin_ms": self.sample_margin_s * 1e3,
         }
 
 

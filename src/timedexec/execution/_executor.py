@@ -354,7 +354,7 @@ class TimedExecutor:
             self.watchdog.fed(self.now())
 
         fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s,
-                           wait=self._wait_until)  # fmt: skip
+                           wait=self._wait_until).dated(self._state.response_s)  # fmt: skip
         self.send_phase.intake = self._state.intake = fix
         self.intake_error = None
         return fix

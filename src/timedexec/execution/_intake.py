@@ -165,6 +165,7 @@ def probe_intake(
         package_lead_s=lead,
         trials=trials,
         mismatches=miss,
+        arrival_offset_s=min(leads),
     )
 
 

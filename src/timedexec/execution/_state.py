@@ -141,7 +141,8 @@ class StateTracker:
         The stream's recent gaps and lateness (gaps up to ``max_gap_s``, s).
     intake : IntakeFix or None
         The controller's probed command deadline: packages are then dated at the cycle
-        boundary they were sampled at (:meth:`IntakeFix.sampled_s`), not by
+        boundary they were sampled at (:meth:`IntakeFix.sampled_s`, once
+        :meth:`IntakeFix.dated`), not by
         ``response_s`` alone, which carries the publisher's phase.
     """
 
@@ -190,10 +191,10 @@ class StateTracker:
         if not math.isfinite(self.controller_ref_s):
             self.controller_ref_s = state.controller_time_s
         t_phys = state.host_time_s - self.response_s
-        if self.intake is not None:
+        if self.intake is not None and math.isfinite(self.intake.sample_offset_s):
             line = self.boundary.line
             rate = line[2] if line is not None else 0.0
-            t_phys = self.intake.sampled_s(state.controller_time_s, t_phys, rate)
+            t_phys = self.intake.sampled_s(state.controller_time_s, rate)
         self.sample = (t_phys, np.asarray(state.q, float), np.asarray(state.qd, float))
 
     # ------------------------------------------------------------------ the clock model

@@ -44,7 +44,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.execution._cycle import COMMAND_UPLINK_S
 from timedexec.execution._model import (
     DelayPredictions,
     DelayPredictor,
@@ -114,27 +113,22 @@ def fit_joint_lags(
     return np.where(den > 1e-12, lag, np.nan)
 
 
-def sampling_times_s(
-    run: Any, *, response_s: float | None = None, uplink_s: float = COMMAND_UPLINK_S
-) -> FloatArray:
+def sampling_times_s(run: Any, *, response_s: float | None = None) -> FloatArray:
     """Host time at which each state package of a run was sampled, s (n,).
 
-    With the controller's intake probed (``run.intake``): the cycle boundary each package
-    was sampled at (:meth:`~timedexec.execution.IntakeFix.sampled_s`), which does not move
-    with where the publisher sends in its cycle. Without: the arrival minus the response
-    delay (``response_s``, default the executor's, ``run.plan.meta["response_s"]``), which
-    carries the run's publisher phase.
+    With the controller's intake probed and dated (``run.intake``): the cycle boundary each
+    package was sampled at (:meth:`~timedexec.execution.IntakeFix.sampled_s`), which does
+    not move with where the publisher sends in its cycle. Without: the arrival minus the
+    response delay (``response_s``, default the executor's, ``run.plan.meta["response_s"]``),
+    which carries the run's publisher phase.
     """
-    resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
-    near = np.asarray(run.host_s, dtype=float) - resp
     fix = getattr(run, "intake", None)
-    if fix is None:
-        return near
-    rate = float(getattr(run, "clock_rate", 0.0))
-    ctrl = np.asarray(run.controller_s, dtype=float).tolist()
-    return np.array(
-        [fix.sampled_s(c, n, rate, uplink_s) for c, n in zip(ctrl, near.tolist(), strict=True)]
-    )
+    if fix is not None and np.isfinite(fix.sample_offset_s) and response_s is None:
+        rate = float(getattr(run, "clock_rate", 0.0))
+        t = np.asarray(run.controller_s, dtype=float) + fix.sample_offset_s
+        return np.asarray(t + rate * (t - fix.probed_at_s))
+    resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
+    return np.asarray(run.host_s, dtype=float) - resp
 
 
 def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> FloatArray:
@@ -151,7 +145,7 @@ def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> Flo
     run : ConveyorRun
         From :func:`~timedexec.execution.track_conveyor_seam` (any driver).
     response_s : float, optional
-        Response delay to back-date by, s.
+        Response delay to back-date by, s (instead of the probed intake's dating).
     """
     t = sampling_times_s(run, response_s=response_s)
     since = t - run.sync_time_s

@@ -41,6 +41,7 @@ from timedexec.execution._cycle import IntakeFix
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import ExecutionResult
 from timedexec.execution._plan import JointPlan
+from timedexec.execution._safety import REST_SPEED_RAD_S
 
 __all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
 
@@ -214,6 +215,7 @@ class ConveyorRun:
             "settle_s": self.settle_s,
             "cruise_s": self.cruise_s,
             "missed_cycles": int(self.execution.missed_cycles),
+            "intake": None if self.intake is None else self.intake.summary(),
             **self.seam_plan.summary(),
         }
 
@@ -317,6 +319,12 @@ def track_conveyor_seam(
             f"seam_plan covers {sp.weld_s:.3f} s of seam; settle_s + cruise_s + 0.05 = "
             f"{weld_s:.3f} s are needed"
         )
+    # A previous motion may still be running out (its plan ended, the controller's
+    # pipeline has not: a KR 5's is 72 ms): a speed stream cannot correct where the arm
+    # ends up, so wait for rest before planning from its position.
+    last = executor.last_state
+    if last is not None and float(np.max(np.abs(last.qd))) > REST_SPEED_RAD_S:
+        executor.stop()
     # Go to the approach's start (at rest), then let the state settle.
     q_now = executor.estimate().q_rad
     if np.max(np.abs(q_now - sp.plan.q_start_rad)) > 1e-4:
