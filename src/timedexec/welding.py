@@ -542,9 +542,10 @@ def weld_on_twin(
     :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
     weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s, or None for no
-    compensation), one twin for all, which starts where the weld ends: every weld begins
-    with the move to the approach's start, and each measured weld follows
-    ``previous_welds`` of the same strategy, as in production and in :func:`run_weld`. The torch truth: the reported angles are the twin's physical angles at each
+    compensation), a fresh twin (same ``seed``) for each, started where the weld ends:
+    every weld begins with the move to the approach's start, and the measured one follows
+    ``previous_welds`` of the same strategy, as in :func:`run_weld` (a weld's lag depends
+    on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles are the twin's physical angles at each
     package's sampling instant, and the twin publishes the host time of its controller time
     0 (:meth:`ConveyorRun.with_truth`).
 
@@ -565,36 +566,36 @@ def weld_on_twin(
         from timedexec.drivers import URDriver
         from timedexec.twins import URTwin
 
-        truth = None if truth_dir is None else os.path.join(truth_dir, "ur-truth.jsonl")
-        with URTwin(
-            spec.name, host, seed=seed, effects=effects, q0_rad=q0, truth_path=truth
-        ) as twin:
-            for name, shift in shifts_s.items():
-                with TimedExecutor(URDriver(host, robot=spec.name), model,
-                                   compensate=shift is not None, stale_periods=stale_periods,
-                                   stop_deceleration_rad_s2=decel, cycle_lock=True,
-                                   coast=True) as ex:  # fmt: skip
-                    for _ in range(int(previous_welds) + 1):
-                        run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                                  shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+        for i, (name, shift) in enumerate(shifts_s.items()):
+            truth = None if truth_dir is None else os.path.join(truth_dir, f"ur-truth-{i}.jsonl")
+            with URTwin(
+                spec.name, host, seed=seed, effects=effects, q0_rad=q0, truth_path=truth
+            ) as twin, TimedExecutor(URDriver(host, robot=spec.name), model,
+                                     compensate=shift is not None, stale_periods=stale_periods,
+                                     stop_deceleration_rad_s2=decel, cycle_lock=True,
+                                     coast=True) as ex:  # fmt: skip
+                for _ in range(int(previous_welds) + 1):
+                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
                 out[name] = run.with_truth(twin.t0_monotonic_s)
         return out
     from timedexec.drivers import KukaRSIDriver
     from timedexec.twins import RSITwin
 
-    with KukaRSIDriver(rsi_port or 0, robot=spec.name) as drv:
-        truth = None if truth_dir is None else os.path.join(truth_dir, "rsi-truth.jsonl")
-        with RSITwin(drv.port, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
-                     timeout_packets=2000) as twin:  # fmt: skip
-            for name, shift in shifts_s.items():
-                ex = TimedExecutor(drv, model, compensate=shift is not None,
-                                   stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
-                ex.connect()
-                for _ in range(int(previous_welds) + 1):
-                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
-                last: Any = ex.last_state
-                # Driver controller time counts from its first IPOC; the twin's from its start.
-                offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s
-                out[name] = run.with_truth(twin.t0_host_s + offset)
+    for i, (name, shift) in enumerate(shifts_s.items()):
+        truth = None if truth_dir is None else os.path.join(truth_dir, f"rsi-truth-{i}.jsonl")
+        with KukaRSIDriver(rsi_port or 0, robot=spec.name) as drv, RSITwin(
+            drv.port, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
+            timeout_packets=2000,
+        ) as twin:  # fmt: skip
+            ex = TimedExecutor(drv, model, compensate=shift is not None,
+                               stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
+            ex.connect()
+            for _ in range(int(previous_welds) + 1):
+                run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
+                                          shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+            last: Any = ex.last_state
+            # Driver controller time counts from its first IPOC; the twin's from its start.
+            offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s
+            out[name] = run.with_truth(twin.t0_host_s + offset)
     return out
