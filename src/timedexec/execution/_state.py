@@ -140,10 +140,10 @@ class StateTracker:
     jitter : StreamJitter
         The stream's recent gaps and lateness (gaps up to ``max_gap_s``, s).
     intake : IntakeFix or None
-        The controller's probed command deadline: packages are then dated at the cycle
-        boundary they were sampled at (:meth:`IntakeFix.sampled_s`, once
-        :meth:`IntakeFix.dated`), not by
-        ``response_s`` alone, which carries the publisher's phase.
+        The controller's probed command deadline, dated (:meth:`IntakeFix.dated`):
+        packages are then dated at the cycle boundary they were sampled at
+        (:meth:`IntakeFix.sampled_s`), not by ``response_s``, which carries the
+        publisher's phase.
     """
 
     def __init__(
