@@ -371,8 +371,9 @@ def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
     that very run's reported positions, dated by the probed intake, a second weld (a second
     twin) is within 1 mm (seven pairs: 0.28-0.37 mm; simulator 0.3-0.5 mm per run) and at
     least 5x better (18-23x), and no joint's lag changed between the two welds by 2 ms or
-    more (at most 0.57 ms). With one previous weld before each (``previous_welds=1``,
-    three pairs): 0.44-0.47 mm, at most 1.2 ms (joint 4, which reverses in the cruise).
+    more (at most 0.57 ms). With one previous weld before each (``previous_welds=1``, three
+    pairs, before the rest wait of track_conveyor_seam): 0.44-0.47 mm, at most 1.2 ms
+    (joint 4, which reverses in the cruise).
 
     History: answering each package at once, the twin's package leaving 7.3-7.5 ms into its
     8 ms cycle put the commands at the boundary (lag changes up to 15 ms between welds; the

@@ -86,15 +86,15 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-#: Seed offsets so that evaluated runs, oracle draws and calibration never share a phase.
 #: Parts welded before each measured weld by default (:func:`run_weld`,
-#: :func:`weld_on_twin`, :func:`evaluate_conveyor`): none, every weld from a fresh start.
-#: A joint's velocity loop keeps its integrator at rest, so a weld's lag depends on the
-#: motion before it: the first weld after a start differs from every later one (the
-#: simulated UR10's joints by -1.0 to +2.1 ms, the KR 5's by up to +5 ms), one previous
-#: weld reaches the steady state, and there the lag also depends on the strategy the
-#: previous part was welded with (docs/welding.md, "Weld after weld").
+#: :func:`weld_on_twin`, :func:`evaluate_conveyor`): none, every weld from a fresh start,
+#: so calibration and evaluation share a history. A weld's lag depends on the motions
+#: before it (the velocity loop's integrator is held at rest; the approach ends where
+#: friction lets it): the first weld after a start differs from later ones by up to
+#: 2.4 ms (UR10) and 5.5 ms (the KR 5's reversing joints); docs/welding.md, "Weld after
+#: weld", for what ``previous_welds`` > 0 gives and why it is not yet trustworthy.
 PREVIOUS_WELDS = 0
+#: Seed offsets so that evaluated runs, oracle draws and calibration never share a phase.
 _ORACLE_SEED = 5_000
 _CAL_SEED = 9_000
 #: Warm robot time for the onset oracle and calibration trials (4 h into a sweep), s.

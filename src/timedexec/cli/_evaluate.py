@@ -117,7 +117,7 @@ def add_parser(sub: Any) -> None:
         type=int_arg(0),
         default=0,
         help="--task conveyor: parts welded the same way before each measured weld (0: every "
-        "weld from a fresh start; 1 reaches the steady state of weld after weld)",
+        'weld from a fresh start; > 0: experimental, docs/welding.md "Weld after weld")',
     )
     add_scheduler(p, what="the evaluation (as one task)")
     add_quiet(p)

@@ -41,7 +41,7 @@ from timedexec.execution._cycle import IntakeFix
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._log import ExecutionResult
 from timedexec.execution._plan import JointPlan
-from timedexec.execution._safety import REST_SPEED_RAD_S
+from timedexec.execution._safety import REST_PACKAGES, REST_SPEED_RAD_S
 
 __all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
 
@@ -263,6 +263,16 @@ def prepare_shifted(
     return out
 
 
+def _wait_for_rest(executor: TimedExecutor, timeout_s: float = 2.0) -> None:
+    """Read packages until :data:`REST_PACKAGES` in a row report every joint below
+    :data:`REST_SPEED_RAD_S` (or ``timeout_s`` passes: the approach then starts anyway)."""
+    give_up = executor.now() + timeout_s
+    still = 0
+    while still < REST_PACKAGES and executor.now() < give_up:
+        state = executor.step()
+        still = still + 1 if float(np.max(np.abs(state.qd))) < REST_SPEED_RAD_S else 0
+
+
 def track_conveyor_seam(
     executor: TimedExecutor,
     cell: WeldCell,
@@ -321,10 +331,9 @@ def track_conveyor_seam(
         )
     # A previous motion may still be running out (its plan ended, the controller's
     # pipeline has not: a KR 5's is 72 ms): a speed stream cannot correct where the arm
-    # ends up, so wait for rest before planning from its position.
-    last = executor.last_state
-    if last is not None and float(np.max(np.abs(last.qd))) > REST_SPEED_RAD_S:
-        executor.stop()
+    # ends up, so wait (reading, not commanding: a stop command would still be braking
+    # when the approach's first commands arrive) until it is at rest.
+    _wait_for_rest(executor)
     # Go to the approach's start (at rest), then let the state settle.
     q_now = executor.estimate().q_rad
     if np.max(np.abs(q_now - sp.plan.q_start_rad)) > 1e-4:
