@@ -127,9 +127,8 @@ def sampling_times_s(run: Any, *, response_s: float | None = None) -> FloatArray
     """
     fix = getattr(run, "intake", None)
     if fix is not None and np.isfinite(fix.sample_offset_s) and response_s is None:
-        rate = float(getattr(run, "clock_rate", 0.0))
-        t = np.asarray(run.controller_s, dtype=float) + fix.sample_offset_s
-        return np.asarray(t + rate * (t - fix.probed_at_s))
+        stamps = np.asarray(run.controller_s, dtype=float)
+        return np.asarray(fix.sampled_s(stamps, float(getattr(run, "clock_rate", 0.0))))  # type: ignore[arg-type]
     resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
     return np.asarray(run.host_s, dtype=float) - resp
 
