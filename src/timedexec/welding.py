@@ -545,9 +545,9 @@ def weld_on_twin(
     compensation), a fresh twin (same ``seed``) for each, started where the weld ends:
     every weld begins with the move to the approach's start, and the measured one follows
     ``previous_welds`` of the same strategy, as in :func:`run_weld` (a weld's lag depends
-    on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles are the twin's physical angles at each
-    package's sampling instant, and the twin publishes the host time of its controller time
-    0 (:meth:`ConveyorRun.with_truth`).
+    on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles
+    are the twin's physical angles at each package's sampling instant, and the twin
+    publishes the host time of its controller time 0 (:meth:`ConveyorRun.with_truth`).
 
     ``stale_periods`` is generous (25 periods) because the executor, ur_rtde's receive
     thread and the twin share a loaded two-core machine; a stale fault stops the weld.
