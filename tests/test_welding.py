@@ -28,7 +28,7 @@ from timedexec.execution import (
     track_conveyor_seam,
 )
 from timedexec.robots import forward_kinematics, get_robot, solve_ik, tool_jacobian, tool_pose
-from timedexec.welding import evaluate_conveyor, phase_seeds, physical_tracking_delays
+from timedexec.welding import evaluate_conveyor, phase_seeds, physical_tracking_delays, run_weld
 
 TOOL = (0.0, 0.0, 0.15)
 
@@ -309,14 +309,19 @@ def test_prepare_shifted_checks_the_shift(kr5_plan) -> None:  # type: ignore[no-
         assert np.all(prepare_shifted(ex, kr5_plan.plan, [0.08] * 6).meta["actuation_s"] == 0)
 
 
-def test_evaluate_conveyor_refuses_bad_input() -> None:
-    """Counts, seam and speed are checked before any simulation."""
+def test_evaluate_conveyor_refuses_bad_input(kr5_plan) -> None:  # type: ignore[no-untyped-def]
+    """Counts, seam and speed are checked before any simulation; a negative count of
+    previous welds is a ConfigError naming it (it was an UnboundLocalError)."""
     with pytest.raises(ConfigError, match="straight, curved"):
         evaluate_conveyor("kr5", seam="wavy")
     with pytest.raises(ConfigError, match="cells=0"):
         evaluate_conveyor("kr5", cells=0)
     with pytest.raises(ConfigError, match="speed > 0"):
         evaluate_conveyor("kr5", speed_m_s=-1.0)
+    with pytest.raises(ConfigError, match="previous_welds=-1"):
+        evaluate_conveyor("kr5", previous_welds=-1)
+    with pytest.raises(ConfigError, match="previous_welds=-1"):
+        run_weld(kr5_plan, "kr5-sim", seed=1, previous_welds=-1)
     with TimedExecutor(SimDriver("ur10"), "ur10-sim") as ex, pytest.raises(ConfigError, match="for 'kr5'"):  # fmt: skip
         track_conveyor_seam(ex, default_cell("kr5"))
 

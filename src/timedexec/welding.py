@@ -152,6 +152,35 @@ def conveyor_cells(
     return cells
 
 
+def _weld_in_turn(
+    ex: TimedExecutor,
+    seam_plan: SeamPlan,
+    shift_s: Any,
+    settle_s: float,
+    cruise_s: float,
+    previous_welds: int,
+) -> ConveyorRun:
+    """``previous_welds`` welds of ``seam_plan`` through ``ex`` (not measured), then the one
+    returned.
+
+    Raises
+    ------
+    ConfigError
+        ``previous_welds`` is not an integer >= 0.
+    """
+    if (
+        isinstance(previous_welds, bool)
+        or not isinstance(previous_welds, int | np.integer)
+        or previous_welds < 0
+    ):
+        raise ConfigError(f"previous_welds={previous_welds!r} must be an integer >= 0")
+    for _ in range(int(previous_welds)):
+        track_conveyor_seam(ex, seam_plan.cell, seam_plan.seam, seam_plan=seam_plan,
+                            shift_s=shift_s, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+    return track_conveyor_seam(ex, seam_plan.cell, seam_plan.seam, seam_plan=seam_plan,
+                               shift_s=shift_s, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+
+
 def run_weld(
     seam_plan: SeamPlan,
     model: Any,
@@ -188,12 +217,7 @@ def run_weld(
         position_gain_1_s=position_gain_1_s,
         cycle_lock=True,
     ) as ex:
-        for _ in range(int(previous_welds) + 1):
-            run = track_conveyor_seam(
-                ex, cell, seam_plan.seam, seam_plan=seam_plan, shift_s=shift_s,
-                settle_s=settle_s, cruise_s=cruise_s,
-            )  # fmt: skip
-        return run
+        return _weld_in_turn(ex, seam_plan, shift_s, settle_s, cruise_s, previous_welds)
 
 
 def physical_tracking_delays(run: ConveyorRun) -> FloatArray:
@@ -574,9 +598,7 @@ def weld_on_twin(
                                      compensate=shift is not None, stale_periods=stale_periods,
                                      stop_deceleration_rad_s2=decel, cycle_lock=True,
                                      coast=True) as ex:  # fmt: skip
-                for _ in range(int(previous_welds) + 1):
-                    run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                              shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+                run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
                 out[name] = run.with_truth(twin.t0_monotonic_s)
         return out
     from timedexec.drivers import KukaRSIDriver
@@ -591,9 +613,7 @@ def weld_on_twin(
             ex = TimedExecutor(drv, model, compensate=shift is not None,
                                stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
             ex.connect()
-            for _ in range(int(previous_welds) + 1):
-                run = track_conveyor_seam(ex, cell, seam_plan.seam, seam_plan=seam_plan,
-                                          shift_s=shift, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+            run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
             last: Any = ex.last_state
             # Driver controller time counts from its first IPOC; the twin's from its start.
             offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s
