@@ -17,11 +17,14 @@ from timedexec.errors import ConfigError
 from timedexec.execution import (
     Conveyor,
     FixedDelays,
+    FrictionFeed,
     Seam,
     TimedExecutor,
     TrackingDelays,
     default_cell,
+    fit_dead_time_and_friction,
     fit_joint_lags,
+    friction_sign,
     measure_tracking_delays,
     plan_seam,
     prepare_shifted,
@@ -214,6 +217,67 @@ def test_fit_joint_lags_recovers_a_known_lag(kr5_plan) -> None:  # type: ignore[
         fit_joint_lags(plan, t[:2], q[:2])
 
 
+def test_dead_time_and_friction_recovered_from_cruising_positions(kr5_plan) -> None:  # type: ignore[no-untyped-def]
+    """Positions that trail the plan by a dead time and a per-direction friction offset
+    (q = plan(t - D) - e± * sign(v)) give all back to 1 µs / 1 µrad from two runs with
+    different shifts (joints 2 and 3 reverse in this cruise: both offsets; the others get
+    their one direction's for both); an offset fitted negative (positions *ahead* by e)
+    is held at 0; bad input names the fix."""
+    dead = np.array([0.078, 0.076, 0.077, 0.075, 0.076, 0.078])
+    fric = np.array([[0.0, 0.0009, 0.001, 0.0011, 0.0012, 0.0], [0.0, 0.0018, 0.0006, 0.0011, 0.0012, 0.0]])  # fmt: skip
+
+    def runs(fric):  # type: ignore[no-untyped-def]
+        samples, reverses = [], np.ones(6, bool)
+        for start, shift in ((10.0, np.zeros(6)), (20.0, np.full(6, 0.07))):
+            plan = kr5_plan.plan.at(start)
+            t = start + kr5_plan.sync_s + np.linspace(0.15, 0.75, 60)
+            q = np.empty((len(t), 6))
+            for j in range(6):
+                qp, vp = plan.sample_many(t - start + shift[j] - dead[j])
+                sgn = friction_sign(vp[:, j])
+                q[:, j] = qp[:, j] - np.where(sgn >= 0, fric[0, j], fric[1, j]) * sgn
+                reverses[j] &= np.ptp(np.sign(vp[:, j])) == 2
+            samples.append((plan, t, q, shift))
+        return samples, reverses
+
+    samples, reverses = runs(fric)
+    assert np.flatnonzero(reverses).tolist() == [1, 2]  # the premise: joints 2, 3 reverse
+    d, e = fit_dead_time_and_friction(samples)
+    np.testing.assert_allclose(d, dead, atol=1e-6)
+    np.testing.assert_allclose(e[:, reverses], fric[:, reverses], atol=1e-6)
+    np.testing.assert_allclose(e[0, ~reverses], e[1, ~reverses], atol=1e-12)
+    np.testing.assert_allclose(e[0, ~reverses], fric[0, ~reverses], atol=1e-6)
+    np.testing.assert_allclose(fit_dead_time_and_friction(runs(-fric)[0])[1], 0.0, atol=1e-9)
+    with pytest.raises(ConfigError, match=">= 3 samples"):
+        fit_dead_time_and_friction([(samples[0][0], samples[0][1][:2], samples[0][2][:2], dead)])
+
+
+def test_friction_feed_builds_the_offset_and_keeps_what_the_limits_clipped(kr5_plan) -> None:  # type: ignore[no-untyped-def]
+    """The feed-forward is the plan's speed alone without offsets; with them, the offset
+    sent builds to friction * sign(v) over the plan's first 0.25 s; a cycle whose extra
+    speed a limit removed leaves it owed, and the next command asks for it."""
+    plan, period = kr5_plan.plan.at(0.0), 0.012
+    plain = FrictionFeed(np.zeros(6))
+    t0 = np.full(6, 0.05)
+    np.testing.assert_array_equal(plain.speed(plan, t0, period), plan.velocity_per_joint(t0))
+    fric = np.full(6, 0.001)
+    feed = FrictionFeed(fric)
+    for k in range(40):  # 0.48 s of plan time
+        t = np.full(6, k * period)
+        feed.commanded(feed.speed(plan, t, period), period)
+    v_end = plan.velocity_per_joint(np.full(6, 40 * period))
+    # After the build, the offset sent is the offset due at the last command's end.
+    np.testing.assert_allclose(feed.sent_rad, fric * friction_sign(v_end), atol=2e-5)
+    clipped = FrictionFeed(fric)
+    t = np.full(6, 0.1)
+    v = clipped.speed(plan, t, period)
+    clipped.commanded(plan.velocity_per_joint(t), period)  # the limits removed the extra
+    assert np.all(clipped.sent_rad == 0.0)
+    again = clipped.speed(plan, t + period, period) - plan.velocity_per_joint(t + period)
+    # What is owed now is at least what the clipped cycle asked for (the build goes on).
+    assert np.all(np.abs(again) >= np.abs(v - plan.velocity_per_joint(t)) - 1e-12)
+
+
 def test_tracking_delays_model_and_calibration() -> None:
     """TrackingDelays subtracts the per-joint correction from the base model's onset
     prediction (never below 0) and keeps its response; calibrate takes the per-joint
@@ -233,6 +297,10 @@ def test_tracking_delays_model_and_calibration() -> None:
         TrackingDelays(base=base, correction_s=(0.0,) * 5)
     with pytest.raises(ConfigError, match="one onset and one tracking row"):
         TrackingDelays.calibrate(base, [], [])
+    with pytest.raises(ConfigError, match="at least one calibration run"):
+        TrackingDelays.calibrate_runs(base, [])
+    with pytest.raises(ConfigError, match="offsets >= 0 rad, per direction"):
+        TrackingDelays(base=base, correction_s=(0.0,) * 6, friction_rad=(-0.001,) * 6)
 
 
 def test_uncompensated_weld_trails_and_tracking_shift_puts_the_torch_on_the_seam(

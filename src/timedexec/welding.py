@@ -458,15 +458,14 @@ def evaluate_conveyor(
 
     # Calibration: uncompensated welds at other work points, measured as a real cell would.
     cal_cells = conveyor_cells(spec.name, calibration_runs + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
-    onsets, tracks = [], []
-    for i, cell in enumerate(cal_cells):
-        run = weld(plan_for(cell), seed + _CAL_SEED + i, compensate=False)
-        onsets.append(np.asarray(run.plan.meta["predicted_actuation_s"]))
-        tracks.append(measure_tracking_delays(run))
-    tracks_arr = np.asarray(tracks)
+    cal_runs = [
+        weld(plan_for(cell), seed + _CAL_SEED + i, compensate=False)
+        for i, cell in enumerate(cal_cells)
+    ]
+    tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
     constant = float(np.median(tracks_arr))
     median = np.median(tracks_arr, axis=0)
-    tracking_model = TrackingDelays.calibrate(predictor, onsets, tracks)
+    tracking_model = TrackingDelays.calibrate_runs(predictor, cal_runs)
     if onset:
         on_all, on_joint, _ = _onset_medians(spec.name, 40, seed + _CAL_SEED, effects)
         onset_oracle = SimulatedOracle(spec.name, draws=20, t_start_s=_WARM_S, effects=effects, seed=seed + 77)  # fmt: skip
@@ -526,6 +525,10 @@ def evaluate_conveyor(
             "constant": constant * 1e3,
             "median": (median * 1e3).round(3).tolist(),
             "model_correction": (np.asarray(tracking_model.correction_s) * 1e3).round(3).tolist(),
+            "model_dead_time": (np.asarray(tracking_model.measured_s) * 1e3).round(3).tolist(),
+            "model_friction_mrad": (np.asarray(tracking_model.friction_rad) * 1e3)
+            .round(4)
+            .tolist(),
             "oracle": (np.mean(oracle_shifts, axis=0) * 1e3).round(3).tolist(),
             "calibration_measured": (tracks_arr * 1e3).round(3).tolist(),
         },

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from timedexec.errors import StaleStateError, UnreachableError
 from timedexec.execution._bounds import TimingBounds, delay_cdf, delay_quantile
+from timedexec.execution._command import FRICTION_SPEED_RAD_S, FrictionFeed, friction_sign
 from timedexec.execution._conveyor import (
     SEAM_KINDS,
     Conveyor,
@@ -64,6 +65,7 @@ from timedexec.execution._tasks import (
 from timedexec.execution._timing import MeetPlan
 from timedexec.execution._tracking import (
     TrackingDelays,
+    fit_dead_time_and_friction,
     fit_joint_lags,
     measure_tracking_delays,
     sampling_times_s,
@@ -80,6 +82,7 @@ __all__ = [
     "COMMAND_UPLINK_S",
     "DEFAULT_ROUND_TRIP_S",
     "DEFAULT_WATCHDOG_TIMEOUT_S",
+    "FRICTION_SPEED_RAD_S",
     "REST_PACKAGES",
     "REST_SPEED_RAD_S",
     "SEAM_KINDS",
@@ -94,6 +97,7 @@ __all__ = [
     "ExecutionLimits",
     "ExecutionResult",
     "FixedDelays",
+    "FrictionFeed",
     "IntakeFix",
     "InterceptResult",
     "JointPlan",
@@ -120,7 +124,9 @@ __all__ = [
     "delay_cdf",
     "delay_quantile",
     "find_intake_step",
+    "fit_dead_time_and_friction",
     "fit_joint_lags",
+    "friction_sign",
     "intake_echo",
     "intercept",
     "load_delay_model",

@@ -38,7 +38,12 @@ from timedexec._realtime import GcPauses, fast_wakeup, quiet_gc, realtime
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, StaleStateError
 from timedexec.execution._bounds import TimingBounds, check_confidence
-from timedexec.execution._command import SmithPredictor, limit_command, ramp_acceleration
+from timedexec.execution._command import (
+    FrictionFeed,
+    SmithPredictor,
+    limit_command,
+    ramp_acceleration,
+)
 from timedexec.execution._cycle import DEFAULT_ROUND_TRIP_S, IntakeFix, SendPhase, wait_until
 from timedexec.execution._intake import probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult
@@ -100,14 +105,11 @@ class TimedExecutor:
         stream's measured jitter, ``StalenessLimits()``: stall limit ``min(0.08 s, max(0.05
         s, 2 x p99 of the recent gaps))``, the same for lateness). A fault stops the robot
         at once and raises :class:`~timedexec.errors.StaleStateError`.
-    stale_periods : float, optional
-        Legacy (deprecated in favour of ``staleness``): fixed limits instead of adaptive
-        ones, in controller periods (>= 1), the default of both below.
-    stall_periods : float, optional
-        Legacy: while streaming, no package for this many periods is a fault.
-    late_periods : float, optional
-        Legacy: a package arriving this many periods later than the fastest packages
-        (lower-envelope clock model) is a fault.
+    stale_periods, stall_periods, late_periods : float, optional
+        Legacy (deprecated in favour of ``staleness``): fixed limits in controller periods
+        (>= 1): ``stale_periods`` the default of the other two; while streaming, no package
+        for ``stall_periods``, or one ``late_periods`` later than the fastest packages
+        (lower-envelope clock model), is a fault.
     watchdog_timeout_s : float or None
         Arm the controller's watchdog with this timeout on connect, s (default 0.1; None:
         do not arm). The controller stops the program, and so the arm, when no command or
@@ -145,8 +147,7 @@ class TimedExecutor:
         ur_rtde's ``initPeriod``/``waitPeriod`` pattern missed 1.8-6.1 % (independent UR
         peer and UR10e twin; not yet a real controller or RSI; docs/execution.md).
     round_trip_s : float
-        Shortest boundary-to-package-arrival-to-command-arrival time, s (default
-        0.4 ms, the loopback twin's); used by ``cycle_lock``.
+        Shortest boundary-to-package-to-command-arrival time, s (0.4 ms: the loopback twin's).
     realtime_priority : int, optional
         SCHED_FIFO priority for the calling thread while connected (and the driver's
         threads it starts, which inherit it), where the OS allows it (Linux, root or
@@ -175,11 +176,9 @@ class TimedExecutor:
         ``max_s``). Everything alive at connect is frozen (``gc.freeze``) until close, so a
         collection only walks what the loop made since.
     fast_wakeup : bool
-        With a real-time driver: whether the OS keeps the CPUs out of deep idle states while
-        connected (Linux PM QoS ``/dev/cpu_dma_latency`` held at 0 µs; root or a udev rule
-        granting the file). Without it an idle machine wakes the loop late: the executor's
-        2 ms wait was 0.3-3.7 ms late at p99 on a quiet VM, 0.003-0.23 ms with it
-        (``benchmarks/bench_wakeup_latency.py``).
+        With a real-time driver: whether the CPUs are kept out of deep idle states while
+        connected (``/dev/cpu_dma_latency`` held at 0 µs: root or a udev rule). Without it
+        a 2 ms wait woke 0.3-3.7 ms late at p99 on a quiet VM, 0.003-0.23 ms with it.
 
     Examples
     --------
@@ -243,9 +242,8 @@ class TimedExecutor:
         self._correction = SmithPredictor()
         self._plan: JointPlan | None = None
         self._last_plan: JointPlan | None = None
-        self._tau = np.zeros(6)
-        self._tau_std = np.zeros(6)
-        self._v_prev = np.zeros(6)
+        self._tau = self._tau_std = self._v_prev = np.zeros(6)
+        self._feed = FrictionFeed(np.zeros(6))
         self._fault: str | None = None
         self._streaming_since = -math.inf
         self._last_send_s = math.nan
@@ -258,9 +256,8 @@ class TimedExecutor:
         self.send_phase: SendPhase | None = None
         self.intake_error: str | None = None
         self.realtime_priority = realtime_priority
-        self.realtime = False
+        self.realtime = self.fast_wakeup = False
         self.gc_pauses: GcPauses | None = None
-        self.fast_wakeup = False
         self._rt = ExitStack()
         self.coasted = 0
         self.log = CycleLog()
@@ -573,6 +570,7 @@ class TimedExecutor:
             self._streaming_since = self.now()
         if p is not self._plan:
             self._correction.clear()
+            self._feed = FrictionFeed(p.meta.get("friction_rad", np.zeros(6)))
         self._plan = p
         self._last_plan = p
         self._tau = np.asarray(p.meta["actuation_s"], float)
@@ -701,8 +699,8 @@ class TimedExecutor:
         correcting = False
         if plan is not None:
             # Joint j gets the plan's speed where its command acts: tau_j plus the ramp later.
-            feed_forward = plan.velocity_per_joint(now - plan.start_time_s + self._tau + period)
-            target = feed_forward
+            t_act = now - plan.start_time_s + self._tau + period
+            target = feed_forward = self._feed.speed(plan, t_act, period)
             sample = self._state.sample
             if self.position_gain_1_s > 0 and sample is not None:
                 correcting = True
@@ -721,6 +719,8 @@ class TimedExecutor:
             limits=self.limits,
             period_s=period,
         )
+        if plan is not None:  # what a limit clipped is owed once: to the correction if any
+            self._feed.commanded(feed_forward if correcting else v, period)
         clipped = bool(np.any(np.abs(v - target) > 1e-12))
         if clipped:
             self.clip_count += 1

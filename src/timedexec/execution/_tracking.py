@@ -47,6 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
+from timedexec.execution._command import friction_sign
 from timedexec.execution._model import (
     DelayPredictions,
     DelayPredictor,
@@ -55,7 +56,13 @@ from timedexec.execution._model import (
 )
 from timedexec.execution._plan import JointPlan
 
-__all__ = ["TrackingDelays", "fit_joint_lags", "measure_tracking_delays", "sampling_times_s"]
+__all__ = [
+    "TrackingDelays",
+    "fit_dead_time_and_friction",
+    "fit_joint_lags",
+    "measure_tracking_delays",
+    "sampling_times_s",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -114,6 +121,83 @@ def fit_joint_lags(
         step = np.where(ok, np.sum((q_p - q) * v_p, axis=0) / np.where(ok, den, 1.0), 0.0)
         lag = lag + step
     return np.where(den > 1e-12, lag, np.nan)
+
+
+def fit_dead_time_and_friction(
+    samples: Sequence[tuple[JointPlan, ArrayLike, ArrayLike, ArrayLike]],
+    *,
+    iterations: int = 6,
+) -> tuple[FloatArray, FloatArray]:
+    """Per joint, the dead time ``D`` (s) and the friction offsets ``e+``, ``e-`` (rad,
+    >= 0; moving in the positive and in the negative direction) that best explain cruising
+    positions over one or more runs: ``q(t) ≈ plan(t + s - D) - e± · friction_sign(v)``,
+    ``s`` the shift the run's commands carried.
+
+    A joint that trails its command by a position (kinetic friction over the velocity
+    loop's integral gain; gravity makes it differ with the direction) keeps a time lag
+    ``D + e / |v|``: one constant shift fits it at one speed only. Gauss-Newton on ``D``
+    and the offsets pooled over the runs, from ``e = 0``. An offset fitted negative
+    (speeds too alike to tell it from the dead time) is held at 0 and the rest refitted; a
+    direction no run moves in gets the other direction's offset.
+
+    Parameters
+    ----------
+    samples : sequence of (plan, times_s (n,), q_rad (n, 6), shift_s (6,))
+        Per run: the scheduled plan, the instants the positions describe (host time, s),
+        the joint positions (rad) and the command shifts that ran (s).
+
+    Returns
+    -------
+    (ndarray (6,), ndarray (2, 6))
+        Dead time (s) per joint; friction offset (rad) per direction (row 0: positive,
+        row 1: negative) and joint. NaN for a joint no run moves.
+    """
+    runs = [
+        (
+            plan,
+            np.asarray(t, dtype=float).reshape(-1) - plan.start_time_s,
+            np.asarray(q, dtype=float).reshape(-1, 6),
+            np.asarray(shift, dtype=float).reshape(6),
+        )
+        for plan, t, q, shift in samples
+    ]
+    if not runs or any(len(tp) < 3 or len(tp) != len(q) for _, tp, q, _ in runs):
+        raise ConfigError("fit_dead_time_and_friction needs runs of >= 3 samples, one time each")
+    dead, fric = np.full(6, np.nan), np.full((2, 6), np.nan)
+    for j in range(6):
+
+        def columns(d: float, e: FloatArray, j: int = j) -> tuple[FloatArray, FloatArray]:
+            """Residual (n,) and the derivatives of the fit by D, e+, e- (n, 3)."""
+            res, cols = [], []
+            for plan, tp, q, shift in runs:
+                qp, vp = plan.sample_many(tp + shift[j] - d)
+                sgn = friction_sign(vp[:, j])
+                split = np.c_[np.maximum(sgn, 0.0), np.minimum(sgn, 0.0)]
+                res.append(q[:, j] - qp[:, j] + split @ e)
+                cols.append(np.c_[-vp[:, j], -split])
+            return np.concatenate(res), np.concatenate(cols)
+
+        _, a0 = columns(float(np.median([shift[j] for *_, shift in runs])), np.zeros(2))
+        if float(a0[:, 0] @ a0[:, 0]) < 1e-12:
+            continue  # no run moves this joint
+        # A direction moved in for less than 1 % of the samples cannot be fitted.
+        seen = np.abs(a0[:, 1:]).sum(axis=0) >= 0.01 * len(a0)
+        free = seen.copy()
+        while True:
+            d, e = float(np.median([shift[j] for *_, shift in runs])), np.zeros(2)
+            for _ in range(int(iterations)):
+                res, a = columns(d, e)
+                keep = np.r_[True, free]
+                step = np.linalg.lstsq(a[:, keep], res, rcond=None)[0]
+                d += float(step[0])
+                e[free] += step[1:]
+            if np.all(e >= 0):
+                break
+            free &= e >= 0  # hold a negative offset at 0 and refit the rest
+        if seen.sum() == 1:
+            e[~seen] = e[seen]
+        dead[j], fric[:, j] = d, e
+    return dead, fric
 
 
 def sampling_times_s(run: Any, *, response_s: float | None = None) -> FloatArray:
@@ -176,14 +260,30 @@ class TrackingDelays:
     measured_s : 6 floats, optional
         Measured tracking delay per joint, s: used for the joints the base does not cover
         (without it, those get the covered joints' mean prediction minus their correction).
+    friction_rad : 2 x 6 floats, optional
+        Friction offset per direction (positive, negative) and joint, rad (>= 0; 6 floats:
+        the same both ways): the position a cruising joint trails its command by beyond the
+        dead time (:func:`fit_dead_time_and_friction`). The executor adds it to each joint's
+        command stream (:class:`~timedexec.execution.FrictionFeed`); with it,
+        ``correction_s`` is onset minus *dead time* (:meth:`calibrate_runs`).
     """
 
     base: Any
     correction_s: tuple[float, ...]
     measured_s: tuple[float, ...] | None = None
+    friction_rad: tuple[tuple[float, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
+        if self.friction_rad is not None:
+            f = np.asarray(self.friction_rad, dtype=float)
+            if f.shape not in ((6,), (2, 6)) or not np.all(f >= 0):  # NaN fails too
+                raise ConfigError(
+                    f"TrackingDelays.friction_rad={self.friction_rad!r} must be 2 x 6 (or 6) "
+                    "offsets >= 0 rad, per direction (positive, negative) and joint"
+                )
+            rows = np.broadcast_to(f, (2, 6))
+            object.__setattr__(self, "friction_rad", tuple(tuple(map(float, r)) for r in rows))
         for name in ("correction_s", "measured_s"):
             value = getattr(self, name)
             if value is None:
@@ -283,4 +383,43 @@ class TrackingDelays:
             base=base,
             correction_s=tuple(float(x) for x in corr),
             measured_s=tuple(float(x) for x in measured),
+        )
+
+    @classmethod
+    def calibrate_runs(cls, base: DelayPredictor | Any, runs: Sequence[Any]) -> TrackingDelays:
+        """Dead time and friction offset per joint from calibration runs (uncompensated or
+        shifted tracking runs, e.g. welds): the pooled fit of
+        :func:`fit_dead_time_and_friction` over each run's cruise, the positions at their
+        sampling instants (:func:`sampling_times_s`); ``correction_s`` is the per-joint
+        median of (the run's onset prediction - dead time).
+
+        Raises
+        ------
+        ConfigError
+            No run, or a run that carried friction offsets (its positions would need them
+            undone).
+        """
+        if not runs:
+            raise ConfigError("calibrate_runs needs at least one calibration run")
+        samples = []
+        for run in runs:
+            if np.any(np.asarray(run.plan.meta.get("friction_rad", 0.0)) != 0):
+                raise ConfigError(
+                    "calibrate_runs takes runs without friction offsets (compensate=False, or "
+                    "an explicit shift_s); this one ran a model's offsets"
+                )
+            t = sampling_times_s(run)
+            since = t - run.sync_time_s
+            keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
+            samples.append((run.plan, t[keep], run.reported_q[keep], run.shifts_s))
+        dead, fric = fit_dead_time_and_friction(samples)
+        onset = np.array([run.plan.meta["predicted_actuation_s"] for run in runs], dtype=float)
+        corr = np.median(onset - dead, axis=0)
+        fallback = float(np.nanmedian(corr)) if np.isfinite(corr).any() else 0.0
+        dead_all = float(np.nanmedian(dead)) if np.isfinite(dead).any() else 0.0
+        return cls(
+            base=base,
+            correction_s=tuple(float(x) for x in np.where(np.isfinite(corr), corr, fallback)),
+            measured_s=tuple(float(x) for x in np.where(np.isfinite(dead), dead, dead_all)),
+            friction_rad=np.where(np.isfinite(fric), fric, 0.0),  # type: ignore[arg-type]
         )

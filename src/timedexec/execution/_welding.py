@@ -238,9 +238,14 @@ def prepare_shifted(
 ) -> JointPlan:
     """``plan`` prepared for ``executor`` with per-joint command shifts ``shift_s`` (6,), s.
 
-    None keeps the executor's own shift (the delay model's predicted actuation delay);
-    an executor built with ``compensate=False`` never shifts. The predictions (bounds,
-    response delay) are the executor's either way.
+    None keeps the executor's own shift (the delay model's predicted actuation delay) and,
+    when the model is a tracking model with friction offsets
+    (:class:`~timedexec.execution.TrackingDelays`), carries them on the moving joints
+    (``meta["friction_rad"]``, :class:`~timedexec.execution.FrictionFeed`): a tracking
+    stream only, never a point-to-point move, which the offset would leave off its end
+    (a UR10e's start move ended 6.9 mrad off on joint 1). An executor built with
+    ``compensate=False`` never shifts. The predictions (bounds, response delay) are the
+    executor's either way.
 
     Raises
     ------
@@ -248,15 +253,20 @@ def prepare_shifted(
         If ``shift_s`` is not 6 finite shifts >= 0 s.
     """
     prepared = executor.prepare(plan)
-    if shift_s is None or not executor.compensate:
+    if not executor.compensate:
         return prepared
+    out = prepared.at(prepared.start_time_s)
+    if shift_s is None:
+        friction = getattr(executor.model, "friction_rad", None)
+        if friction is not None:
+            out.meta["friction_rad"] = np.where(prepared.meta["moving"], friction, 0.0)
+        return out
     shift = np.asarray(shift_s, dtype=float).reshape(-1)
     if shift.shape != (6,) or not np.all(np.isfinite(shift)) or np.any(shift < 0):
         raise ConfigError(
             f"shift_s={np.asarray(shift_s).tolist()!r} must be 6 finite shifts >= 0 s, one "
             "per joint"
         )
-    out = prepared.at(prepared.start_time_s)
     out.meta["actuation_s"] = np.where(prepared.meta["moving"], shift, 0.0)
     # The onset bounds then describe the shifted stream: the expected onset moves by what
     # the shift leaves of the predicted actuation delay.
