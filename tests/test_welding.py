@@ -278,29 +278,28 @@ def test_friction_feed_builds_the_offset_and_keeps_what_the_limits_clipped(kr5_p
     assert np.all(np.abs(again) >= np.abs(v - plan.velocity_per_joint(t)) - 1e-12)
 
 
-def test_tracking_delays_model_and_calibration() -> None:
-    """TrackingDelays subtracts the per-joint correction from the base model's onset
-    prediction (never below 0) and keeps its response; calibrate takes the per-joint
-    median of onset - tracking; bad input names the fix."""
+def test_tracking_delays_model_answers_dead_times_and_checks_its_input() -> None:
+    """TrackingDelays answers each joint's dead time as the actuation delay (joints 4 and 6,
+    which a sweep of 1, 2, 3, 5 does not cover, too) and keeps the base model's response;
+    its lag at speed v is D + e/|v| per direction; bad input names the fix."""
     base = FixedDelays(robot="kr5", actuation_s=0.090, response_s=0.017)
-    onset = [np.full(6, 0.090)] * 3
-    tracking = [np.full(6, 0.080), np.full(6, 0.081), np.full(6, 0.079)]
-    model = TrackingDelays.calibrate(base, onset, tracking)
-    np.testing.assert_allclose(model.correction_s, 0.010, atol=1e-12)
-    p = model.predict_many([1, 5], [1, -1], np.zeros((2, 6)))
-    np.testing.assert_allclose(p.actuation_mean, 0.080, atol=1e-12)
+    dead = (0.078, 0.079, 0.077, 0.080, 0.081, 0.078)
+    fric = ((0.0, 0.001, 0.001, 0.0, 0.0, 0.0), (0.0, 0.002, 0.001, 0.0, 0.0, 0.0))
+    model = TrackingDelays(base=base, dead_time_s=dead, friction_rad=fric)
+    p = model.predict_many([1, 4, 6], [1, -1, 1], np.zeros((3, 6)))
+    np.testing.assert_allclose(p.actuation_mean, [0.078, 0.080, 0.078], atol=1e-12)
     np.testing.assert_allclose(p.response_mean, 0.017)
     assert model.robot == "kr5"
-    big = TrackingDelays(base=base, correction_s=(1.0,) * 6)
-    assert np.all(big.predict_many([1], [1], np.zeros((1, 6))).actuation_mean == 0.0)
-    with pytest.raises(ConfigError, match="6 finite values"):
-        TrackingDelays(base=base, correction_s=(0.0,) * 5)
-    with pytest.raises(ConfigError, match="one onset and one tracking row"):
-        TrackingDelays.calibrate(base, [], [])
+    assert model.joints == (1, 2, 3, 4, 5, 6)
+    np.testing.assert_allclose(model.tracking_delay_s(2, [0.5, -0.5]), [0.081, 0.083])
+    with pytest.raises(ConfigError, match="6 finite delays >= 0 s"):
+        TrackingDelays(base=base, dead_time_s=(0.08,) * 5)
+    with pytest.raises(ConfigError, match="6 finite delays >= 0 s"):
+        TrackingDelays(base=base, dead_time_s=(-0.01,) * 6)
     with pytest.raises(ConfigError, match="at least one calibration run"):
         TrackingDelays.calibrate_runs(base, [])
     with pytest.raises(ConfigError, match="offsets >= 0 rad, per direction"):
-        TrackingDelays(base=base, correction_s=(0.0,) * 6, friction_rad=(-0.001,) * 6)
+        TrackingDelays(base=base, dead_time_s=dead, friction_rad=(-0.001,) * 6)
 
 
 def test_uncompensated_weld_trails_and_tracking_shift_puts_the_torch_on_the_seam(

@@ -15,9 +15,9 @@ lag a moving arm keeps (:mod:`timedexec.execution._tracking`):
 ``constant``  one latency for all joints: the median of every joint's measured tracking
               delay over the calibration runs (MoveIt Servo's single latency);
 ``median``    per joint, the median over the calibration runs;
-``model``     the learned onset-delay model at the plan's start configuration and
-              directions, minus a per-joint correction (onset - tracking) from the
-              calibration runs (:class:`~timedexec.execution.TrackingDelays`);
+``model``     the tracking model fitted on the calibration runs: a dead time per joint
+              and a friction offset per direction and joint, the offsets added to the
+              command stream (:class:`~timedexec.execution.TrackingDelays`);
 ``oracle``    the true mean tracking delay of each joint *on this very path*: the shift that
               best aligns the physical joint with its command (least squares over the
               cruise), averaged over ``oracle_draws`` runs with fresh publisher phases (none
@@ -524,8 +524,7 @@ def evaluate_conveyor(
         "tracking_ms": {
             "constant": constant * 1e3,
             "median": (median * 1e3).round(3).tolist(),
-            "model_correction": (np.asarray(tracking_model.correction_s) * 1e3).round(3).tolist(),
-            "model_dead_time": (np.asarray(tracking_model.measured_s) * 1e3).round(3).tolist(),
+            "model_dead_time": (np.asarray(tracking_model.dead_time_s) * 1e3).round(3).tolist(),
             "model_friction_mrad": (np.asarray(tracking_model.friction_rad) * 1e3)
             .round(4)
             .tolist(),

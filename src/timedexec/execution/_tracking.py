@@ -31,10 +31,22 @@ ms, within 0.27 ms of the physical one on every joint; dated by ``R^`` 74.0-81.3
 
 The model
 ---------
-:class:`TrackingDelays` turns an onset-delay model into a tracking-delay model: per joint,
-the prediction minus the median difference (onset prediction - measured tracking delay)
-over calibration runs. The pose and direction dependence stay the onset model's; the
-breakaway part is removed per joint.
+A cruising joint trails its command by a dead time ``D`` *and a position* ``e`` (kinetic
+friction over the velocity loop's integral gain; it differs with the direction): its
+time lag ``D + e / |v|`` changes with its speed, so one constant shift per joint fits one
+speed only (the "median" strategy's limit, and the oracle's). :class:`TrackingDelays`
+holds ``D`` per joint and ``e`` per direction and joint, fitted jointly on the cruises of
+calibration runs (:func:`fit_dead_time_and_friction`, :meth:`TrackingDelays.calibrate_runs`);
+the executor shifts each joint's stream by ``D`` and adds ``e * friction_sign(v)`` to it
+(:class:`~timedexec.execution.FrictionFeed`). On the uncompensated UR10 weld the fit
+leaves 0.002-0.004 mrad of joints 1-3, 5 and 6 where the best constant shift leaves
+0.25-0.33 mrad.
+
+Why not from the calibration sweep: its constant-speed phase holds 50 ms, and a KR 5's lag
+settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
+steady); and one sweep speed cannot tell ``D`` from ``e / |v|`` (UR10 joint 2: 19.7 ms at
+0.4 rad/s, 26.0 ms at 0.1 rad/s). Calibration runs of the task (a dry run of the weld at
+other work points) see the speeds the task uses.
 """
 
 from __future__ import annotations
@@ -242,56 +254,54 @@ def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> Flo
 
 @dataclass(frozen=True, kw_only=True)
 class TrackingDelays:
-    """A tracking-delay model: an onset-delay model minus a per-joint correction.
+    """A tracking-delay model: a dead time per joint and a friction offset per direction and
+    joint, fitted on calibration runs (:meth:`calibrate_runs`).
 
-    ``predict_many`` answers as the base model, with ``actuation_mean`` replaced by
-    ``base - correction_s[joint - 1]`` (at least 0): the shift a velocity stream needs
-    once the arm moves. A joint the base model does not cover (a sweep of joints 1, 2, 3,
-    5) gets its own measured tracking delay, ``measured_s`` (the onset model knows nothing
-    of it; its other figures are the mean of the covered joints'). Hand it to
-    :class:`~timedexec.execution.TimedExecutor` for tracking tasks.
+    ``predict_many`` answers as the base (onset) model for the response delay and the
+    uncertainties, with ``actuation_mean`` replaced by the joint's dead time: the shift a
+    velocity stream needs once the arm moves. The friction offsets go into the command
+    stream itself (:func:`~timedexec.execution.prepare_shifted`,
+    :class:`~timedexec.execution.FrictionFeed`). A joint the base model does not cover
+    (a sweep of joints 1, 2, 3, 5) gets the covered joints' mean uncertainty and response.
+    Hand it to :class:`~timedexec.execution.TimedExecutor` for tracking tasks.
+
+    The onset model's pose dependence is not used: it is mostly the breakaway's, which a
+    moving joint does not have; applied to the dead time it cost 0.13 mm at the KR 5's
+    torch and 0.12 mm at the UR10e's (docs/welding.md).
 
     Parameters
     ----------
     base : DelayPredictor
         The onset-delay model (or a bundle path / bundled name).
-    correction_s : 6 floats
-        Onset minus tracking delay per joint, s (:meth:`calibrate`).
-    measured_s : 6 floats, optional
-        Measured tracking delay per joint, s: used for the joints the base does not cover
-        (without it, those get the covered joints' mean prediction minus their correction).
+    dead_time_s : 6 floats
+        Dead time per joint, s (>= 0).
     friction_rad : 2 x 6 floats, optional
         Friction offset per direction (positive, negative) and joint, rad (>= 0; 6 floats:
         the same both ways): the position a cruising joint trails its command by beyond the
-        dead time (:func:`fit_dead_time_and_friction`). The executor adds it to each joint's
-        command stream (:class:`~timedexec.execution.FrictionFeed`); with it,
-        ``correction_s`` is onset minus *dead time* (:meth:`calibrate_runs`).
+        dead time (:func:`fit_dead_time_and_friction`). None: a pure shift.
     """
 
     base: Any
-    correction_s: tuple[float, ...]
-    measured_s: tuple[float, ...] | None = None
+    dead_time_s: tuple[float, ...]
     friction_rad: tuple[tuple[float, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
+        d = np.asarray(self.dead_time_s, dtype=float).reshape(-1)
+        if d.shape != (6,) or not np.all(d >= 0) or not np.all(np.isfinite(d)):
+            raise ConfigError(
+                f"TrackingDelays.dead_time_s={self.dead_time_s!r} needs 6 finite delays >= 0 s"
+            )
+        object.__setattr__(self, "dead_time_s", tuple(map(float, d)))
         if self.friction_rad is not None:
             f = np.asarray(self.friction_rad, dtype=float)
-            if f.shape not in ((6,), (2, 6)) or not np.all(f >= 0):  # NaN fails too
+            if f.shape not in ((6,), (2, 6)) or not np.all(f >= 0) or not np.all(np.isfinite(f)):
                 raise ConfigError(
                     f"TrackingDelays.friction_rad={self.friction_rad!r} must be 2 x 6 (or 6) "
                     "offsets >= 0 rad, per direction (positive, negative) and joint"
                 )
             rows = np.broadcast_to(f, (2, 6))
             object.__setattr__(self, "friction_rad", tuple(tuple(map(float, r)) for r in rows))
-        for name in ("correction_s", "measured_s"):
-            value = getattr(self, name)
-            if value is None:
-                continue
-            c = tuple(float(x) for x in np.asarray(value, dtype=float).reshape(-1))
-            if len(c) != 6 or not all(np.isfinite(c)):
-                raise ConfigError(f"TrackingDelays.{name} needs 6 finite values (s), got {value!r}")
-            object.__setattr__(self, name, c)
 
     @property
     def robot(self) -> str:
@@ -300,14 +310,8 @@ class TrackingDelays:
 
     @property
     def joints(self) -> tuple[int, ...]:
-        """The joints answered: all six with ``measured_s``, else the base model's."""
-        if self.measured_s is not None:
-            return (1, 2, 3, 4, 5, 6)
-        return self._covered
-
-    @property
-    def _covered(self) -> tuple[int, ...]:
-        return tuple(int(j) for j in getattr(self.base, "joints", (1, 2, 3, 5)))
+        """All six: every joint has its dead time."""
+        return (1, 2, 3, 4, 5, 6)
 
     @property
     def controller_period_s(self) -> float:
@@ -315,83 +319,45 @@ class TrackingDelays:
         base = self.base
         return float(getattr(base, "controller_period_s", 0.0) or getattr(base, "period_s", 0.0))
 
+    def tracking_delay_s(self, joint: int, v_rad_s: ArrayLike) -> FloatArray:
+        """The time lag joint ``joint`` keeps at speed ``v_rad_s`` without the friction
+        offsets in its command: ``dead time + e / |v|``, s."""
+        v = np.asarray(v_rad_s, dtype=float)
+        f = np.zeros((2, 6)) if self.friction_rad is None else np.asarray(self.friction_rad)
+        e = np.where(v >= 0, f[0, joint - 1], f[1, joint - 1])
+        with np.errstate(divide="ignore"):
+            return np.asarray(self.dead_time_s[joint - 1] + e / np.abs(v))
+
     def predict_many(self, joint: Any, direction: Any, q: Any) -> DelayPredictions:
-        """The base model's predictions with the tracking correction applied."""
+        """The base model's predictions with the dead time as the actuation delay."""
         j = np.atleast_1d(np.asarray(joint, dtype=np.int64))
         d = np.atleast_1d(np.asarray(direction, dtype=np.int64))
         qq = np.asarray(q, dtype=float).reshape(-1, 6)
         n = max(len(j), len(d), len(qq))
         j, d = np.broadcast_to(j, (n,)), np.broadcast_to(d, (n,))
         qq = np.broadcast_to(qq, (n, 6))
-        covered = np.array(self._covered, dtype=np.int64)
-        inside = np.isin(j, covered) | (self.measured_s is None)
-        names = ("actuation_mean", "actuation_std", "response_mean", "response_std")
+        covered = np.array([int(k) for k in getattr(self.base, "joints", (1, 2, 3, 5))])
+        names = ("actuation_std", "response_mean", "response_std")
         out = {name: np.empty(n) for name in names}
+        inside = np.isin(j, covered)
         if inside.any():
             p = predict_delays(self.base, j[inside], d[inside], qq[inside])
             for name in names:
                 out[name][inside] = getattr(p, name)
-            corr = np.asarray(self.correction_s)[j[inside] - 1]
-            out["actuation_mean"][inside] = np.maximum(p.actuation_mean - corr, 0.0)
         for r in np.flatnonzero(~inside):
             k = len(covered)
             p = predict_delays(self.base, covered, np.full(k, d[r]), np.tile(qq[r], (k, 1)))
             for name in names:
                 out[name][r] = float(np.mean(getattr(p, name)))
-            assert self.measured_s is not None
-            out["actuation_mean"][r] = max(self.measured_s[j[r] - 1], 0.0)
-        return DelayPredictions(**out)
-
-    @classmethod
-    def calibrate(
-        cls,
-        base: DelayPredictor | Any,
-        onset_s: Sequence[ArrayLike],
-        tracking_s: Sequence[ArrayLike],
-    ) -> TrackingDelays:
-        """The per-joint median of ``onset - tracking`` over calibration runs (and of
-        ``tracking``, for the joints the base does not cover).
-
-        Parameters
-        ----------
-        base : DelayPredictor
-            The onset model.
-        onset_s : sequence of (6,)
-            Per run, the base model's onset prediction for the run's plan (its
-            ``plan.meta["predicted_actuation_s"]``), s.
-        tracking_s : sequence of (6,)
-            Per run, the measured tracking delays (:func:`measure_tracking_delays`), s.
-
-        Raises
-        ------
-        ConfigError
-            No run, or runs of different lengths.
-        """
-        on = np.asarray(onset_s, dtype=float).reshape(-1, 6)
-        tr = np.asarray(tracking_s, dtype=float).reshape(-1, 6)
-        if not len(on) or on.shape != tr.shape:
-            raise ConfigError(
-                f"calibrate needs one onset and one tracking row (6 joints) per run, got "
-                f"{on.shape} and {tr.shape}"
-            )
-        diff = on - tr
-        corr = np.nanmedian(diff, axis=0)
-        corr = np.where(np.isfinite(corr), corr, float(np.nanmedian(diff)))
-        measured = np.nanmedian(tr, axis=0)
-        measured = np.where(np.isfinite(measured), measured, float(np.nanmedian(tr)))
-        return cls(
-            base=base,
-            correction_s=tuple(float(x) for x in corr),
-            measured_s=tuple(float(x) for x in measured),
-        )
+        return DelayPredictions(actuation_mean=np.asarray(self.dead_time_s)[j - 1], **out)
 
     @classmethod
     def calibrate_runs(cls, base: DelayPredictor | Any, runs: Sequence[Any]) -> TrackingDelays:
-        """Dead time and friction offset per joint from calibration runs (uncompensated or
-        shifted tracking runs, e.g. welds): the pooled fit of
-        :func:`fit_dead_time_and_friction` over each run's cruise, the positions at their
-        sampling instants (:func:`sampling_times_s`); ``correction_s`` is the per-joint
-        median of (the run's onset prediction - dead time).
+        """Dead time and friction offsets from calibration runs (uncompensated or shifted
+        tracking runs, e.g. welds at other work points): the pooled fit of
+        :func:`fit_dead_time_and_friction` over each run's cruise, the reported positions at
+        their sampling instants (:func:`sampling_times_s`). A joint no run moves gets the
+        median dead time of the others and no offset.
 
         Raises
         ------
@@ -413,13 +379,9 @@ class TrackingDelays:
             keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
             samples.append((run.plan, t[keep], run.reported_q[keep], run.shifts_s))
         dead, fric = fit_dead_time_and_friction(samples)
-        onset = np.array([run.plan.meta["predicted_actuation_s"] for run in runs], dtype=float)
-        corr = np.median(onset - dead, axis=0)
-        fallback = float(np.nanmedian(corr)) if np.isfinite(corr).any() else 0.0
-        dead_all = float(np.nanmedian(dead)) if np.isfinite(dead).any() else 0.0
+        fallback = float(np.nanmedian(dead)) if np.isfinite(dead).any() else 0.0
         return cls(
             base=base,
-            correction_s=tuple(float(x) for x in np.where(np.isfinite(corr), corr, fallback)),
-            measured_s=tuple(float(x) for x in np.where(np.isfinite(dead), dead, dead_all)),
+            dead_time_s=tuple(np.maximum(np.where(np.isfinite(dead), dead, fallback), 0.0)),
             friction_rad=np.where(np.isfinite(fric), fric, 0.0),  # type: ignore[arg-type]
         )
