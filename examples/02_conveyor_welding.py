@@ -9,7 +9,8 @@ torch tip (the simulator's joint angles) against the seam over 0.6 s of cruise:
 * none      - no shift: the torch trails the seam by belt speed x the arm's lag (KR 5 ~4 cm);
 * constant  - one latency for all joints (MoveIt Servo's setting);
 * median    - one per joint (the published baseline);
-* model     - the learned per-joint model, turned into a tracking delay;
+* model     - the tracking model fitted on a calibration weld: a dead time per joint and a
+              friction offset per direction, the offsets added to the command stream;
 * oracle    - the true mean tracking delay of each joint on this path.
 
 With --onset the same welds run shifted by the *onset* delay (what the delay models learn):
@@ -17,7 +18,7 @@ the torch then leads the seam by several millimetres, because a moving arm keeps
 than the time it takes to start (docs/welding.md).
 
 With --twin the same seam is then welded once per strategy, with the shifts of the table's
-first weld, through the real client against the robot's protocol twin in its own process
+first weld (the model with its offsets too), through the real client against the robot's protocol twin in its own process
 (UR: ur_rtde against the UR twin; KR 5: RSI XML against the RSI twin, whose position
 corrections keep a lag of their own), the torch measured from the twin's truth; beside each
 row the simulator's per-run range (one twin weld is one publisher phase).
@@ -74,7 +75,9 @@ def twin_table(result: ConveyorEvaluation, robot: str) -> None:
     the simulator's first weld; the simulator's per-run range beside it."""
     names = [n for n in ("none", "constant", "median", "model", "oracle") if n in result.examples]
     seam_plan = result.examples[names[0]].seam_plan
-    shifts = {n: None if n == "none" else result.examples[n].shifts_s for n in names}
+    # The model compensates by itself (its shifts and friction offsets), the others by shift.
+    shifts: dict[str, object] = {n: result.examples[n].shifts_s for n in names}
+    shifts.update(none=None, model=result.tracking_model)
     runs = weld_on_twin(seam_plan, f"{robot}-sim", shifts)
     client = "RSI XML" if robot == "kr5" else "ur_rtde"
     print(f"\nthrough {client} against the {robot} twin, one weld per strategy (mm):")

@@ -239,6 +239,8 @@ class ConveyorEvaluation:
     onset_strategies: dict[str, dict[str, float]] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
     examples: dict[str, ConveyorRun] = field(default_factory=dict, repr=False)
+    #: The tracking model the "model" strategy ran (fitted on the calibration welds).
+    tracking_model: TrackingDelays | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """``{"robot", "task": "conveyor", "seam", "speed_m_s", "strategies": {name:
@@ -544,7 +546,17 @@ def evaluate_conveyor(
         onset_strategies=onset_rows,
         details=details,
         examples=examples,
+        tracking_model=tracking_model,
     )
+
+
+def _strategy(model: Any, value: Any) -> tuple[Any, Any]:
+    """The model and shift one of :func:`weld_on_twin`'s strategies runs with: a delay
+    model compensates by itself (no shift), anything else is a shift (or None) for
+    ``model``."""
+    if hasattr(value, "predict_many"):
+        return value, None
+    return model, value
 
 
 def weld_on_twin(
@@ -567,8 +579,9 @@ def weld_on_twin(
     the real ``ur_rtde`` client (:class:`~timedexec.drivers.URDriver`); the KR 5: an
     :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
-    weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s, or None for no
-    compensation), a fresh twin (same ``seed``) for each, started where the weld ends:
+    weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s; a delay model that
+    compensates by itself, e.g. a :class:`~timedexec.execution.TrackingDelays` with its
+    friction offsets; or None for no compensation), a fresh twin (same ``seed``) for each, started where the weld ends:
     every weld begins with the move to the approach's start, and the measured one follows
     ``previous_welds`` of the same strategy, as in :func:`run_weld` (a weld's lag depends
     on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles
@@ -592,12 +605,13 @@ def weld_on_twin(
         from timedexec.drivers import URDriver
         from timedexec.twins import URTwin
 
-        for i, (name, shift) in enumerate(shifts_s.items()):
+        for i, (name, value) in enumerate(shifts_s.items()):
             truth = None if truth_dir is None else os.path.join(truth_dir, f"ur-truth-{i}.jsonl")
+            by, shift = _strategy(model, value)
             with URTwin(
                 spec.name, host, seed=seed, effects=effects, q0_rad=q0, truth_path=truth
-            ) as twin, TimedExecutor(URDriver(host, robot=spec.name), model,
-                                     compensate=shift is not None, stale_periods=stale_periods,
+            ) as twin, TimedExecutor(URDriver(host, robot=spec.name), by,
+                                     compensate=value is not None, stale_periods=stale_periods,
                                      stop_deceleration_rad_s2=decel, cycle_lock=True,
                                      coast=True) as ex:  # fmt: skip
                 run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
@@ -606,13 +620,14 @@ def weld_on_twin(
     from timedexec.drivers import KukaRSIDriver
     from timedexec.twins import RSITwin
 
-    for i, (name, shift) in enumerate(shifts_s.items()):
+    for i, (name, value) in enumerate(shifts_s.items()):
         truth = None if truth_dir is None else os.path.join(truth_dir, f"rsi-truth-{i}.jsonl")
+        by, shift = _strategy(model, value)
         with KukaRSIDriver(rsi_port or 0, robot=spec.name) as drv, RSITwin(
             drv.port, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
             timeout_packets=2000,
         ) as twin:  # fmt: skip
-            ex = TimedExecutor(drv, model, compensate=shift is not None,
+            ex = TimedExecutor(drv, by, compensate=value is not None,
                                stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
             ex.connect()
             run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
