@@ -374,6 +374,37 @@ def test_prepare_shifted_checks_the_shift(kr5_plan) -> None:  # type: ignore[no-
     drv = SimDriver("kr5", q0_rad=kr5_plan.plan.q_start_rad)
     with TimedExecutor(drv, FixedDelays(robot="kr5", actuation_s=0.09), compensate=False) as ex:
         assert np.all(prepare_shifted(ex, kr5_plan.plan, [0.08] * 6).meta["actuation_s"] == 0)
+    # A tracking model's friction offsets ride on its own shift only, never on a plain one.
+    fric = ((0.001,) * 6, (0.002,) * 6)
+    model = TrackingDelays(
+        base=FixedDelays(robot="kr5"), dead_time_s=(0.078,) * 6, friction_rad=fric
+    )
+    drv = SimDriver("kr5", q0_rad=kr5_plan.plan.q_start_rad)
+    with TimedExecutor(drv, model) as ex:
+        own = prepare_shifted(ex, kr5_plan.plan)
+        np.testing.assert_allclose(own.meta["actuation_s"], 0.078)
+        np.testing.assert_allclose(own.meta["friction_rad"], fric)
+        assert "friction_rad" not in prepare_shifted(ex, kr5_plan.plan, [0.08] * 6).meta
+        assert "friction_rad" not in ex.prepare(kr5_plan.plan).meta  # a point-to-point move
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("robot", ["kr5", "ur10", "ur10e"])
+def test_tracking_model_beats_the_per_joint_median_and_the_oracle(robot: str) -> None:
+    """The tracking model (dead time + friction offsets, fitted on the calibration welds)
+    puts the physical torch nearer the seam than the per-joint median and than the oracle
+    (the best constant shift per joint): a constant shift fits a joint's lag D + e/|v| at
+    one speed only. Small evaluation (1 work point, 2 phases, 2 calibration welds, one
+    oracle draw; virtual time, so the figures repeat): measured model / median / oracle
+    KR 5 0.22 / 0.31 / 0.30, UR10 0.24 / 0.42 / 0.44, UR10e 0.06 / 0.23 / 0.21 mm. The
+    bound, 0.8x the better of the two, keeps the KR 5's margin (0.70x) with room for
+    another machine's floating point."""
+    ev = evaluate_conveyor(robot, f"{robot}-sim", cells=1, seeds=2, oracle_draws=1,
+                           calibration_runs=2, onset=False, feedback=False)  # fmt: skip
+    mean = {name: s["torch_mean_mm"] for name, s in ev.strategies.items()}
+    assert mean["model"] < 0.8 * min(mean["median"], mean["oracle"]), mean
+    assert ev.tracking_model is not None
+    assert np.all(np.asarray(ev.tracking_model.friction_rad) >= 0)
 
 
 def test_evaluate_conveyor_refuses_bad_input(kr5_plan) -> None:  # type: ignore[no-untyped-def]
@@ -505,7 +536,11 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
       asserted at 0.5 ms;
     * compensated with it on a peer whose package leaves 7 ms into the cycle (another
       phase): within 1 mm (measured 0.22 mm, 37x), every joint's lag within 1 ms of the
-      shift (measured 0.3-0.56 ms)."""
+      shift (measured 0.3-0.56 ms);
+    * the tracking model fitted on the uncompensated weld finds the friction the peer
+      does not have: every offset < 0.2 mrad (measured <= 0.05; our simulator's joints
+      0.3-2.8 mrad), and its weld on the 7 ms peer is within 1 mm (measured 0.13-0.17 mm;
+      the measured shift's 0.09-0.20 mm: the peer's lag moves 0.2-0.4 ms between runs)."""
     pytest.importorskip("rtde_control")
     peer_mod = pytest.importorskip("independent_ur_peer")
     from timedexec.drivers import URDriver
@@ -513,11 +548,12 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     sp = plan_seam(default_cell("ur10"), Seam(), weld_s=0.8)
     q0 = ",".join(f"{x:.9f}" for x in sp.plan.q_end_rad)
 
-    def peer_weld(host: str, publish_delay_s: float, shift=None):  # type: ignore[no-untyped-def]
+    def peer_weld(host: str, publish_delay_s: float, shift=None, model="ur10-sim"):  # type: ignore[no-untyped-def]
         extra = ("--publish-delay", str(publish_delay_s), "--rt-priority", "10", f"--q0={q0}")
+        compensate = shift is not None or model != "ur10-sim"
         with peer_mod.run_peer(host, model="UR10", version="3.15.7", extra_args=extra) as peer:
-            with TimedExecutor(URDriver(host, robot="ur10"), "ur10-sim", cycle_lock=True,
-                               compensate=shift is not None, coast=True, realtime_priority=5,
+            with TimedExecutor(URDriver(host, robot="ur10"), model, cycle_lock=True,
+                               compensate=compensate, coast=True, realtime_priority=5,
                                stale_periods=25) as ex:  # fmt: skip
                 run = track_conveyor_seam(ex, sp.cell, sp.seam, seam_plan=sp, shift_s=shift)
                 end = peer.to_peer_time(ex.now())
@@ -536,3 +572,7 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     comp, phys_comp = peer_weld("127.0.0.152", 0.007, shift)
     assert comp.errors().stats()["torch_mean_mm"] < 1.0
     assert np.all(np.abs(phys_comp - shift) < 1e-3), phys_comp - shift
+    model = TrackingDelays.calibrate_runs("ur10-sim", [none])
+    assert np.all(np.asarray(model.friction_rad) < 2e-4), model.friction_rad
+    by_model, _ = peer_weld("127.0.0.153", 0.007, model=model)
+    assert by_model.errors().stats()["torch_mean_mm"] < 1.0
