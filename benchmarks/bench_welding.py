@@ -22,6 +22,11 @@ a seam not known in advance):
 Wall clock and thread CPU time per cycle and per step (CPU time excludes the time the
 scheduler gives other processes on a shared machine; the load average is printed).
 
+Then the executor's feed-forward on the planned seam (what ``track_conveyor_seam`` runs
+per cycle): the planned speed alone (``velocity_per_joint``) against the tracking model's
+:class:`~timedexec.execution.FrictionFeed` (one more spline sample, the offsets owed), and
+their ratio.
+
 Usage: python benchmarks/bench_welding.py [--robot ur10e] [--cycles 5000] [--ik-tol-um 1]
 """
 
@@ -34,7 +39,7 @@ import time
 
 import numpy as np
 
-from timedexec.execution import Seam, default_cell, load_delay_model, plan_seam
+from timedexec.execution import FrictionFeed, Seam, default_cell, load_delay_model, plan_seam
 from timedexec.robots import solve_ik
 
 
@@ -140,7 +145,28 @@ def main() -> None:
         p99[label] = (float(np.percentile(cpu, 50)), float(np.percentile(cpu, 99)))
     if len(p99) == 2:
         (a50, a99), (b50, b99) = p99.values()
-        print(f"  iterative / closed form, CPU per cycle: p50 {b50 / a50:.2f}x, p99 {b99 / a99:.2f}x")
+        print(
+            f"  iterative / closed form, CPU per cycle: p50 {b50 / a50:.2f}x, p99 {b99 / a99:.2f}x"
+        )
+    feed_forward(sp.plan.at(0.0), period, n)
+
+
+def feed_forward(plan, period: float, n: int) -> None:  # type: ignore[no-untyped-def]
+    """CPU per cycle of the planned speed alone and of the friction feed (same run)."""
+    plain, feed = FrictionFeed(np.zeros(6)), FrictionFeed(np.full((2, 6), 1e-3))
+    times = {}
+    for label, f in (("planned speed", plain), ("friction feed", feed)):
+        cpu = np.empty(n)
+        for i in range(n):
+            t = np.full(6, (i % int(plan.duration_s / period)) * period)
+            c0 = time.thread_time_ns()
+            f.commanded(f.speed(plan, t, period), period)
+            cpu[i] = (time.thread_time_ns() - c0) * 1e-9
+        times[label] = cpu
+        print(f"  feed-forward, {label:<13} CPU  {pct(cpu)}")
+    a, b = times["planned speed"], times["friction feed"]
+    print(f"  friction feed / planned speed, CPU per cycle: p50 "
+          f"{np.median(b) / np.median(a):.2f}x, p99 {np.percentile(b, 99) / np.percentile(a, 99):.2f}x")  # fmt: skip
 
 
 if __name__ == "__main__":
