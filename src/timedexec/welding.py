@@ -581,8 +581,9 @@ def weld_on_twin(
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
     weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s; a delay model that
     compensates by itself, e.g. a :class:`~timedexec.execution.TrackingDelays` with its
-    friction offsets; or None for no compensation), a fresh twin (same ``seed``) for each, started where the weld ends:
-    every weld begins with the move to the approach's start, and the measured one follows
+    friction offsets; or None for no compensation), a fresh twin (same ``seed``) for each,
+    started where the weld ends: every weld begins with the move to the approach's start,
+    and the measured one follows
     ``previous_welds`` of the same strategy, as in :func:`run_weld` (a weld's lag depends
     on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles
     are the twin's physical angles at each package's sampling instant, and the twin

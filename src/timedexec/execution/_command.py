@@ -52,9 +52,10 @@ class FrictionFeed:
     loop's integral gain, ``friction_rad``, a tracking model's) is put on its plan by
     commanding that much further: ``friction_rad[k] * friction_sign(v)`` (``k`` 0 moving
     positive, 1 negative), built over the plan's first :data:`FRICTION_BUILD_S` (a smooth
-    step) and turning over where the joint reverses. What the limits clipped of it is owed, not lost (:meth:`commanded`): a
-    time-optimal approach runs at the acceleration limits, and built at the speed sign's
-    pace the offset asked 8 rad/s² more of a UR10 than they allow.
+    step) and turning over where the joint reverses. What the limits clipped of it is
+    owed, not lost (:meth:`commanded`): a time-optimal approach runs at the acceleration
+    limits, and built at the speed sign's pace the offset asked 8 rad/s² more of a UR10
+    than they allow.
 
     Parameters
     ----------
