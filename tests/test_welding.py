@@ -242,7 +242,8 @@ def test_dead_time_and_friction_recovered_from_cruising_positions(kr5_plan) -> N
 
     samples, reverses = runs(fric)
     assert np.flatnonzero(reverses).tolist() == [1, 2]  # the premise: joints 2, 3 reverse
-    d, e = fit_dead_time_and_friction(samples)
+    d, e, rms = fit_dead_time_and_friction(samples)
+    assert np.all(rms < 1e-8)  # the positions are the model itself
     np.testing.assert_allclose(d, dead, atol=1e-6)
     np.testing.assert_allclose(e[:, reverses], fric[:, reverses], atol=1e-6)
     np.testing.assert_allclose(e[0, ~reverses], e[1, ~reverses], atol=1e-12)

@@ -530,6 +530,7 @@ def evaluate_conveyor(
             "model_friction_mrad": (np.asarray(tracking_model.friction_rad) * 1e3)
             .round(4)
             .tolist(),
+            "model_fit_rms_mrad": (np.asarray(tracking_model.fit_rms_rad) * 1e3).round(4).tolist(),
             "oracle": (np.mean(oracle_shifts, axis=0) * 1e3).round(3).tolist(),
             "calibration_measured": (tracks_arr * 1e3).round(3).tolist(),
         },
