@@ -32,7 +32,10 @@ What it emulates, from UR's public documentation and the control script embedded
 Physics (deliberately unlike a first-order model): per joint a reference velocity, acceleration
 limited to the commanded ``a`` with the leading axis scaling all joints (so a joint-space
 straight line), joint speed limits by the same scaling, and a fixed 3-cycle actuation pipeline
-(actual velocity = reference velocity 3 cycles earlier). A program stop decelerates the
+(actual velocity = reference velocity 3 cycles earlier); with ``--servo-friction F`` the
+actual joint instead follows that delayed reference through a PD position servo (8 Hz,
+damping 0.9) against Coulomb friction ``F`` and viscous friction, sticking where the drive
+cannot overcome static friction (``Arm``). A program stop decelerates the
 reference at ``--stop-decel`` (default 3 rad/s^2, leading axis). The controller clock is a
 fixed-rate loop on absolute ``time.monotonic`` deadlines; timestamps are ``cycles * period``.
 
@@ -469,10 +472,23 @@ class ServoMotion(Motion):
 class Arm:
     """Joint state: reference (target_*) and actual (pipeline-delayed) positions/velocities.
 
-    Positions in rad, velocities in rad/s, ``dt`` in s.
+    Positions in rad, velocities in rad/s, ``dt`` in s. With ``friction`` > 0 (rad/s²,
+    Coulomb friction per unit inertia) the actual joint is not the delayed reference itself
+    but follows it through a servo: a PD *position* loop (stiffness :attr:`SERVO_KP`,
+    damping :attr:`SERVO_KD`) against Coulomb and viscous friction, sticking while the
+    drive cannot overcome static friction, integrated in :attr:`SERVO_SUBSTEPS` steps per
+    cycle. A cruising joint then trails the delayed reference by ``(friction + viscous · v)
+    / SERVO_KP`` (the textbook servo error), and sticks where it reverses.
     """
 
-    def __init__(self, q0: list[float], dt: float, speed_limits: tuple[float, ...]) -> None:
+    SERVO_KP = 2500.0  # 1/s²: 8 Hz
+    SERVO_KD = 90.0  # 1/s: damping ratio 0.9
+    SERVO_VISCOUS = 5.0  # 1/s
+    SERVO_SUBSTEPS = 8
+
+    def __init__(
+        self, q0: list[float], dt: float, speed_limits: tuple[float, ...], friction: float = 0.0
+    ) -> None:
         self.dt = dt
         self.speed_limits = speed_limits
         self.q_ref = list(q0)
@@ -482,6 +498,8 @@ class Arm:
         self.qd = [0.0] * 6
         self.pipe: deque[list[float]] = deque([[0.0] * 6] * PIPELINE_CYCLES)
         self.motion: Motion | None = None
+        self.friction = friction
+        self.q_cmd = list(q0)  # the delayed reference, integrated (servo only)
 
     def step(self) -> None:
         """Advance one controller cycle."""
@@ -490,8 +508,27 @@ class Arm:
         self.qd_ref = qd
         self.q_ref = [q + v * self.dt for q, v in zip(self.q_ref, qd, strict=True)]
         self.pipe.append(qd)
-        self.qd = self.pipe.popleft()
-        self.q = [q + v * self.dt for q, v in zip(self.q, self.qd, strict=True)]
+        qd_cmd = self.pipe.popleft()
+        if self.friction <= 0.0:
+            self.qd = qd_cmd
+            self.q = [q + v * self.dt for q, v in zip(self.q, self.qd, strict=True)]
+            return
+        h = self.dt / self.SERVO_SUBSTEPS
+        fc, fs = self.friction, 1.2 * self.friction
+        for j in range(6):
+            q, v, ref, v_ref = self.q[j], self.qd[j], self.q_cmd[j], qd_cmd[j]
+            for _ in range(self.SERVO_SUBSTEPS):
+                ref += v_ref * h
+                drive = self.SERVO_KP * (ref - q) + self.SERVO_KD * (v_ref - v)
+                if v == 0.0 and abs(drive) <= fs:
+                    continue  # stuck
+                sign = (v > 0.0) - (v < 0.0) or (drive > 0.0) - (drive < 0.0)
+                v_new = v + (drive - fc * sign - self.SERVO_VISCOUS * v) * h
+                if v != 0.0 and v_new * v < 0.0:
+                    v_new = 0.0  # friction stops the joint; it sticks until driven again
+                v = v_new
+                q += v * h
+            self.q[j], self.qd[j], self.q_cmd[j] = q, v, ref
 
     def at_rest(self) -> bool:
         """True when reference and actual velocities and the whole pipeline are zero."""
@@ -1756,6 +1793,13 @@ def main(argv: list[str] | None = None) -> int:
         help="s from script upload to runtime_state PLAYING",
     )
     ap.add_argument(
+        "--servo-friction",
+        type=float,
+        default=0.0,
+        help="Coulomb friction per unit inertia, rad/s^2: the actual joints follow the "
+        "delayed reference through a PD position servo against friction (0: they are it)",
+    )
+    ap.add_argument(
         "--q0",
         default=",".join(str(q) for q in DEFAULT_Q0),
         help="initial joint positions, rad, comma separated",
@@ -1790,6 +1834,9 @@ def main(argv: list[str] | None = None) -> int:
         installed_program=args.external_control_program,
     )
     ctl.rt_priority = args.rt_priority
+    if not 0.0 <= args.servo_friction < 100.0:
+        ap.error(f"--servo-friction {args.servo_friction} outside [0, 100) rad/s^2")
+    ctl.arm.friction = args.servo_friction
     if not 0 <= args.publish_delay < 1.0 / ctl.rate_hz:
         ap.error(f"--publish-delay {args.publish_delay} s outside [0, one period)")
     ctl.publish_delay_s = args.publish_delay

@@ -390,7 +390,7 @@ def test_prepare_shifted_checks_the_shift(kr5_plan) -> None:  # type: ignore[no-
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("robot", ["kr5", "ur10", "ur10e"])
+@pytest.mark.parametrize("robot", full_or_bounded(["kr5", "ur10", "ur10e"], ["kr5"]))
 def test_tracking_model_beats_the_per_joint_median_and_the_oracle(robot: str) -> None:
     """The tracking model (dead time + friction offsets, fitted on the calibration welds)
     puts the physical torch nearer the seam than the per-joint median and than the oracle
@@ -399,7 +399,8 @@ def test_tracking_model_beats_the_per_joint_median_and_the_oracle(robot: str) ->
     oracle draw; virtual time, so the figures repeat): measured model / median / oracle
     KR 5 0.22 / 0.31 / 0.30, UR10 0.24 / 0.42 / 0.44, UR10e 0.06 / 0.23 / 0.21 mm. The
     bound, 0.8x the better of the two, keeps the KR 5's margin (0.70x) with room for
-    another machine's floating point."""
+    another machine's floating point. CI runs the KR 5 (12 s; the three with
+    TIMEDEXEC_FULL_TESTS=1)."""
     ev = evaluate_conveyor(robot, f"{robot}-sim", cells=1, seeds=2, oracle_draws=1,
                            calibration_runs=2, onset=False, feedback=False)  # fmt: skip
     mean = {name: s["torch_mean_mm"] for name, s in ev.strategies.items()}
@@ -521,6 +522,28 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     assert comp.errors().stats()["torch_mean_mm"] < 4.0
 
 
+def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim", extra=()):  # type: ignore[no-untyped-def]
+    """One weld of ``sp`` through ur_rtde against the independent UR peer (CB3, its package
+    ``publish_delay_s`` into the cycle; ``extra``: more peer options), truth from the
+    peer's log: the run and its physical tracking delays."""
+    peer_mod = pytest.importorskip("independent_ur_peer")
+    from timedexec.drivers import URDriver
+
+    q0 = ",".join(f"{x:.9f}" for x in sp.plan.q_end_rad)
+    args = ("--publish-delay", str(publish_delay_s), "--rt-priority", "10", f"--q0={q0}", *extra)
+    compensate = shift is not None or model != "ur10-sim"
+    with peer_mod.run_peer(host, model="UR10", version="3.15.7", extra_args=args) as peer:
+        with TimedExecutor(URDriver(host, robot="ur10"), model, cycle_lock=True,
+                           compensate=compensate, coast=True, realtime_priority=5,
+                           stale_periods=25) as ex:  # fmt: skip
+            run = track_conveyor_seam(ex, sp.cell, sp.seam, seam_plan=sp, shift_s=shift)
+            end = peer.to_peer_time(ex.now())
+        truth = peer.wait_truth_until(end)
+        host_t = np.array(peer.to_host_times(truth.t.tolist()))
+    run = replace(run, truth_s=host_t, truth_q=truth.q, physical=True)
+    return run, physical_tracking_delays(run)
+
+
 @pytest.mark.slow
 def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     """The UR10 weld through the real ur_rtde client against the independent UR peer (CB3,
@@ -538,42 +561,46 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     * compensated with it on a peer whose package leaves 7 ms into the cycle (another
       phase): within 1 mm (measured 0.22 mm, 37x), every joint's lag within 1 ms of the
       shift (measured 0.3-0.56 ms);
-    * the tracking model fitted on the uncompensated weld finds the friction the peer
-      does not have: every offset < 0.2 mrad (measured <= 0.05; our simulator's joints
-      0.3-2.8 mrad), and its weld on the 7 ms peer is within 1 mm (measured 0.13-0.17 mm;
-      the measured shift's 0.09-0.20 mm: the peer's lag moves 0.2-0.4 ms between runs)."""
+    * the tracking model fitted on the uncompensated weld finds no friction, as the peer
+      has none: every offset < 0.2 mrad (measured <= 0.05; our simulator's joints
+      0.3-2.8 mrad). With friction: the next test."""
     pytest.importorskip("rtde_control")
-    peer_mod = pytest.importorskip("independent_ur_peer")
-    from timedexec.drivers import URDriver
-
     sp = plan_seam(default_cell("ur10"), Seam(), weld_s=0.8)
-    q0 = ",".join(f"{x:.9f}" for x in sp.plan.q_end_rad)
-
-    def peer_weld(host: str, publish_delay_s: float, shift=None, model="ur10-sim"):  # type: ignore[no-untyped-def]
-        extra = ("--publish-delay", str(publish_delay_s), "--rt-priority", "10", f"--q0={q0}")
-        compensate = shift is not None or model != "ur10-sim"
-        with peer_mod.run_peer(host, model="UR10", version="3.15.7", extra_args=extra) as peer:
-            with TimedExecutor(URDriver(host, robot="ur10"), model, cycle_lock=True,
-                               compensate=compensate, coast=True, realtime_priority=5,
-                               stale_periods=25) as ex:  # fmt: skip
-                run = track_conveyor_seam(ex, sp.cell, sp.seam, seam_plan=sp, shift_s=shift)
-                end = peer.to_peer_time(ex.now())
-            truth = peer.wait_truth_until(end)
-            host_t = np.array(peer.to_host_times(truth.t.tolist()))
-        run = replace(run, truth_s=host_t, truth_q=truth.q, physical=True)
-        return run, physical_tracking_delays(run)
-
-    none, phys = peer_weld("127.0.0.151", 0.0005)
+    none, phys = peer_weld(sp, "127.0.0.151", 0.0005)
     assert none.intake is not None, "the probe must answer on the peer"
     assert 4.0 < none.errors().stats()["torch_mean_mm"] < 12.0
     shift = measure_tracking_delays(none)
     assert np.all(np.abs(shift - phys) < 4e-4), shift - phys
     by_response = measure_tracking_delays(replace(none, intake=None))
     assert np.all(np.abs(by_response - phys) > 2e-3), by_response - phys
-    comp, phys_comp = peer_weld("127.0.0.152", 0.007, shift)
+    comp, phys_comp = peer_weld(sp, "127.0.0.152", 0.007, shift)
     assert comp.errors().stats()["torch_mean_mm"] < 1.0
     assert np.all(np.abs(phys_comp - shift) < 1e-3), phys_comp - shift
     model = TrackingDelays.calibrate_runs("ur10-sim", [none])
     assert np.all(np.asarray(model.friction_rad) < 2e-4), model.friction_rad
-    by_model, _ = peer_weld("127.0.0.153", 0.007, model=model)
-    assert by_model.errors().stats()["torch_mean_mm"] < 1.0
+
+
+@pytest.mark.slow
+def test_tracking_model_beats_the_measured_shift_on_the_independent_peer_with_friction() -> None:
+    """The accuracy claim on physics it was not built against: the independent UR peer with
+    ``--servo-friction 2.5`` (its actual joints follow the 3-cycle-delayed reference
+    through a PD position servo against Coulomb and viscous friction, sticking where the
+    drive cannot overcome it; our simulator has a PI velocity loop). From one uncompensated
+    weld (package 0.5 ms into the cycle), the tracking model finds the servo's friction
+    offsets (measured 0.66-1.22 mrad; the servo's Coulomb term alone is 1 mrad) and, on
+    another peer start (package 2 ms in), welds nearer the seam than the per-joint shift
+    measured from the same weld (measured 0.12-0.18 against 0.30 mm, two phases). Bounds:
+    offsets between 0.3 and 3 mrad on joints 1-3, 5, 6 (the servo's 1 mrad within the
+    fit's spread); the model below 0.85x the shift's distance and under 1 mm."""
+    pytest.importorskip("rtde_control")
+    sp = plan_seam(default_cell("ur10"), Seam(), weld_s=0.8)
+    friction = ("--servo-friction", "2.5")
+    none, _ = peer_weld(sp, "127.0.0.155", 0.0005, extra=friction)
+    model = TrackingDelays.calibrate_runs("ur10-sim", [none])
+    offsets = np.asarray(model.friction_rad)[:, [0, 1, 2, 4, 5]]
+    assert np.all((offsets > 3e-4) & (offsets < 3e-3)), model.friction_rad
+    shifted, _ = peer_weld(sp, "127.0.0.156", 0.002, measure_tracking_delays(none), extra=friction)
+    by_model, _ = peer_weld(sp, "127.0.0.157", 0.002, model=model, extra=friction)
+    shift_mm = shifted.errors().stats()["torch_mean_mm"]
+    model_mm = by_model.errors().stats()["torch_mean_mm"]
+    assert model_mm < min(1.0, 0.85 * shift_mm), (model_mm, shift_mm)
