@@ -253,6 +253,34 @@ def test_dead_time_and_friction_recovered_from_cruising_positions(kr5_plan) -> N
         fit_dead_time_and_friction([(samples[0][0], samples[0][1][:2], samples[0][2][:2], dead)])
 
 
+def test_calibration_sets_aside_a_run_that_disagrees_and_refuses_two(kr5_plan) -> None:  # type: ignore[no-untyped-def]
+    """Three calibration runs, one of them 20 ms late on every joint (a run that started
+    off, or a disturbed machine): it is set aside with a note naming it and the model is
+    the other two's; two runs that disagree cannot be told apart: ConfigError saying what
+    to do. Runs are stand-ins with what calibrate_runs reads (positions at known
+    instants: no intake, response 0)."""
+    from types import SimpleNamespace
+
+    base = FixedDelays(robot="kr5", response_s=0.0)
+
+    def run(lag_s: float, start: float):  # type: ignore[no-untyped-def]
+        plan = kr5_plan.plan.at(start)
+        plan.meta["response_s"] = 0.0
+        t = start + kr5_plan.sync_s + np.arange(0.0, 0.8, 0.012)
+        q = plan.sample_many(t - start - lag_s)[0]
+        return SimpleNamespace(plan=plan, host_s=t, intake=None, sync_time_s=start + kr5_plan.sync_s,
+                               settle_s=0.15, cruise_s=0.6, reported_q=q, shifts_s=np.zeros(6))  # fmt: skip
+
+    runs = [run(0.078, 10.0), run(0.098, 20.0), run(0.079, 30.0)]
+    model = TrackingDelays.calibrate_runs(base, runs)
+    assert len(model.notes) == 1
+    assert "calibration run 1 set aside" in model.notes[0]
+    # The other two (78 and 79 ms, no offset) pooled: between them on every joint.
+    assert np.all((np.array(model.dead_time_s) > 0.0779) & (np.array(model.dead_time_s) < 0.0791))
+    with pytest.raises(ConfigError, match="at least three calibration runs"):
+        TrackingDelays.calibrate_runs(base, runs[:2])
+
+
 def test_friction_feed_builds_the_offset_and_keeps_what_the_limits_clipped(kr5_plan) -> None:  # type: ignore[no-untyped-def]
     """The feed-forward is the plan's speed alone without offsets; with them, the offset
     sent builds to friction * sign(v) over the plan's first 0.25 s; a cycle whose extra

@@ -536,7 +536,7 @@ def evaluate_conveyor(
         },
         "shift_ms": shift_log,
         "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
-        "notes": [],
+        "notes": list(tracking_model.notes),
     }
     details["elapsed_s"] = time.monotonic() - t_begin
     return ConveyorEvaluation(

@@ -247,11 +247,16 @@ def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> Flo
     response_s : float, optional
         Response delay to back-date by, s (instead of the probed intake's dating).
     """
+    t, q = _cruise(run, response_s)
+    return np.asarray(fit_joint_lags(run.plan, t, q) + run.shifts_s)
+
+
+def _cruise(run: Any, response_s: float | None = None) -> tuple[FloatArray, FloatArray]:
+    """A run's reported positions over its cruise window, at their sampling instants."""
     t = sampling_times_s(run, response_s=response_s)
     since = t - run.sync_time_s
     keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
-    lag = fit_joint_lags(run.plan, t[keep], run.reported_q[keep])
-    return np.asarray(lag + run.shifts_s)
+    return t[keep], np.asarray(run.reported_q)[keep]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -286,12 +291,15 @@ class TrackingDelays:
         model's own uncertainty in position (a joint that reverses in the cruise sticks
         there, which neither ``D`` nor ``e`` describes: ~1 mrad on the KR 5's joints 2 and
         3 against 0.002-0.004 mrad for joints that do not reverse).
+    notes : tuple of str
+        What the calibration set aside and why (:meth:`calibrate_runs`).
     """
 
     base: Any
     dead_time_s: tuple[float, ...]
     friction_rad: tuple[tuple[float, ...], ...] | None = None
     fit_rms_rad: tuple[float, ...] | None = None
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
@@ -372,32 +380,73 @@ class TrackingDelays:
         tracking runs, e.g. welds at other work points): the pooled fit of
         :func:`fit_dead_time_and_friction` over each run's cruise, the reported positions at
         their sampling instants (:func:`sampling_times_s`). A joint no run moves gets the
-        median dead time of the others and no offset.
+        median dead time of the others and no offset. A run whose lag on some joint is
+        more than :data:`RUN_AGREEMENT_S` off the runs' median is set aside (``notes``
+        says which and why).
 
         Raises
         ------
         ConfigError
-            No run, or a run that carried friction offsets (its positions would need them
-            undone).
+            No run; a run that carried friction offsets (its positions would need them
+            undone); runs that disagree with no majority to side with (two runs, or as
+            many outliers as agreeing runs).
         """
         if not runs:
             raise ConfigError("calibrate_runs needs at least one calibration run")
-        samples = []
-        for run in runs:
-            if np.any(np.asarray(run.plan.meta.get("friction_rad", 0.0)) != 0):
-                raise ConfigError(
-                    "calibrate_runs takes runs without friction offsets (compensate=False, or "
-                    "an explicit shift_s); this one ran a model's offsets"
-                )
-            t = sampling_times_s(run)
-            since = t - run.sync_time_s
-            keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
-            samples.append((run.plan, t[keep], run.reported_q[keep], run.shifts_s))
-        dead, fric, rms = fit_dead_time_and_friction(samples)
+        if any(np.any(np.asarray(r.plan.meta.get("friction_rad", 0.0)) != 0) for r in runs):
+            raise ConfigError(
+                "calibrate_runs takes runs without friction offsets (compensate=False, or an "
+                "explicit shift_s); one of these ran a model's offsets"
+            )
+        samples = [(run.plan, *_cruise(run), run.shifts_s) for run in runs]
+        keep, notes = _agreeing(
+            np.array([fit_joint_lags(p, t, q) + shift for p, t, q, shift in samples])
+        )
+        dead, fric, rms = fit_dead_time_and_friction(
+            [x for x, k in zip(samples, keep, strict=True) if k]
+        )
         fallback = float(np.nanmedian(dead)) if np.isfinite(dead).any() else 0.0
         return cls(
             base=base,
             dead_time_s=tuple(np.maximum(np.where(np.isfinite(dead), dead, fallback), 0.0)),
             friction_rad=np.where(np.isfinite(fric), fric, 0.0),  # type: ignore[arg-type]
             fit_rms_rad=tuple(float(x) for x in rms),
+            notes=notes,
         )
+
+
+#: Largest difference, s, between one calibration run's lag (best constant shift) on any
+#: joint and the runs' median that still counts as the same task's lag: work points apart
+#: by 5 cm differ by up to 1.2 ms (3 ms on a joint that reverses in the cruise); a run
+#: whose approach ended off its start, or that a disturbed machine delayed, reads 15-20 ms
+#: off (the independent peer: 31-36 ms where its lag is 16.2).
+RUN_AGREEMENT_S = 0.005
+
+
+def _agreeing(lags_s: FloatArray) -> tuple[NDArray[np.bool_], tuple[str, ...]]:
+    """Which calibration runs (rows of per-joint lags, s) agree with the others, and a note
+    for each one set aside. Two runs that disagree, or as many outliers as agreeing runs,
+    cannot be told apart: a ConfigError says so."""
+    n = len(lags_s)
+    if n < 2:
+        return np.ones(n, bool), ()
+    off = np.abs(lags_s - np.nanmedian(lags_s, axis=0))
+    worst = np.nanmax(np.where(np.isfinite(off), off, 0.0), axis=1)
+    far = worst > RUN_AGREEMENT_S
+    if not far.any():
+        return ~far, ()
+    if 2 * int(far.sum()) >= n:
+        table = "; ".join(
+            f"run {i}: " + " ".join(f"{x * 1e3:.1f}" for x in row) for i, row in enumerate(lags_s)
+        )
+        raise ConfigError(
+            f"calibration runs disagree by more than {RUN_AGREEMENT_S * 1e3:g} ms on some "
+            f"joint (lags per joint, ms: {table}); weld at least three calibration runs, each "
+            "starting at rest on the approach's start, so that an outlier can be set aside"
+        )
+    notes = tuple(
+        f"calibration run {i} set aside: joint {int(np.nanargmax(off[i])) + 1} lags "
+        f"{worst[i] * 1e3:.1f} ms off the runs' median"
+        for i in np.flatnonzero(far)
+    )
+    return ~far, notes
