@@ -537,8 +537,11 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     follows them), so the tracking delay is measured through RSI from the uncompensated
     run's reported positions: 75-100 ms (measured 80.7-91.8 ms per joint over three runs;
     RSI has no intake probe, so the measurement is dated by the mean response and carries
-    the publisher's phase: up to half of 12 ms); with it the torch is within 4 mm
-    (measured 0.5-2.8 mm)."""
+    the publisher's phase: up to half of 12 ms); with it the torch is within 7 mm
+    (measured 0.5-2.8 mm, 0.7-2.1 mm over six more pairs on an idle machine, 5.5 mm once in
+    CI). The bound: the calibration weld's and the compensated weld's phases are
+    independent, so their dating can differ by up to one 12 ms period, 6 mm at 0.5 m/s,
+    plus the ~0.5 mm the shift leaves; the 4 mm bound it had was tighter than that."""
     from timedexec.welding import weld_on_twin
 
     sp = plan_seam(default_cell("kr5"), Seam(), weld_s=0.8)
@@ -547,7 +550,7 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     shift = measure_tracking_delays(none)
     assert np.all((shift > 0.075) & (shift < 0.10)), shift
     comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
-    assert comp.errors().stats()["torch_mean_mm"] < 4.0
+    assert comp.errors().stats()["torch_mean_mm"] < 7.0
 
 
 def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim", extra=()):  # type: ignore[no-untyped-def]
