@@ -190,14 +190,15 @@ def fit_dead_time_and_friction(
                 cols.append(np.c_[-vp[:, j], -split])
             return np.concatenate(res), np.concatenate(cols)
 
-        _, a0 = columns(float(np.median([shift[j] for *_, shift in runs])), np.zeros(2))
+        d0 = float(np.median([shift[j] for *_, shift in runs]))  # start: the shift that ran
+        _, a0 = columns(d0, np.zeros(2))
         if float(a0[:, 0] @ a0[:, 0]) < 1e-12:
             continue  # no run moves this joint
         # A direction moved in for less than 1 % of the samples cannot be fitted.
         seen = np.abs(a0[:, 1:]).sum(axis=0) >= 0.01 * len(a0)
         free = seen.copy()
         while True:
-            d, e = float(np.median([shift[j] for *_, shift in runs])), np.zeros(2)
+            d, e = d0, np.zeros(2)
             for _ in range(int(iterations)):
                 res, a = columns(d, e)
                 keep = np.r_[True, free]
