@@ -535,9 +535,11 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     starting with the approach move): uncompensated the torch trails by 30-50 mm (measured
     35.0-43.6 mm over four welds); RSI corrections are positions (the twin's position loop
     follows them), so the tracking delay is measured through RSI from the uncompensated
-    run's reported positions: 75-100 ms (measured 80.7-91.8 ms per joint over three runs;
-    RSI has no intake probe, so the measurement is dated by the mean response and carries
-    the publisher's phase: up to half of 12 ms); with it the torch is within 7 mm
+    run's reported positions: 65-100 ms (measured 80.7-91.8 ms per joint over three runs,
+    83.4-91.8 over six more; RSI has no intake probe, so the measurement is dated by the
+    package's arrival minus the mean response and carries the publisher's phase, up to
+    half of 12 ms, and any delay of the host in taking the package: in a loaded CI run
+    joint 1 read 73.2 ms); with it the torch is within 7 mm
     (measured 0.5-2.8 mm, 0.7-2.1 mm over six more pairs on an idle machine, 5.5 mm once in
     CI). The bound: the calibration weld's and the compensated weld's phases are
     independent, so their dating can differ by up to one 12 ms period, 6 mm at 0.5 m/s,
@@ -548,7 +550,7 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     none = weld_on_twin(sp, "kr5-sim", {"none": None})["none"]
     assert 30.0 < none.errors().stats()["torch_mean_mm"] < 50.0
     shift = measure_tracking_delays(none)
-    assert np.all((shift > 0.075) & (shift < 0.10)), shift
+    assert np.all((shift > 0.065) & (shift < 0.10)), shift
     comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
     assert comp.errors().stats()["torch_mean_mm"] < 7.0
 
