@@ -290,8 +290,9 @@ class TrackingDelays:
     fit_rms_rad : 6 floats, optional
         How far the calibration positions scatter about the fit, per joint, rad (RMS): the
         model's own uncertainty in position (a joint that reverses in the cruise sticks
-        there, which neither ``D`` nor ``e`` describes: ~1 mrad on the KR 5's joints 2 and
-        3 against 0.002-0.004 mrad for joints that do not reverse).
+        there, which neither ``D`` nor ``e`` describes: 0.8-0.9 mrad on the KR 5's joints 2
+        and 3 in a one-offset fit of one weld, 0.39-0.45 mrad on the friction peer's joint
+        4, against 0.001-0.007 mrad for joints that do not reverse).
     notes : tuple of str
         What the calibration set aside and why (:meth:`calibrate_runs`).
     """
