@@ -174,11 +174,10 @@ def _weld_in_turn(
         or previous_welds < 0
     ):
         raise ConfigError(f"previous_welds={previous_welds!r} must be an integer >= 0")
-    for _ in range(int(previous_welds)):
-        track_conveyor_seam(ex, seam_plan.cell, seam_plan.seam, seam_plan=seam_plan,
-                            shift_s=shift_s, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
-    return track_conveyor_seam(ex, seam_plan.cell, seam_plan.seam, seam_plan=seam_plan,
-                               shift_s=shift_s, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+    for _ in range(int(previous_welds) + 1):
+        run = track_conveyor_seam(ex, seam_plan.cell, seam_plan.seam, seam_plan=seam_plan,
+                                  shift_s=shift_s, settle_s=settle_s, cruise_s=cruise_s)  # fmt: skip
+    return run
 
 
 def run_weld(
@@ -584,11 +583,11 @@ def weld_on_twin(
     compensates by itself, e.g. a :class:`~timedexec.execution.TrackingDelays` with its
     friction offsets; or None for no compensation), a fresh twin (same ``seed``) for each,
     started where the weld ends: every weld begins with the move to the approach's start,
-    and the measured one follows
-    ``previous_welds`` of the same strategy, as in :func:`run_weld` (a weld's lag depends
-    on the motions before it: :data:`PREVIOUS_WELDS`). The torch truth: the reported angles
-    are the twin's physical angles at each package's sampling instant, and the twin
-    publishes the host time of its controller time 0 (:meth:`ConveyorRun.with_truth`).
+    and the measured one follows ``previous_welds`` of the same strategy, as in
+    :func:`run_weld` (a weld's lag depends on the motions before it:
+    :data:`PREVIOUS_WELDS`). The torch truth: the reported angles are the twin's physical
+    angles at each package's sampling instant, and the twin publishes the host time of its
+    controller time 0 (:meth:`ConveyorRun.with_truth`).
 
     ``stale_periods`` is generous (25 periods) because the executor, ur_rtde's receive
     thread and the twin share a loaded two-core machine; a stale fault stops the weld.

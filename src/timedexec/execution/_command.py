@@ -68,12 +68,13 @@ class FrictionFeed:
         self.friction_rad = np.broadcast_to(np.asarray(friction_rad, dtype=float), (2, 6))
         self.sent_rad = np.zeros(6)  # offset commanded so far
         self._planned = np.zeros(6)
+        self._active = bool(self.friction_rad.any())  # once: speed() runs every cycle
 
     def speed(self, plan: JointPlan, t_plan_s: FloatArray, period_s: float) -> FloatArray:
         """Joint ``j``'s speed command (6,), rad/s, for plan time ``t_plan_s[j]``: the
         plan's speed plus what brings the offset sent to where it is one period later."""
         v = self._planned = plan.velocity_per_joint(t_plan_s)
-        if not self.friction_rad.any():
+        if not self._active:
             return v
         later = t_plan_s + period_s
         x = np.clip(later / FRICTION_BUILD_S, 0.0, 1.0)
@@ -84,7 +85,7 @@ class FrictionFeed:
 
     def commanded(self, v_rad_s: FloatArray, period_s: float) -> None:
         """Count the offset a sent feed-forward ``v_rad_s`` (after the limits) carries."""
-        if self.friction_rad.any():
+        if self._active:
             self.sent_rad = self.sent_rad + (np.asarray(v_rad_s) - self._planned) * period_s
 
 

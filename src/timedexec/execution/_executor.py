@@ -242,7 +242,7 @@ class TimedExecutor:
         self._correction = SmithPredictor()
         self._plan: JointPlan | None = None
         self._last_plan: JointPlan | None = None
-        self._tau = self._tau_std = self._v_prev = np.zeros(6)
+        self._tau, self._tau_std, self._v_prev = np.zeros(6), np.zeros(6), np.zeros(6)
         self._feed = FrictionFeed(np.zeros(6))
         self._fault: str | None = None
         self._streaming_since = -math.inf

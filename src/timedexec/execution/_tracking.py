@@ -38,9 +38,9 @@ speed only (the "median" strategy's limit, and the oracle's). :class:`TrackingDe
 holds ``D`` per joint and ``e`` per direction and joint, fitted jointly on the cruises of
 calibration runs (:func:`fit_dead_time_and_friction`, :meth:`TrackingDelays.calibrate_runs`);
 the executor shifts each joint's stream by ``D`` and adds ``e * friction_sign(v)`` to it
-(:class:`~timedexec.execution.FrictionFeed`). On the uncompensated UR10 weld the fit
-leaves 0.002-0.004 mrad of joints 1-3, 5 and 6 where the best constant shift leaves
-0.25-0.33 mrad.
+(:class:`~timedexec.execution.FrictionFeed`). On the uncompensated UR10 weld (straight
+seam) the fit leaves 0.0004-0.003 mrad RMS on joints 1-3, 5 and 6 where the best constant
+shift leaves 0.07-0.33 mrad (0.25-0.33 on joints 1-3 and 6).
 
 Why not from the calibration sweep: its constant-speed phase holds 50 ms, and a KR 5's lag
 settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
