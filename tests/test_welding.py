@@ -543,11 +543,14 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     83.4-91.8 over six more; RSI has no intake probe, so the measurement is dated by the
     package's arrival minus the mean response and carries the publisher's phase, up to
     half of 12 ms, and any delay of the host in taking the package: in a loaded CI run
-    joint 1 read 73.2 ms); with it the torch is within 7 mm
-    (measured 0.5-2.8 mm, 0.7-2.1 mm over six more pairs on an idle machine, 5.5 mm once in
-    CI). The bound: the calibration weld's and the compensated weld's phases are
-    independent, so their dating can differ by up to one 12 ms period, 6 mm at 0.5 m/s,
-    plus the ~0.5 mm the shift leaves; the 4 mm bound it had was tighter than that."""
+    joint 1 read 73.2 ms); with it the torch is at least 4x nearer the seam than without
+    (measured 0.5-2.8 mm, 0.7-2.1 mm over nine more pairs on an idle machine; 5.5 mm once
+    in CI and 7.5 mm once right after the KR 5 evaluation test, against 35-44 mm). The
+    bound: the calibration weld's and the compensated weld's phases are independent, so
+    their dating can differ by a whole 12 ms period (6 mm at 0.5 m/s), and a host late in
+    taking packages adds its delay on top, without limit; so this asserts that the RSI
+    weld removes most of the lag, not a precision (that is the speedj welds' with the
+    intake probe). It had 4 mm, then 7 mm: both tighter than the dating allows."""
     from timedexec.welding import weld_on_twin
 
     sp = plan_seam(default_cell("kr5"), Seam(), weld_s=0.8)
@@ -556,7 +559,7 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     shift = measure_tracking_delays(none)
     assert np.all((shift > 0.065) & (shift < 0.10)), shift
     comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
-    assert comp.errors().stats()["torch_mean_mm"] < 7.0
+    assert comp.errors().stats()["torch_mean_mm"] < none.errors().stats()["torch_mean_mm"] / 4
 
 
 def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim", extra=()):  # type: ignore[no-untyped-def]
