@@ -242,7 +242,7 @@ def sweep_context(
             ct = np.r_[still_blocks[: len(s_rows)][s_ok], ct]
             cg = np.r_[np.full(int(s_ok.sum()), -1), cg]
         clocks[int(sess)] = fit_clock_drifting(
-            cn, ct, cg, nominal_rate_hz=fs, window_s=clock_window_s
+            cn, ct, cg, nominal_rate_hz=fs, window_s=clock_window_s, transfer_samples=block
         )
     main = clocks[int(session.min())]
     rate = float(np.mean(1.0 / main.period_s))

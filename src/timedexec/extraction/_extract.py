@@ -20,7 +20,8 @@ each step assumes of the recording):
 3. **Gyro time base.** Counters are unwrapped across the sweep (the host time between
    trials fixes the number of wraps); the sensor clock is fitted per session as blended
    lower envelopes of the block arrivals, quadratic per window so that they follow the
-   oscillator's drift, the window length chosen from the data
+   oscillator's drift, the window length chosen from the data, each stamp dated at the end
+   of the device transfer that delivered it when the stamps show fixed transfers
    (:func:`timedexec.sensors.fit_clock_drifting`); the transport latency and the filter
    group delay are subtracted.
 4. **Rates.** Zero-rate from the pre-command samples of the trial and its neighbours in

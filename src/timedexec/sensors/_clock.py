@@ -577,6 +577,10 @@ class DriftingClockFit:
         median), s: what decided the window length.
     outlier_groups : int
         Groups left out because they lay far below their neighbours.
+    transfer_phase : int
+        Sample index (modulo the transfer length) at which the device's transfers end,
+        when the arrivals showed one (see :func:`fit_clock_drifting`); -1: none found or
+        not searched.
     """
 
     centres: NDArray[np.float64]
@@ -588,6 +592,7 @@ class DriftingClockFit:
     spread_s: float = 0.0
     outlier_groups: int = 0
     curvature_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    transfer_phase: int = -1
 
     @property
     def window_s(self) -> float:
@@ -637,6 +642,7 @@ class DriftingClockFit:
             "drift_ppm": self.drift_ppm,
             "residual_structure_s": self.spread_s,
             "outlier_groups": self.outlier_groups,
+            "transfer_phase": self.transfer_phase,
             "curved": bool(self.curvature_s.size and np.any(self.curvature_s != 0)),
         }
 
@@ -753,6 +759,7 @@ def fit_clock_drifting(
     max_window_s: float = 240.0,
     tolerance_s: float = 20e-6,
     curved: bool = True,
+    transfer_samples: int | None = None,
 ) -> DriftingClockFit:
     """Lower-envelope clock fit that follows slow oscillator drift (temperature).
 
@@ -787,6 +794,9 @@ def fit_clock_drifting(
         Bounds of the window search, s (the lower one at least 31 groups' span).
     tolerance_s : float
         Residual structure accepted, s (20 µs: a tenth of the 0.2 ms drift target).
+    transfer_samples : int, optional
+        Samples per device transfer, when transfers are of fixed size (the phase search
+        above); None: stamps taken as they are.
     curved : bool
         Quadratic envelopes per window (True) or lines. On the independent recordings of
         ``benchmarks/bench_extract_robustness.py`` (-1500 ppm, 300 ppm exponential
@@ -801,6 +811,64 @@ def fit_clock_drifting(
     g_arr = np.asarray(group).reshape(-1)
     if g_arr.shape != n_arr.shape:
         raise ConfigError("group must have one entry per arrival")
+    opts = {"nominal_rate_hz": nominal_rate_hz, "window_s": window_s,
+            "min_window_s": min_window_s, "max_window_s": max_window_s,
+            "tolerance_s": tolerance_s, "curved": curved}  # fmt: skip
+    fit = _fit_drifting(n_arr, t_arr, g_arr, **opts)
+    if transfer_samples is None or transfer_samples < 2 or n_arr.shape[0] < 2:
+        return fit
+    phase = _transfer_phase(fit, n_arr, t_arr, g_arr, int(transfer_samples))
+    if phase < 0:
+        return fit
+    n_end = n_arr + (phase - n_arr) % transfer_samples  # each stamp's transfer end
+    refit = _fit_drifting(n_end, t_arr, g_arr, **opts)
+    return DriftingClockFit(**{**refit.__dict__, "transfer_phase": phase})
+
+
+def _transfer_phase(
+    fit: DriftingClockFit,
+    n: NDArray[np.int64],
+    t: NDArray[np.float64],
+    group: NDArray[np.int64],
+    b: int,
+) -> int:
+    """Residue (mod b) of the device's transfer ends, or -1 (see fit_clock_drifting)."""
+    resid = t - fit.to_host_time(n)
+    uniq, g_idx = np.unique(group, return_inverse=True)
+    if uniq.shape[0] < 8:
+        return -1
+    g_first = np.full(uniq.shape[0], np.iinfo(np.int64).max)
+    np.minimum.at(g_first, g_idx, n)
+    order = np.argsort(g_first)
+    period = float(np.median(fit.period_s))
+
+    def disagreement(extra: NDArray[np.float64]) -> float:
+        m = np.full(uniq.shape[0], np.inf)
+        np.minimum.at(m, g_idx, resid - extra)
+        d = np.diff(m[order])
+        return float(np.median(np.abs(d[np.isfinite(d)]))) if np.isfinite(d).any() else math.inf
+
+    none = disagreement(np.zeros_like(resid))
+    scores = [disagreement(((p - n) % b) * period) for p in range(b)]
+    best = int(np.argmin(scores))
+    if scores[best] < 0.5 * none and scores[best] < 0.25 * period:
+        return best
+    return -1
+
+
+def _fit_drifting(
+    n_arr: NDArray[np.int64],
+    t_arr: NDArray[np.float64],
+    g_arr: NDArray[np.int64],
+    *,
+    nominal_rate_hz: float,
+    window_s: float | None,
+    min_window_s: float,
+    max_window_s: float,
+    tolerance_s: float,
+    curved: bool,
+) -> DriftingClockFit:
+    """fit_clock_drifting on checked arrays, stamps as they are."""
     if n_arr.shape[0] < 2:
         fit = _nominal_fit(n_arr, t_arr, nominal_rate_hz)
         return DriftingClockFit(
