@@ -21,11 +21,12 @@ from timedexec.extraction._extract import (
     extract_recording,
     trial_traces,
 )
-from timedexec.extraction._onset import LEPSKI_KAPPA, ONSET_WINDOWS_S
+from timedexec.extraction._onset import LEPSKI_KAPPA, LEPSKI_NOISE_SCALE_S, ONSET_WINDOWS_S
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
     "LEPSKI_KAPPA",
+    "LEPSKI_NOISE_SCALE_S",
     "MAX_SE_S",
     "METHODS",
     "ONSET_WINDOWS_S",
