@@ -213,3 +213,38 @@ def test_gain_is_time_matched_on_a_slow_joint(tmp_path: Path) -> None:
     e = (t["actuation_delay"] - t["true_actuation_delay"])[ok]
     assert ok.mean() >= 0.95
     assert abs(float(np.mean(e))) <= 0.08e-3, np.mean(e)
+
+
+def test_ladder_cap_stops_a_group_before_its_biased_window() -> None:
+    """Six windows whose estimates scatter like nested fits (sd 0.20 -> 0.12 ms) and whose
+    widest is biased by +0.12 ms (a KR 5's, measured): one trial's Lepski test cannot see
+    a bias of one standard deviation, the group's median step can — the cap is the fifth
+    window (on 98 of 100 seeds; the sixth on the others). At 10x the noise (sd_0 2 ms,
+    beyond LEPSKI_NOISE_SCALE_S) no cap: the narrow windows are no longer the unbiased
+    ones there. Trials in no group (-1) neither get a cap nor count: 40 wild ones do not
+    move the group's."""
+    from timedexec.extraction._onset import _ladder_cap
+
+    rng = np.random.default_rng(3)
+    sd = np.array([0.20, 0.18, 0.15, 0.13, 0.125, 0.12]) * 1e-3
+    bias = np.array([0, 0, 0, 0, 0, 0.12]) * 1e-3
+
+    def ladder(n: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        # nested least squares: each wider estimate = the next narrower one + independent
+        # noise of the variance difference
+        t = np.empty((6, n))
+        t[5] = rng.normal(0, sd[5] * scale, n)
+        for j in range(4, -1, -1):
+            t[j] = t[j + 1] + rng.normal(0, np.sqrt(sd[j] ** 2 - sd[j + 1] ** 2) * scale, n)
+        return t + bias[:, None], np.repeat(sd[:, None] * scale, n, axis=1)
+
+    t, s = ladder(40, 1.0)
+    assert set(_ladder_cap(t, s, np.zeros(40, np.int64)).tolist()) == {4}
+    assert set(_ladder_cap(t, s, None).tolist()) == {4}
+    t_noisy, s_noisy = ladder(40, 10.0)
+    assert set(_ladder_cap(t_noisy, s_noisy, np.zeros(40, np.int64)).tolist()) == {5}
+    wild = np.concatenate([t, rng.normal(0, 5e-3, (6, 40))], axis=1)
+    groups = np.r_[np.zeros(40, np.int64), np.full(40, -1)]
+    cap = _ladder_cap(wild, np.concatenate([s, s], axis=1), groups)
+    assert set(cap[:40].tolist()) == {4}
+    assert set(cap[40:].tolist()) == {5}

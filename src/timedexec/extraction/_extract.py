@@ -444,7 +444,21 @@ def _extract_chunk_inner(
         peak = peak * rescale
         if traces:
             filt_phys *= rescale[:, None]
-        on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz)
+        # Trials of one joint and direction share their windows' bias; a trial flagged for
+        # what it recorded (clipped, still, gaps, package silences, implausible gain) is
+        # kept out of its group's statistics (-1: no group), so that it cannot move the
+        # others' estimates.
+        usable = (
+            ~clipped
+            & (peak > 0.5 * speed)
+            & found
+            & ~package_gap
+            & (missing_pulse <= _MAX_MISSING_PULSE)
+            & (gain > 0.8)
+            & (gain < 1.25)
+        )
+        group = np.where(usable, 2 * joint + (direction > 0), -1)
+        on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz, group=group)
         act = on["onset"] - (t_send + level / accel)
         # Zero-rate error: the pooled mean of bias_n samples per axis, projected.
         sd_bias = sigma / np.sqrt(np.maximum(chunk["bias_n"], 1.0))
