@@ -28,12 +28,15 @@ of a white-noise rate is a random walk, so a least-squares fit of positions weig
 late, noisy part of the walk as if it were exact; the generalised least-squares fit of a
 random-walk error is the fit of *increments* between consecutive packages (independent
 errors, variance ∝ their time span). Model per increment j:
-``Δq_j = A(h_j - τ) - A(h_{j-1} - τ) + c·(h_j - h_{j-1})`` (c absorbs a rate offset),
-solved by Gauss-Newton for (τ, c) with the exact derivative of the (linearly
-interpolated) angle and a backtracking line search, which converges to the least-squares
-minimum (a fixed number of plain Gauss-Newton steps with the interpolated speed as the
-derivative stopped up to 50 µs short of it, and could cycle); the standard error of τ comes
-from the residuals.
+``Δq_j = k·(A(h_j - τ) - A(h_{j-1} - τ)) + c·(h_j - h_{j-1})`` (c absorbs a rate offset,
+k a gain error), solved by Gauss-Newton for (τ, c, k) with the exact derivative of the
+(linearly interpolated) angle and a backtracking line search, which converges to the
+least-squares minimum (a fixed number of plain Gauss-Newton steps with the interpolated
+speed as the derivative stopped up to 50 µs short of it, and could cycle). The standard
+error of τ is the sandwich of the two errors the increments carry — the angle's random
+walk, measured where the joint rests, and each package's latency jitter times the speed,
+which enters neighbouring increments with opposite signs — with the sensor's and the
+network's variances pooled over the chunk's trials (see the code's notes).
 
 The gyro rate is averaged over ``RESPONSE_SMOOTH_S`` (a centred, odd-length moving
 average: zero phase) before it is integrated. The raw angle's noise is a random walk, rough
