@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from independent_sweep import Conditions, write_independent_sweep
-from timedexec.extraction import extract_recording
+from timedexec.extraction import extract_recording, ladder_cap
 from timedexec.sensors import (
     fit_clock_drifting,
     fit_clock_lower_envelope,
@@ -223,8 +223,6 @@ def test_ladder_cap_stops_a_group_before_its_biased_window() -> None:
     beyond LEPSKI_NOISE_SCALE_S) no cap: the narrow windows are no longer the unbiased
     ones there. Trials in no group (-1) neither get a cap nor count: 40 wild ones do not
     move the group's."""
-    from timedexec.extraction._onset import _ladder_cap
-
     rng = np.random.default_rng(3)
     sd = np.array([0.20, 0.18, 0.15, 0.13, 0.125, 0.12]) * 1e-3
     bias = np.array([0, 0, 0, 0, 0, 0.12]) * 1e-3
@@ -239,12 +237,12 @@ def test_ladder_cap_stops_a_group_before_its_biased_window() -> None:
         return t + bias[:, None], np.repeat(sd[:, None] * scale, n, axis=1)
 
     t, s = ladder(40, 1.0)
-    assert set(_ladder_cap(t, s, np.zeros(40, np.int64)).tolist()) == {4}
-    assert set(_ladder_cap(t, s, None).tolist()) == {4}
+    assert set(ladder_cap(t, s, np.zeros(40, np.int64)).tolist()) == {4}
+    assert set(ladder_cap(t, s, None).tolist()) == {4}
     t_noisy, s_noisy = ladder(40, 10.0)
-    assert set(_ladder_cap(t_noisy, s_noisy, np.zeros(40, np.int64)).tolist()) == {5}
+    assert set(ladder_cap(t_noisy, s_noisy, np.zeros(40, np.int64)).tolist()) == {5}
     wild = np.concatenate([t, rng.normal(0, 5e-3, (6, 40))], axis=1)
     groups = np.r_[np.zeros(40, np.int64), np.full(40, -1)]
-    cap = _ladder_cap(wild, np.concatenate([s, s], axis=1), groups)
+    cap = ladder_cap(wild, np.concatenate([s, s], axis=1), groups)
     assert set(cap[:40].tolist()) == {4}
     assert set(cap[40:].tolist()) == {5}

@@ -21,7 +21,12 @@ from timedexec.extraction._extract import (
     extract_recording,
     trial_traces,
 )
-from timedexec.extraction._onset import LEPSKI_KAPPA, LEPSKI_NOISE_SCALE_S, ONSET_WINDOWS_S
+from timedexec.extraction._onset import (
+    LEPSKI_KAPPA,
+    LEPSKI_NOISE_SCALE_S,
+    ONSET_WINDOWS_S,
+    ladder_cap,
+)
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 
 __all__ = [
@@ -40,5 +45,6 @@ __all__ = [
     "check_recording",
     "design_lowpass",
     "extract_recording",
+    "ladder_cap",
     "trial_traces",
 ]

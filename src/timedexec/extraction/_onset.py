@@ -60,6 +60,7 @@ __all__ = [
     "LEPSKI_NOISE_SCALE_S",
     "ONSET_WINDOWS_S",
     "RESPONSE_SMOOTH_S",
+    "ladder_cap",
     "onset_adaptive",
     "response_increments",
 ]
@@ -186,7 +187,7 @@ def _cubic_roots(
 _CAP_MIN_TRIALS = 16
 
 
-def _ladder_cap(
+def ladder_cap(
     t_all: FloatArray, sd_all: FloatArray, group: NDArray[np.int64] | None
 ) -> NDArray[np.int64]:
     """Widest window each trial's ladder may reach: per group of trials with the same
@@ -198,9 +199,9 @@ def _ladder_cap(
     the narrowest window as unbiased, window j's bias is the sum of the median steps up to
     it (less their sampling error) and its mean squared error that squared plus the
     group's median variance. Independent recordings, two seeds (actuation RMSE, clean):
-    KR 5 0.159 / 0.147 -> 0.148 / 0.143 ms, UR10e 0.120 / 0.120 -> 0.106 / 0.112, UR10
-    0.121 / 0.108 -> 0.117 / 0.108; our simulator UR10 / UR10e / KR 5 0.104 / 0.100 /
-    0.113 -> 0.095 / 0.093 / 0.113. Only where the narrowest window's standard deviation
+    KR 5 0.159 / 0.147 -> 0.148 / 0.143 ms, UR10e 0.120 / 0.120 -> 0.107 / 0.111, UR10
+    0.11 either way; our simulator (400 trials) UR10 / UR10e / KR 5 0.104 / 0.100 / 0.113
+    -> 0.096 / 0.095 / 0.110. Only where the narrowest window's standard deviation
     is below ``LEPSKI_NOISE_SCALE_S``: beyond it the narrow windows' roots jump (the
     threshold region), the narrowest is no longer the unbiased one, and the cap chose
     too narrow (20x noise: 1.52 -> 2.10 ms). Medians, not means, for the same reason."""
@@ -250,7 +251,7 @@ def onset_adaptive(
         Nominal sample spacing, s.
     group : ndarray of int, shape (n,), optional
         Trials of one joint and direction (same dynamics): the widest window is chosen per
-        group (:func:`_ladder_cap`); -1: a trial in no group (its full ladder, and it does
+        group (:func:`ladder_cap`); -1: a trial in no group (its full ladder, and it does
         not count in any group's statistics); None: one group.
 
     Returns
@@ -268,7 +269,7 @@ def onset_adaptive(
     k = k_coarse
     t_all, vf_all, sl_all, msr_all = _cubic_roots(t_g, y, w, k, level, dt, ONSET_WINDOWS_S)
     sd_all = sigma * np.sqrt(np.abs(vf_all))
-    cap = _ladder_cap(t_all, sd_all, group)
+    cap = ladder_cap(t_all, sd_all, group)
     chosen = np.zeros(n, dtype=np.int64)
     alive = np.ones(n, dtype=bool)
     for j in range(1, len(ONSET_WINDOWS_S)):
@@ -410,10 +411,15 @@ def response_increments(
         out: FloatArray = x - np.take_along_axis(x, pj[rows], axis=1)
         return out
 
-    def residual(rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray):
-        return dq[rows] - k_r[:, None] * incr(rows, a_all) - c_r[:, None] * j_c[rows]
+    def residual(
+        rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray
+    ) -> FloatArray:
+        out: FloatArray = dq[rows] - k_r[:, None] * incr(rows, a_all) - c_r[:, None] * j_c[rows]
+        return out
 
-    def cost(rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray):
+    def cost(
+        rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray
+    ) -> FloatArray:
         res = residual(rows, a_all, c_r, k_r)
         out: FloatArray = np.sum(wgt[rows] * res * res, axis=1)
         return out
@@ -423,7 +429,8 @@ def response_increments(
         a = np.stack([np.stack([np.sum(w_ * ci * cj, axis=1) for cj in cols], -1)
                       for ci in cols], -2)  # fmt: skip
         diag = np.einsum("nii->ni", a)
-        return a + np.eye(len(cols)) * (1e-12 * diag[:, None, :] + 1e-30)
+        ridged: FloatArray = a + np.eye(len(cols)) * (1e-12 * diag[:, None, :] + 1e-30)
+        return ridged
 
     # Gauss-Newton on (τ, c, k) with the exact derivative of the interpolated angle and a
     # backtracking line search (the interpolant's slope jumps where a package crosses a
@@ -540,7 +547,8 @@ def response_increments(
             out = out + gamma[:, lag] * np.sum(
                 a_[:, lag:] * b_[:, :-lag] + a_[:, :-lag] * b_[:, lag:], axis=1
             )
-        return out + s_e2 * np.sum(v2 * dcols[i] * dcols[j], axis=1)
+        out = out + s_e2 * np.sum(v2 * dcols[i] * dcols[j], axis=1)
+        return out
 
     q = np.stack([np.stack([cov(i, j) for j in range(len(cols))], -1)
                   for i in range(len(cols))], -2)  # fmt: skip

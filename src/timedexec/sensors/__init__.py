@@ -15,12 +15,11 @@ from __future__ import annotations
 
 from timedexec.sensors._clock import (
     ClockFit,
-    DriftingClockFit,
     SensorClock,
-    fit_clock_drifting,
     fit_clock_least_squares,
     fit_clock_lower_envelope,
 )
+from timedexec.sensors._clock_drift import DriftingClockFit, fit_clock_drifting
 from timedexec.sensors._frames import (
     CRC8_POLY,
     FRAME_SIZE,
