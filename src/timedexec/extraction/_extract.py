@@ -110,6 +110,8 @@ MAX_SE_S = 0.002
 #: of the out pulse (the gain and the response integrate it).
 _MAX_MISSING_ONSET = 0.3
 _MAX_MISSING_PULSE = 0.2
+#: Plausible gyro gains (gyro angle over reported displacement); outside: flag ``gain``.
+_GAIN_RANGE = (0.8, 1.25)
 #: Every so many samples enter the covariance that finds the principal axis of the motion.
 _COV_STRIDE = 4
 #: Samples between the points at which the sensor clock model is evaluated for each row;
@@ -454,8 +456,8 @@ def _extract_chunk_inner(
             & found
             & ~package_gap
             & (missing_pulse <= _MAX_MISSING_PULSE)
-            & (gain > 0.8)
-            & (gain < 1.25)
+            & (gain > _GAIN_RANGE[0])
+            & (gain < _GAIN_RANGE[1])
         )
         group = np.where(usable, 2 * joint + (direction > 0), -1)
         on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz, group=group)
@@ -500,7 +502,7 @@ def _extract_chunk_inner(
         (package_gap, "package_gap"),
         (~(peak > 0.5 * speed), "no_motion"),
         (~found | ~np.isfinite(act), "no_onset"),
-        (~((gain > 0.8) & (gain < 1.25)), "gain"),
+        (~((gain > _GAIN_RANGE[0]) & (gain < _GAIN_RANGE[1])), "gain"),
         (~np.isfinite(resp) | (resp < -ctx.period_s) | (resp > 0.25), "response_fit"),
         (~((act_se <= max_se_s) & (resp_se <= max_se_s)), "uncertain"),
     ]
