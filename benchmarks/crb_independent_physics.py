@@ -4,9 +4,10 @@ The extractor models the speed near the onset locally (a cubic; ``timedexec.extr
 and reports the Cramér-Rao bound of *that* model. This script computes the bound of an
 estimator that knows the independent generator's physics exactly
 (``tests/independent_sweep.py``: PI velocity loop, two-mass joint, stiction, Butterworth
-sensor filter, white noise) and sees the whole trial (out and back pulse at 8 kHz): a lower
-bound for any unbiased estimator of the 10 % crossing time on those recordings, whatever it
-knows of the joint.
+sensor filter, white noise) and sees the whole trial (out and back pulse at 8 kHz). With
+the trial's own joint unknown (``+joint``: no estimator can know it) it bounds the error
+of every unbiased estimator of the 10 % crossing on those recordings — even one built on
+that generator's physics, which the extractor deliberately is not.
 
 For each drawn joint the Fisher information of the gyro samples is ``JᵀJ/σ²`` (J: the
 derivatives of the sensor's output with respect to the unknowns, central differences of
