@@ -423,6 +423,14 @@ def _extract_chunk_inner(
         in_out_full = np.zeros((n, g), dtype=bool)
         in_out_full[:, s_out] = in_out
 
+    def recorded_flags() -> dict[str, NDArray[np.bool_]]:
+        """What the trial recorded rules out (peak and gain as they stand when called)."""
+        return {
+            "no_motion": ~(peak > 0.5 * speed),
+            "gain": ~((gain > _GAIN_RANGE[0]) & (gain < _GAIN_RANGE[1])),
+            "gyro_gap": missing_pulse > _MAX_MISSING_PULSE,
+        }
+
     n_cols = {}
     if method == "fit":
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
@@ -450,15 +458,8 @@ def _extract_chunk_inner(
         # what it recorded (clipped, still, gaps, package silences, implausible gain) is
         # kept out of its group's statistics (-1: no group), so that it cannot move the
         # others' estimates.
-        usable = (
-            ~clipped
-            & (peak > 0.5 * speed)
-            & found
-            & ~package_gap
-            & (missing_pulse <= _MAX_MISSING_PULSE)
-            & (gain > _GAIN_RANGE[0])
-            & (gain < _GAIN_RANGE[1])
-        )
+        bad_recording = np.any(list(recorded_flags().values()), axis=0)
+        usable = ~clipped & found & ~package_gap & ~bad_recording
         group = np.where(usable, 2 * joint + (direction > 0), -1)
         on = onset_adaptive(t_g, y_phys, have, k_c, level, sigma, 1.0 / ctx.fs_hz, group=group)
         act = on["onset"] - (t_send + level / accel)
@@ -495,14 +496,15 @@ def _extract_chunk_inner(
         missing_onset = np.zeros(n)
         act_se = resp_se = np.zeros(n)
 
+    recorded = recorded_flags()
     reasons = [
         (pre.sum(axis=1) < 0.01 * ctx.fs_hz, "no_baseline"),  # < 10 ms of zero-rate samples
         (clipped, "clipped"),
-        ((missing_onset > _MAX_MISSING_ONSET) | (missing_pulse > _MAX_MISSING_PULSE), "gyro_gap"),
+        ((missing_onset > _MAX_MISSING_ONSET) | recorded["gyro_gap"], "gyro_gap"),
         (package_gap, "package_gap"),
-        (~(peak > 0.5 * speed), "no_motion"),
+        (recorded["no_motion"], "no_motion"),
         (~found | ~np.isfinite(act), "no_onset"),
-        (~((gain > _GAIN_RANGE[0]) & (gain < _GAIN_RANGE[1])), "gain"),
+        (recorded["gain"], "gain"),
         (~np.isfinite(resp) | (resp < -ctx.period_s) | (resp > 0.25), "response_fit"),
         (~((act_se <= max_se_s) & (resp_se <= max_se_s)), "uncertain"),
     ]

@@ -128,22 +128,13 @@ class DriftingClockFit:
         }
 
 
-def _running_median(x: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+def _running(x: NDArray[np.float64], k: int, stat: Any) -> NDArray[np.float64]:
+    """``stat`` (np.median, np.min) over a centred window of k values, the ends held."""
     if x.shape[0] <= k:
-        return np.full_like(x, float(np.median(x)))
-    pad = k // 2
-    xp = np.pad(x, pad, mode="edge")
+        return np.full_like(x, float(stat(x)))
+    xp = np.pad(x, k // 2, mode="edge")
     win = np.lib.stride_tricks.sliding_window_view(xp, k)
-    return np.asarray(np.median(win, axis=1), dtype=np.float64)
-
-
-def _running_min(x: NDArray[np.float64], k: int) -> NDArray[np.float64]:
-    if x.shape[0] <= k:
-        return np.full_like(x, float(np.min(x)))
-    pad = k // 2
-    xp = np.pad(x, pad, mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(xp, k)
-    return np.asarray(np.min(win, axis=1), dtype=np.float64)
+    return np.asarray(stat(win, axis=1), dtype=np.float64)
 
 
 #: Samples per bin whose lowest arrival (relative to a window's line) is a candidate of
@@ -423,10 +414,10 @@ def _fit_drifting(
             curvature_s=curv,
         )
         mins = group_minima(model)
-        centre = _running_median(mins, 7)
+        centre = _running(mins, 7, np.median)
         mad = float(np.median(np.abs(mins - centre))) + 1e-9
         low = mins < centre - max(10.0 * mad, 5e-4)
-        smooth = _running_min(np.where(low, np.inf, mins), group_span)
+        smooth = _running(np.where(low, np.inf, mins), group_span, np.min)
         if low.any() and n_out == 0:
             bad_groups = np.argsort(g_rank)[low]
             keep &= ~np.isin(g_idx, bad_groups)
