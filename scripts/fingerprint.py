@@ -30,7 +30,7 @@ import numpy as np
 # Fields of JSON results that change from run to run whatever the code does.
 _VOLATILE = {"elapsed_s", "wall_s", "seconds", "version", "package_version", "created",
              "recording", "truth", "out", "path", "model", "report", "recording_bytes",
-             "runtime_s", "time_s", "eta_s", "duration_s", "cpu_s"}
+             "runtime_s", "measured", "time_s", "eta_s", "duration_s", "cpu_s"}
 
 
 def _strip(value: Any) -> Any:
