@@ -98,7 +98,8 @@ EVALUATION = {"robot": "ur10", "strategies": {"none": {"timing_rms_ms": 20.0}},
               "coverage_95": 0.95}  # fmt: skip
 DISCREPANCY = {"added_effects": ["gravity_load"], "unexplained": []}
 FLEET = {"summary": {"robots": 1, "ok": 1, "failed": []}, "robots": []}
-MONITOR = {"threshold": 9.27, "arl0_moves": 10000, "warmup_moves": 100, "alerts": [],
+MONITOR = {"verdict": "ok", "threshold": 9.27, "arl0_moves": 10000, "warmup_moves": 100,
+           "alerts": [],
            "joints": [{"joint": 1, "status": "ok", "moves": 120, "gap_to_model_ms": -1.1,
                        "shift_ms": 0.05}]}  # fmt: skip
 _JOINT = {"median_ms": 20.0, "p2_5_ms": 15.0, "p97_5_ms": 25.0}

@@ -109,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         # the recording refuses an existing file itself unless --resume continues it
         inputs={"--plan": args.plan, "--imu": imu},
         outputs={"--out": args.out},
+        devices=("--imu",),
     )
     _check_gyro_constants(args, real=scheme != "sim")
     # The driver gets the robot model the user named (a UR controller reporting another

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._files import check_paths, make_dir, write_atomic
+from timedexec._files import check_input_kind, check_paths, make_dir, write_atomic
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
 
@@ -229,6 +229,7 @@ def build_report(
         path = Path(raw)
         if not path.exists():
             raise RecordingError(f"result {path} does not exist")
+        check_input_kind(path, "result")
         kind, data = _kind(path)
         if kind == "recording":
             _recording_trials(path, int(trial))
