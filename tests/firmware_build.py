@@ -14,7 +14,9 @@ import pytest
 FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "firmware"
 
 #: Debian packages .ci/run installs for the firmware tests.
-DEBIAN_PACKAGES = "gcc make gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev pkg-config"
+DEBIAN_PACKAGES = (
+    "gcc make gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev pkg-config"
+)
 
 
 def require(ok: bool, what: str) -> None:

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from tests.firmware_build import host_compiler, make, require
+
 from timedexec.sensors import FrameParser
 
 pytestmark = [pytest.mark.slow, pytest.mark.firmware]
@@ -104,18 +104,40 @@ def test_uart_build_frames_every_sample_end_to_end(build: Path) -> None:
     with a sync pattern in the payload), and each lost edge is a gap of exactly one sample
     at the right counter: the counter counts the sensor's samples, not the interrupts."""
     out, truth = build / "uart.bin", build / "truth.bin"
-    r = _bench(build, "gyro-uart.elf", "--samples", "8000", "--skip-every", "97",
-               "--clock-ppm", "8000", "--out", str(out), "--truth", str(truth))
+    r = _bench(
+        build,
+        "gyro-uart.elf",
+        "--samples",
+        "8000",
+        "--skip-every",
+        "97",
+        "--clock-ppm",
+        "8000",
+        "--out",
+        str(out),
+        "--truth",
+        str(truth),
+    )
     counter, raw, parser = _decode(out)
     model = np.fromfile(truth, dtype=np.int16).reshape(-1, 3)
     k0 = r["first_served_sample"]
-    assert parser.checksum_errors == 0 and parser.resync_bytes_skipped == 0
+    assert parser.checksum_errors == 0
+    assert parser.resync_bytes_skipped == 0
     index = k0 + counter  # no wrap in 8,000 samples
     np.testing.assert_array_equal(raw, model[index])
     lost = np.setdiff1d(np.arange(k0, 8000), index)
     np.testing.assert_array_equal(lost, np.arange(97, 8001, 97)[np.arange(97, 8001, 97) > k0] - 1)
-    assert r["sensor_writes"] == [[107, 128], [104, 7], [107, 3], [106, 16], [25, 0], [26, 0],
-                                  [27, 8], [55, 0], [56, 1]]  # MPU-6000: 8 kHz, ±500 °/s
+    assert r["sensor_writes"] == [
+        [107, 128],
+        [104, 7],
+        [107, 3],
+        [106, 16],
+        [25, 0],
+        [26, 0],
+        [27, 8],
+        [55, 0],
+        [56, 1],
+    ]  # MPU-6000: 8 kHz, ±500 °/s
 
 
 def test_usb_build_sample_path_fits_one_sample_period(build: Path) -> None:
@@ -129,13 +151,24 @@ def test_usb_build_sample_path_fits_one_sample_period(build: Path) -> None:
     interrupts off outside the capture interrupt, one start-of-frame interrupt (it has the
     higher priority when both are pending) and the longest capture interrupt."""
     out = build / "usb.bin"
-    r = _bench(build, "gyro-usb.elf", "--samples", "8000", "--usb-host",
-               "--usb-packets-per-ms", "1", "--out", str(out), *_usb_open(build))
+    r = _bench(
+        build,
+        "gyro-usb.elf",
+        "--samples",
+        "8000",
+        "--usb-host",
+        "--usb-packets-per-ms",
+        "1",
+        "--out",
+        str(out),
+        *_usb_open(build),
+    )
     assert r["sample_paths"] == r["edges_raised"] == 8000 - r["first_served_sample"]
     counter, _, parser = _decode(out)
     assert parser.checksum_errors == 0
     steps = np.diff(counter)
-    assert (steps >= 1).all() and (steps > 1).any()  # drops, seen as gaps
+    assert (steps >= 1).all()
+    assert (steps > 1).any()
     isr = r["isr"]
     capture_max = isr["16"]["max_cycles"]
     blocking = max(c for ctx, c in r["masked_max_cycles"].items() if ctx != "16")
@@ -143,8 +176,16 @@ def test_usb_build_sample_path_fits_one_sample_period(build: Path) -> None:
     assert r["path_max_cycles"] <= 0.7 * BUDGET_CYCLES, r
     assert composed <= 0.8 * BUDGET_CYCLES, (blocking, capture_max, composed)
     # a host that keeps up: nothing dropped, every sample framed
-    fast = _bench(build, "gyro-usb.elf", "--samples", "4000", "--usb-host",
-                  "--out", str(out), *_usb_open(build))
+    fast = _bench(
+        build,
+        "gyro-usb.elf",
+        "--samples",
+        "4000",
+        "--usb-host",
+        "--out",
+        str(out),
+        *_usb_open(build),
+    )
     counter, _, parser = _decode(out)
     assert parser.checksum_errors == 0
     assert np.all(np.diff(counter) == 1)
@@ -156,11 +197,29 @@ def test_icm42688p_is_detected_and_streams(build: Path) -> None:
     push-pull with the 8 µs pulse required at 8 kHz, data-ready on INT1, ±500 °/s at 8 kHz,
     gyro in low-noise mode) and frames its big-endian registers exactly as the MPU-6000's."""
     out, truth = build / "icm.bin", build / "icm-truth.bin"
-    r = _bench(build, "gyro-uart.elf", "--sensor", "icm", "--samples", "1200",
-               "--out", str(out), "--truth", str(truth))
-    assert r["sensor_writes"] == [[17, 1], [118, 0], [20, 3], [100, 96], [101, 8],
-                                  [79, 0x43], [78, 12]]
+    r = _bench(
+        build,
+        "gyro-uart.elf",
+        "--sensor",
+        "icm",
+        "--samples",
+        "1200",
+        "--out",
+        str(out),
+        "--truth",
+        str(truth),
+    )
+    assert r["sensor_writes"] == [
+        [17, 1],
+        [118, 0],
+        [20, 3],
+        [100, 96],
+        [101, 8],
+        [79, 0x43],
+        [78, 12],
+    ]
     counter, raw, parser = _decode(out)
     model = np.fromfile(truth, dtype=np.int16).reshape(-1, 3)
-    assert parser.checksum_errors == 0 and len(counter) == 1200 - r["first_served_sample"]
+    assert parser.checksum_errors == 0
+    assert len(counter) == 1200 - r["first_served_sample"]
     np.testing.assert_array_equal(raw, model[r["first_served_sample"] + counter])

@@ -9,8 +9,8 @@ import ctypes
 
 import numpy as np
 import pytest
-
 from tests.firmware_build import host_compiler, make
+
 from timedexec.sensors import FRAME_SIZE, FrameParser, crc8, encode_frames
 
 N_SAMPLES = 100_000

@@ -33,9 +33,12 @@ def _synthetic(
         k = k[(k % lose_every) != lose_every - 1]
     t_sample = 100.0 + k / rate_hz
     read_at = np.ceil(t_sample / 0.02) * 0.02
-    arrival = read_at + rng.uniform(3e-4, 1.5e-3, np.unique(read_at).size)[
-        np.unique(read_at, return_inverse=True)[1]
-    ]
+    arrival = (
+        read_at
+        + rng.uniform(3e-4, 1.5e-3, np.unique(read_at).size)[
+            np.unique(read_at, return_inverse=True)[1]
+        ]
+    )
     raw = np.rint(rng.normal([50, -30, 20], noise_lsb, (k.size, 3))).astype(np.int16)
     return GyroSamples(
         counter_unwrapped=k,
@@ -56,7 +59,8 @@ def test_a_healthy_stream_passes_with_its_figures() -> None:
     assert abs(result.drift_ppm) < 100
     np.testing.assert_allclose(result.noise_density_dps_rthz, 0.005, rtol=0.03)
     assert result.inferred_full_scale_dps == 500
-    assert result.missing_samples == 0 and result.lost_fraction == 0
+    assert result.missing_samples == 0
+    assert result.lost_fraction == 0
     text = result.summary()
     assert text.startswith("p: meets what calibration needs")
     assert json.loads(json.dumps(result.to_dict()))["ok"] is True
@@ -75,7 +79,10 @@ def test_a_healthy_stream_passes_with_its_figures() -> None:
     ],
 )
 def test_each_shortfall_is_named_with_its_fix(
-    stream: dict, counts: tuple[int, int], kwargs: dict, message: str  # type: ignore[type-arg]
+    stream: dict[str, float],
+    counts: tuple[int, int],
+    kwargs: dict[str, int],
+    message: str,
 ) -> None:
     """Lost samples, a 1 kHz rate, corruption, a wrong stated range, a moving or stuck
     sensor and a silent port each give a problem line that names the figure and the fix."""
@@ -98,7 +105,9 @@ def test_bad_settings_are_refused() -> None:
                            sensor="bmi088")  # fmt: skip
 
 
-def _check_twin(capsys: pytest.CaptureFixture[str], **twin: float) -> tuple[int, dict, str]:  # type: ignore[type-arg]
+def _check_twin(
+    capsys: pytest.CaptureFixture[str], **twin: float
+) -> tuple[int, dict[str, object], str]:
     with GyroTwin(seed=5, **twin) as device:  # type: ignore[arg-type]
         code = main(["gyro", "check", device.slave_path, "--duration-s", "2", "--json", "-"])
     out, err = capsys.readouterr()
@@ -115,7 +124,8 @@ def test_gyro_check_passes_a_good_twin(capsys: pytest.CaptureFixture[str]) -> No
     code, doc, err = _check_twin(capsys)
     assert code == 0, doc["problems"]
     assert doc["rate_hz"] == pytest.approx(8024.0, rel=2e-4)
-    assert doc["missing_samples"] == 0 and doc["corrupted_frames"] == 0
+    assert doc["missing_samples"] == 0
+    assert doc["corrupted_frames"] == 0
     np.testing.assert_allclose(doc["noise_density_dps_rthz"], 0.005, rtol=0.1)
     assert doc["inferred_full_scale_dps"] == 500
     assert "keep the sensor still" in err
@@ -132,14 +142,18 @@ def test_gyro_check_passes_a_good_twin(capsys: pytest.CaptureFixture[str]) -> No
     ],
 )
 def test_gyro_check_fails_a_bad_twin_naming_the_fault(
-    capsys: pytest.CaptureFixture[str], twin: dict, message: str  # type: ignore[type-arg]
+    capsys: pytest.CaptureFixture[str],
+    twin: dict[str, float],
+    message: str,
 ) -> None:
     """A twin that drops 1 % of its frames, one at 1 kHz, one on a noisy line (0.3 % of
     bytes damaged: ~3 % of frames) and one that sends nothing but garbage each fail with
     exit 2 and a problem that names what is wrong."""
     code, doc, _ = _check_twin(capsys, **twin)
+    problems = doc["problems"]
+    assert isinstance(problems, list)
     assert code == 2
-    assert any(message in p for p in doc["problems"]), doc["problems"]
+    assert any(message in p for p in problems), problems
     if "frame_loss" in twin:
         assert doc["lost_fraction"] == pytest.approx(0.01, rel=0.3)  # ~160 losses: ±8 %/σ
     if "nominal_rate_hz" in twin:

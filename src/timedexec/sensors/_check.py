@@ -349,8 +349,7 @@ def check_gyro_samples(
             )
             problems.append(
                 f"sample rate {rate:.1f} Hz is {100 * (rate / nominal - 1):+.1f} % from the "
-                f"{nominal:g} Hz calibration needs (allowed ±{100 * lim.max_rate_error:g} %)"
-                + hint
+                f"{nominal:g} Hz calibration needs (allowed ±{100 * lim.max_rate_error:g} %)" + hint
             )
         if not abs(drift) <= lim.max_drift_ppm:
             problems.append(
