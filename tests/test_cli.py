@@ -148,6 +148,13 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
         "timedexec.calibration.run_calibration": Call(SimpleNamespace(summary=lambda: CAL_SUMMARY)),
         "timedexec.extraction.extract_recording": Call(extraction),
         "timedexec.extraction.check_recording": Call([]),
+        "timedexec.sensors.check_gyro": Call(
+            SimpleNamespace(
+                ok=True,
+                to_dict=lambda: {"ok": True, "problems": []},
+                summary=lambda: "/dev/ttyACM0: meets what calibration needs",
+            )
+        ),
         "timedexec.learning.train_delay_models": Call(training),
         "timedexec.evaluation.evaluate": Call(evaluation),
         "timedexec.discrepancy.analyse_discrepancy": Call(discrepancy),
@@ -182,6 +189,9 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
     "serve": (["serve", "--robot", "ur10", "--seed", "4"], "run_ur_twin",
               {"seed": 4, "truth_path": None, "imu_link": None,
                "external_control": ("127.0.0.1", 50002)}, ""),
+    "gyro": (["gyro", "check", "/dev/ttyACM0", "--duration-s", "2", "--full-scale-dps", "1000"],
+             "check_gyro", {"duration_s": 2.0, "full_scale_dps": 1000, "sensor": "mpu6000"},
+             "/dev/ttyACM0: meets what calibration needs"),
     "calibrate": (["calibrate", "--robot-url", "sim://ur10", "--trials", "2", "--seed", "3",
                    "--out", "c.h5", "--quiet"], "run_calibration",
                   {"resume": False, "progress": False, "source": "sim://ur10"},
