@@ -255,6 +255,7 @@ class _FakeDriver:
     def __init__(self, robot: str, **options: object) -> None:
         self.robot = robot
         self.options = options
+        self.controller_period_s = get_robot(robot).controller_period_s
 
     def __enter__(self) -> _FakeDriver:
         return self
