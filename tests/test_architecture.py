@@ -116,7 +116,7 @@ def _imports(path: Path, module: str | None) -> list[_Import]:
     for ``from pkg import sub``, the submodule ``pkg.sub`` when it exists)."""
     tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
     hidden = _how_imports_run(tree)
-    package = module if path.name == "__init__.py" else (module or "").rpartition(".")[0]
+    package = (module or "") if path.name == "__init__.py" else (module or "").rpartition(".")[0]
     out: list[_Import] = []
     for node in ast.walk(tree):
         how = hidden.get(id(node), "top")
@@ -292,6 +292,19 @@ def test_allowed_circle_edges_exist() -> None:
         if not path.exists() or imported not in {i.target for i in _imports(path, importer)}:
             stale.append(f"{importer} -> {imported}")
     assert not stale, f"ALLOWED_CIRCLE_EDGES lists imports that are gone, remove them: {stale}"
+
+
+def test_independent_ur_peer_imports_no_timedexec() -> None:
+    """The independent UR peer (tests/independent_ur_peer/) is written from the real device's
+    documentation, without our code: none of its modules imports timedexec, so a claim
+    checked against it is not checked against our own assumptions."""
+    bad = [
+        f"{path.relative_to(ROOT)}:{imp.line} imports {imp.target}"
+        for path in _files("tests/independent_ur_peer")
+        for imp in _imports(path, None)
+    ]
+    assert _files("tests/independent_ur_peer"), "the peer package moved: update this test"
+    assert not bad, "the independent peer imports timedexec:\n" + "\n".join(bad)
 
 
 def test_module_size() -> None:
