@@ -4,6 +4,7 @@ every wrong part is one ConfigError naming the part and what is allowed."""
 
 from __future__ import annotations
 
+import pickle
 import re
 
 import pytest
@@ -108,6 +109,11 @@ def test_the_sweep_form_is_its_own_grammar() -> None:
             RobotURL.parse(url, sweep=True)
     with pytest.raises(ConfigError, match="describes a simulated sweep"):
         open_driver(sweep)
+    assert RobotURL.parse(sweep, sweep=True) is sweep
+    with pytest.raises(ConfigError, match="unknown parameter 'trials' for sim:// URLs"):
+        RobotURL.parse(sweep)  # read as a robot to drive: the driver grammar refuses it
+    for parsed in (sweep, RobotURL.parse("rsi://0.0.0.0:49152?period=0.004")):
+        assert pickle.loads(pickle.dumps(parsed)) == parsed  # e.g. to a worker process
 
 
 def _arrivals(url: str | RobotURL, **options: object) -> list[float]:

@@ -90,6 +90,8 @@ class RobotURL:
         ``period_s`` (float, s), ``ipoc_tick_s`` (float, s, or ``"auto"``),
         ``first_frame_timeout_s`` (float, s); a sweep ``trials``, ``seed``, ``repeats``
         (int), ``effects`` (str). Only what the URL gives.
+    sweep : bool
+        Parsed as a simulated sweep (``sim://ROBOT?trials=N``), not a robot to drive.
     """
 
     text: str
@@ -98,9 +100,14 @@ class RobotURL:
     port: int | None = None
     robot: str | None = None
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    sweep: bool = False
 
     def __str__(self) -> str:
         return self.text
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled as its text (the read-only options mapping itself cannot be), parsed again
+        return (_parse, (self.text, self.sweep))
 
     @classmethod
     def parse(cls, url: str | RobotURL, *, sweep: bool = False) -> RobotURL:
@@ -121,7 +128,7 @@ class RobotURL:
             Naming the part of the URL that is wrong and what is allowed.
         """
         if isinstance(url, RobotURL):
-            return url if not sweep else cls.parse(url.text, sweep=True)
+            return url if url.sweep == sweep else cls.parse(url.text, sweep=sweep)
         if not isinstance(url, str):
             raise ConfigError(
                 f"robot URL must be a string such as 'sim://ur10', 'ur://HOST' or 'rsi://PORT', "
@@ -150,7 +157,9 @@ class RobotURL:
         if scheme == "sim":
             robot = _sim_robot(url, parts)
             options = _sweep_options(url, query) if sweep else _sim_options(url, query)
-            return cls(text=url, scheme=scheme, robot=robot, options=MappingProxyType(options))
+            return cls(
+                text=url, scheme=scheme, robot=robot, options=MappingProxyType(options), sweep=sweep
+            )
         if scheme == "ur":
             return cls(
                 text=url,
@@ -196,8 +205,8 @@ def open_driver(url: str | RobotURL, **options: Any) -> RobotDriver:
         repeated parameter (:data:`URL_PARAMS`), or a malformed value; the message names
         the part and what is allowed.
     """
-    parsed = RobotURL.parse(url)
-    if "trials" in parsed.options:
+    parsed = url if isinstance(url, RobotURL) else RobotURL.parse(url)
+    if parsed.sweep:
         raise ConfigError(
             f"robot URL {parsed.text!r} describes a simulated sweep (trials=...), not a "
             "robot to drive; give sim://ROBOT[?realtime=1&seed=N]"
@@ -226,6 +235,11 @@ def open_driver(url: str | RobotURL, **options: Any) -> RobotDriver:
 
 
 # ----------------------------------------------------------------------------- the parts
+
+
+def _parse(text: str, sweep: bool) -> RobotURL:
+    """Unpickle a :class:`RobotURL`."""
+    return RobotURL.parse(text, sweep=sweep)
 
 
 def _query(url: str, what: str, allowed: tuple[str, ...], query: str) -> dict[str, str]:
