@@ -16,6 +16,7 @@ import pytest
 
 from conftest import full_or_bounded
 from timedexec.cli import main
+from timedexec.errors import ConfigError
 from timedexec.extraction import extract_recording
 from timedexec.recording import RecordingReader, SweepPlan
 from timedexec.robots import get_robot
@@ -255,6 +256,7 @@ class _FakeDriver:
     def __init__(self, robot: str, **options: object) -> None:
         self.robot = robot
         self.options = options
+        self.controller_period_s = get_robot(robot).controller_period_s
 
     def __enter__(self) -> _FakeDriver:
         return self
@@ -317,3 +319,61 @@ def test_calibrate_refuses_a_robot_that_contradicts_the_sim_url(tmp_path, capsys
     assert code == 2
     err = capsys.readouterr().err
     assert "--robot kr5 contradicts --robot-url sim://ur10" in err
+
+
+def test_sweep_protocol_defaults_come_from_the_robot_spec() -> None:
+    """SweepProtocol.for_robot: the robot's name and controller period from its spec (or one
+    the controller offers), the default trial motion and gyro header; an unknown robot, a
+    period the controller lacks or a speed above a joint's limit is refused, naming it."""
+    from timedexec.recording import GyroHeader, SweepProtocol, TrialProfile
+
+    ur10e = SweepProtocol.for_robot(get_robot("ur10e"))
+    assert (ur10e.robot, ur10e.controller_period_s) == ("ur10e", 0.002)
+    assert (ur10e.profile, ur10e.gyro) == (TrialProfile(), GyroHeader())
+    assert SweepProtocol.for_robot("kr5", period_s=0.004, still_s=2.0).still_s == 2.0
+    with pytest.raises(ConfigError, match="unknown robot 'ur5'"):
+        SweepProtocol.for_robot("ur5")
+    with pytest.raises(ConfigError, match=r"cannot run at a controller period of 0\.005"):
+        SweepProtocol.for_robot("kr5", period_s=0.005)
+    with pytest.raises(
+        ConfigError, match=r"speed_rad_s=9\.0 exceeds the ur10's speed limit of joint 1"
+    ):
+        SweepProtocol.for_robot(
+            "ur10", profile=TrialProfile(speed_rad_s=9.0, acceleration_rad_s2=90.0)
+        )
+
+
+_LIVE_CALIBRATE = """
+import contextlib, sys
+import timedexec.calibration, timedexec.drivers, timedexec.sensors
+from timedexec.cli import main
+
+class Robot:  # a connected KUKA at RSI's 4 ms (what rsi://PORT?period=0.004 opens)
+    robot, controller_period_s = "kr5", 0.004
+    def __enter__(self): return self
+    def __exit__(self, *exc): return None
+
+def run_calibration(driver, gyro, plan, out, *, protocol, **kw):
+    print(protocol.robot, protocol.controller_period_s, plan.robot)
+    raise KeyboardInterrupt
+
+timedexec.drivers.open_driver = lambda url, **options: Robot()
+timedexec.sensors.open_gyro = lambda url: contextlib.nullcontext()
+timedexec.calibration.run_calibration = run_calibration
+code = main(["calibrate", "--robot-url", "rsi://49152?period=0.004", "--imu", sys.argv[1],
+             "--trials", "2", "--out", sys.argv[2], "--quiet", "--gyro-group-delay", "1",
+             "--gyro-transport-latency", "1"])
+print(code, sorted(m for m in sys.modules if m.startswith("timedexec.sim")))
+"""
+
+
+def test_live_calibrate_needs_no_simulator(tmp_path: Path) -> None:
+    """`calibrate` through a live URL builds its sweep protocol from the robot spec at the
+    period the driver runs (RSI at 4 ms) and never imports timedexec.sim (a fresh
+    interpreter; the driver, the gyro and the runner replaced, the runner interrupted)."""
+    (tmp_path / "gyro").write_bytes(b"")
+    run = subprocess.run(
+        [sys.executable, "-c", _LIVE_CALIBRATE, str(tmp_path / "gyro"), str(tmp_path / "c.h5")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert run.stdout.split("\n")[:2] == ["kr5 0.004 kr5", "130 []"], run.stdout + run.stderr

@@ -52,6 +52,8 @@ class Call:
 class FakeDriver:
     """A robot driver that is only opened and closed (the runner is a fake too)."""
 
+    controller_period_s = 0.008  # the simulated UR10's, which `calibrate` plans for
+
     def __enter__(self) -> FakeDriver:
         return self
 

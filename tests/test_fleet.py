@@ -205,7 +205,10 @@ def test_manifest_resolves_paths_and_sim_sources(tmp_path: Path) -> None:
             "simulates 'kr5' but the robot column says 'ur10'",
         ),
         ("name,robot,source\na,ur10,sim://ur10\n", "needs trials=N"),
-        ("name,robot,source\na,ur10,sim://ur10?trials=10&speed=2\n", "unknown key 'speed'"),
+        (
+            "name,robot,source\na,ur10,sim://ur10?trials=10&speed=2\n",
+            "unknown parameter 'speed' for sim:// sweep URLs (allowed: trials, seed, repeats",
+        ),
         ("name,robot,source\na,ur10,sim://ur10?trials=10&repeats=1\n", "repeats=1 must be >= 2"),
         ("name,robot,source\na,ur10,sim://ur10?trials=10&effects=wind\n", "wind"),
         ("name,robot,source\na,ur10,ur://10.0.0.7\n", "the fleet does not calibrate live robots"),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from timedexec.cli._common import (
     add_command,
@@ -19,6 +19,9 @@ from timedexec.cli._common import (
     sweep_stopped,
 )
 from timedexec.errors import ConfigError
+
+if TYPE_CHECKING:
+    from timedexec.drivers import RobotURL
 
 __all__ = ["add_parser", "resume_command", "run"]
 
@@ -87,20 +90,18 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; return the exit code."""
-    from urllib.parse import urlsplit
-
     from timedexec.calibration import run_calibration
-    from timedexec.drivers import open_driver
-    from timedexec.recording import SweepPlan
-    from timedexec.sim import default_settings
+    from timedexec.drivers import RobotURL, open_driver
+    from timedexec.recording import SweepPlan, SweepProtocol
 
-    scheme = urlsplit(args.robot_url).scheme
-    robot = _robot(args, scheme)
+    url = RobotURL.parse(args.robot_url)
+    simulated = url.scheme == "sim"
+    robot = _robot(args, url)
     if (args.trials is None) == (args.plan is None):
         raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
     if args.trials is not None and args.trials < 1:
         raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
-    if scheme != "sim" and not args.imu:
+    if not simulated and not args.imu:
         raise ConfigError("--imu is required for real robots: give the gyro's serial port")
     imu = args.imu if args.imu and "://" not in args.imu else None
     check_files(
@@ -111,24 +112,28 @@ def run(args: argparse.Namespace) -> int:
         outputs={"--out": args.out},
         devices=("--imu",),
     )
-    _check_gyro_constants(args, real=scheme != "sim")
+    _check_gyro_constants(args, real=not simulated)
     # The driver gets the robot model the user named (a UR controller reporting another
     # model, or a KUKA that says nothing, is then driven as that model); without --robot a
     # UR driver asks the controller's dashboard, and the sweep is planned for its answer.
-    options: dict[str, Any] = {"seed": args.seed} if scheme == "sim" else {}
-    if scheme != "sim" and robot is not None:
+    options: dict[str, Any] = {"seed": args.seed} if simulated else {}
+    if not simulated and robot is not None:
         options["robot"] = robot
     try:
         with contextlib.ExitStack() as stack:
-            driver = stack.enter_context(open_driver(args.robot_url, **options))
-            settings = default_settings(robot or driver.robot)
+            driver = stack.enter_context(open_driver(url, **options))
+            # The robot's default protocol at the period the controller runs (RSI: 12 or
+            # 4 ms, as the URL's period= says), from its spec: no simulator involved.
+            protocol = _protocol(
+                args,
+                SweepProtocol.for_robot(robot or driver.robot, period_s=driver.controller_period_s),
+            )
             if args.plan:
-                plan = _read_plan(args.plan, settings.robot)
+                plan = _read_plan(args.plan, protocol.robot)
             else:
-                plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
-            protocol = _protocol(args, settings.protocol)
+                plan = SweepPlan.generate(protocol.robot, args.trials, seed=args.seed)
             gyro: Any
-            if scheme == "sim" and not args.imu:
+            if simulated and not args.imu:
                 gyro = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
             else:
                 from timedexec.sensors import open_gyro
@@ -177,7 +182,7 @@ def resume_command(args: argparse.Namespace) -> str:
     )
 
 
-def _robot(args: argparse.Namespace, scheme: str) -> str | None:
+def _robot(args: argparse.Namespace, url: RobotURL) -> str | None:
     """The robot model the sweep is for: ``--robot``, the simulator's name, ``kr5`` for
     RSI, or None for ``ur://`` (ask the controller).
 
@@ -186,17 +191,17 @@ def _robot(args: argparse.Namespace, scheme: str) -> str | None:
     ConfigError
         ``--robot`` contradicts the ``sim://`` URL's robot.
     """
-    from urllib.parse import urlsplit
+    from timedexec.drivers import DEFAULT_SIM_ROBOT
 
-    if scheme == "sim":
-        named = (urlsplit(args.robot_url).netloc or "ur10").lower()
+    if url.scheme == "sim":
+        named = url.robot or DEFAULT_SIM_ROBOT
         if args.robot is not None and args.robot != named:
             raise ConfigError(
                 f"--robot {args.robot} contradicts --robot-url {args.robot_url} (a simulated "
                 f"{named}); drop --robot or use sim://{args.robot}"
             )
         return str(named)
-    if scheme == "rsi":
+    if url.scheme == "rsi":
         return str(args.robot or "kr5")
     return None if args.robot is None else str(args.robot)
 
@@ -216,7 +221,7 @@ def _check_gyro_constants(args: argparse.Namespace, *, real: bool) -> None:
 
 def _protocol(args: argparse.Namespace, default: Any) -> Any:
     """The sweep protocol with the gyro's constants as the user measured them (a simulated
-    robot keeps the simulator's constants unless told otherwise)."""
+    robot keeps the defaults, its simulated sensor's constants, unless told otherwise)."""
     import dataclasses
 
     from timedexec.recording import GyroHeader

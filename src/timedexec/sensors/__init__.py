@@ -41,16 +41,14 @@ from timedexec.sensors._frames import (
 )
 from timedexec.sensors._ports import SUPPORTED_URL_SCHEMES
 from timedexec.sensors._reader import (
-    DLPF_GROUP_DELAY_S,
-    SENSITIVITY_LSB_PER_DPS,
     GyroReader,
     GyroSamples,
-    GyroSettings,
     GyroStats,
     ZeroRateCalibration,
     open_gyro,
     raw_to_rad_s,
 )
+from timedexec.sensors._settings import DLPF_GROUP_DELAY_S, SENSITIVITY_LSB_PER_DPS, GyroSettings
 from timedexec.sensors._simport import SimGyroPort, parse_sim_url
 from timedexec.sensors._unwrap import (
     CounterUnwrapper,
