@@ -86,7 +86,7 @@ def test_builtin_specs_have_the_documented_periods_and_vendors() -> None:
 def test_get_robot_unknown_name_lists_the_choices() -> None:
     """An unknown robot name fails with a message listing every valid name."""
     with pytest.raises(
-        ConfigError, match=re.escape("unknown robot 'x'; choose one of ur10, ur10e, kr5")
+        ConfigError, match=re.escape(f"unknown robot 'x'; choose one of {', '.join(ROBOT_NAMES)}")
     ):
         get_robot("x")
     assert get_robot(" KR5 ").name == "kr5"  # names are case- and space-insensitive

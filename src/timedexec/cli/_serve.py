@@ -17,8 +17,14 @@ from timedexec.cli._common import (
     note,
 )
 from timedexec.errors import ConfigError
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = ["add_parser", "run"]
+
+
+def _speaks(interface: str) -> list[str]:
+    """The catalog's robots whose controller speaks ``interface``."""
+    return [n for n in ROBOT_NAMES if get_robot_entry(n).twin.interface == interface]
 
 
 def add_parser(sub: Any) -> None:
@@ -28,10 +34,11 @@ def add_parser(sub: Any) -> None:
         "serve",
         help="run a protocol twin: a simulated UR or KUKA controller on the network",
         description=(
-            "Serve a simulated robot controller that real clients talk to: for ur10/ur10e a "
-            "UR controller (RTDE on 30004, dashboard on 29999, script port 30003) for the "
-            "ur_rtde client; for kr5 a KUKA controller sending RSI XML over UDP to the PC's "
-            "port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro on the "
+            "Serve a simulated robot controller that real clients talk to: for "
+            f"{'/'.join(_speaks('ur_rtde'))} a UR controller (RTDE on 30004, dashboard on "
+            "29999, script port 30003) for the ur_rtde client; for "
+            f"{'/'.join(_speaks('kuka_rsi'))} a KUKA controller sending RSI XML over UDP to "
+            "the PC's port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro on the "
             "flange streams over a pseudo-terminal linked at that path. Runs until Ctrl-C or "
             "SIGTERM, then exits 0. Binds 127.0.0.1 unless told otherwise.\n\n"
             "examples:\n  timedexec serve --robot ur10 --imu-link /tmp/gyro\n"
@@ -56,9 +63,9 @@ def add_parser(sub: Any) -> None:
         "--rsi-port",
         type=int_arg(1, 65535),
         default=49152,
-        help="the PC's RSI UDP port (kr5; 1 .. 65535)",
+        help="the PC's RSI UDP port (KUKA; 1 .. 65535)",
     )
-    add_period(p, help="RSI period, s (kr5: 0.012 or 0.004)")
+    add_period(p, help="RSI period, s (KUKA kr5: 0.012 or 0.004)")
     add_seed(p)
     p.set_defaults(func=run)
 
@@ -81,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     _check_serve_paths(args)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.robot.startswith("ur"):
+    if _is_ur(args.robot):
         from timedexec.twins import run_ur_twin
 
         print(
@@ -106,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
     # Wait for the PC's first answer before counting late answers (else RSI stops with
     # RSITimeout 1.2 s after start when no PC listens yet, as a real KSS would).
     options: dict[str, Any] = {
-        "host": args.host, "seed": args.seed, "truth_path": args.truth, "wait_for_pc": True,
+        "robot": args.robot, "host": args.host, "seed": args.seed, "truth_path": args.truth,
+        "wait_for_pc": True,
     }  # fmt: skip
     if args.period:
         options["period_s"] = args.period
@@ -114,13 +122,19 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--imu-link is available for the UR twin; the RSI twin has no gyro yet")
     with RSITwin(args.rsi_port, **options):
         print(
-            f"sending RSI frames of a simulated kr5 to {args.host}:{args.rsi_port} (Ctrl-C stops)",
+            f"sending RSI frames of a simulated {args.robot} to {args.host}:{args.rsi_port} "
+            "(Ctrl-C stops)",
             file=sys.stderr,
         )
         with contextlib.suppress(KeyboardInterrupt):
             while not stop.wait(0.5):
                 pass
     return 0
+
+
+def _is_ur(robot: str) -> bool:
+    """Whether ``robot``'s controller is a UR (RTDE); else it speaks KUKA RSI."""
+    return get_robot_entry(robot).twin.interface == "ur_rtde"
 
 
 def _check_serve_paths(args: argparse.Namespace) -> None:
@@ -141,7 +155,7 @@ def _check_serve_paths(args: argparse.Namespace) -> None:
     import tempfile
     from pathlib import Path
 
-    ur = args.robot.startswith("ur")
+    ur = _is_ur(args.robot)
     check_files(
         args,
         "serve",

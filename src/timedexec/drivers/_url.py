@@ -14,6 +14,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from timedexec.drivers._base import RobotDriver
 from timedexec.errors import ConfigError
+from timedexec.robots import ROBOT_NAMES
 
 __all__ = ["SCHEMES", "URL_PARAMS", "open_driver"]
 
@@ -105,7 +106,7 @@ def open_driver(url: str, **options: Any) -> RobotDriver:
     if scheme not in SCHEMES:
         raise ConfigError(
             f"robot URL {url!r} has an unknown scheme {scheme!r}; use one of "
-            "sim://ROBOT (ur10, ur10e, kr5), ur://HOST, rsi://PORT"
+            f"sim://ROBOT ({', '.join(ROBOT_NAMES)}), ur://HOST, rsi://PORT"
         )
     if parts.fragment:
         raise ConfigError(f"robot URL {url!r}: unexpected fragment #{parts.fragment}")
