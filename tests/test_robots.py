@@ -22,6 +22,7 @@ from timedexec.robots import (
     check_configuration,
     forward_kinematics,
     get_robot,
+    get_robot_entry,
     gravity_torque,
     gravity_torque_coefficients,
     joint_axis_in_tool,
@@ -29,15 +30,14 @@ from timedexec.robots import (
 )
 
 G = 9.81
-# Rated payloads from the data sheets (kg): used to load the arms in the tests.
-RATED_PAYLOAD_KG = {"ur10": 10.0, "ur10e": 12.5, "kr5": 5.0}
 # Deterministic Hypothesis runs: the same examples every time (seeded randomness).
 HYPOTHESIS = settings(max_examples=40, deadline=None, derandomize=True)
 
 
 def loaded(name: str) -> RobotSpec:
-    """The built-in spec carrying its rated payload at the flange."""
-    return dataclasses.replace(get_robot(name), payload_kg=RATED_PAYLOAD_KG[name])
+    """The built-in spec carrying its rated payload (the data sheet's, from the catalog) at
+    the flange."""
+    return dataclasses.replace(get_robot(name), payload_kg=get_robot_entry(name).rated_payload_kg)
 
 
 def random_configurations(spec: RobotSpec, n: int, seed: int, margin: float = 0.0) -> np.ndarray:

@@ -244,6 +244,9 @@ class RobotEntry:
     sweep_q_min_rad, sweep_q_max_rad : 6 floats
         The joint ranges a calibration sweep samples from (before the trial motion's
         margin), rad: inside the joint limits and keeping the arm above its base plane.
+    rated_payload_kg : float
+        The data sheet's rated payload, kg (the spec's ``payload_kg`` is 0 by default; the
+        peak torques must hold the arm with this much at the flange).
     default_effects : tuple of str
         Names of the effects the simulated robot has by default
         (``timedexec.effects.EFFECT_NAMES``; checked there).
@@ -260,6 +263,7 @@ class RobotEntry:
     cell: WorkCell
     sweep_q_min_rad: tuple[float, ...]
     sweep_q_max_rad: tuple[float, ...]
+    rated_payload_kg: float
     default_effects: tuple[str, ...]
     shipped_model: str
     paper_family: str
@@ -300,6 +304,7 @@ class RobotEntry:
                     f"{who}: at a period of {period:g} s the packing phase would run from "
                     f"{lo_s:g} s to {hi_s:g} s; its low bound must not exceed the high one"
                 )
+        check_positive(who, rated_payload_kg=self.rated_payload_kg)
         try:
             check_configuration(self.spec, self.cell.seed_q_rad)
         except ConfigError as exc:

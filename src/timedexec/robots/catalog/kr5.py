@@ -97,6 +97,7 @@ ROBOT = RobotEntry(
     sweep_q_min_rad=tuple(v * DEG for v in (-150, -170, -100, -170, -110, -170)),
     sweep_q_max_rad=tuple(v * DEG for v in (150, 10, 145, 170, 110, 170)),
     # The paper found the KR 5's response delay above one period: all effects.
+    rated_payload_kg=5.0,
     default_effects=(
         "gravity_load",
         "gravity_direction",

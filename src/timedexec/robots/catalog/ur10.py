@@ -100,6 +100,7 @@ ROBOT = RobotEntry(
     sweep_q_min_rad=UR_SWEEP_Q_MIN_RAD,
     sweep_q_max_rad=UR_SWEEP_Q_MAX_RAD,
     # RTDE samples and sends in one cycle: no response_extra_cycle.
+    rated_payload_kg=10.0,
     default_effects=(
         "gravity_load",
         "gravity_direction",
