@@ -319,7 +319,8 @@ class RobotEntry:
             raise ConfigError(f"{who}: shipped_model must name a bundle in models/")
         if self.paper_family not in PAPER_FAMILIES:
             raise ConfigError(
-                f"{who}: paper_family={self.paper_family!r} is not one of {', '.join(PAPER_FAMILIES)}"
+                f"{who}: paper_family={self.paper_family!r} is not one of "
+                f"{', '.join(PAPER_FAMILIES)}"
             )
 
     @property
