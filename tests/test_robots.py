@@ -70,10 +70,11 @@ def rot_x(angle: float) -> np.ndarray:
 
 
 def test_builtin_specs_have_the_documented_periods_and_vendors() -> None:
-    """The three robots exist with the paper's controller periods and their vendors."""
-    assert ROBOT_NAMES == ("ur10", "ur10e", "kr5")
+    """The four robots exist with their controller periods (the paper's for the UR10 and
+    KR 5) and their vendors."""
+    assert ROBOT_NAMES == ("ur10", "ur10e", "kr5", "ur5e")
     periods = {name: get_robot(name).controller_period_s for name in ROBOT_NAMES}
-    assert periods == {"ur10": 0.008, "ur10e": 0.002, "kr5": 0.012}
+    assert periods == {"ur10": 0.008, "ur10e": 0.002, "kr5": 0.012, "ur5e": 0.002}
     assert get_robot("kr5").period_options_s == (0.012, 0.004)
     assert {get_robot(n).vendor for n in ROBOT_NAMES} == {"universal_robots", "kuka"}
     for name in ROBOT_NAMES:

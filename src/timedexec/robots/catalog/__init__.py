@@ -26,4 +26,5 @@ MODULES: tuple[str, ...] = (
     "ur10",
     "ur10e",
     "kr5",
+    "ur5e",
 )
