@@ -366,9 +366,11 @@ def test_wheel_ships_the_models(tmp_path: Path) -> None:
     )  # fmt: skip
     (wheel,) = (tmp_path / "dist").glob("timedexec-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    for robot in ("ur10", "ur10e", "kr5"):
-        assert f"timedexec/models/{robot}-sim/arrays.npz" in names
-        assert f"timedexec/models/{robot}-sim/manifest.json" in names
+    from timedexec.learning import BUNDLED_MODELS
+
+    for model in BUNDLED_MODELS:  # one per robot of the catalog
+        assert f"timedexec/models/{model}/arrays.npz" in names
+        assert f"timedexec/models/{model}/manifest.json" in names
     site = tmp_path / "site"
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],

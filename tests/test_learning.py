@@ -35,6 +35,7 @@ from timedexec.learning import (
     noise_floor,
     train_delay_models,
 )
+from timedexec.robots import ROBOT_NAMES
 
 NOISE_S = 0.002  # trial noise of the synthetic tables, s
 EPS = float(np.finfo(np.float64).eps)
@@ -667,17 +668,16 @@ def test_estimators_warn_nothing(table: DelayTable) -> None:
 MODELS = Path(__file__).resolve().parent.parent / "models"
 
 
-@pytest.mark.parametrize("name", ["ur10-sim", "ur10e-sim", "kr5-sim"])
-def test_bundled_models_load_and_meet_the_targets(name: str) -> None:
-    """The bundled models load for their robot and period, and their recorded CV (measured
-    delays of a simulated sweep) shows every learned model beating the median on every
-    actuation column, with the GP within 10 % of the noise floor."""
-    from timedexec.robots import get_robot
+@pytest.mark.parametrize("robot", ROBOT_NAMES)
+def test_bundled_models_load_and_meet_the_targets(robot: str) -> None:
+    """The bundled model of every robot of the catalog loads for its robot and period, and
+    its recorded CV (measured delays of a simulated sweep) shows every learned model beating
+    the median on every actuation column, with the GP within 10 % of the noise floor."""
+    from timedexec.robots import get_robot, get_robot_entry
 
-    path = MODELS / name
+    path = MODELS / get_robot_entry(robot).shipped_model
     # The bundles ship with the package: a missing one is a packaging error, not a skip.
     assert (path / "manifest.json").exists(), f"{path} missing (scripts/train_bundled_models.py)"
-    robot = name.removesuffix("-sim")
     model = DelayModel.load(path, robot=get_robot(robot))
     assert (path / "arrays.npz").stat().st_size < 2_000_000  # bundles stay small
     cv = model.cv_scores_ms

@@ -23,6 +23,7 @@ from timedexec.cli._scheduler import (
     worker_model,
     worker_path,
 )
+from timedexec.robots import get_robot_entry
 
 __all__ = ["EXIT_ALARM", "add_parser", "run"]
 
@@ -58,8 +59,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--model",
         metavar="NAME_OR_DIR",
-        help="deployed model: bundle directory or bundled name (default: the recording's "
-        "robot + '-sim', e.g. ur10-sim)",
+        help="deployed model: bundle directory or bundled name (default: the model shipped "
+        "for the recording's robot, e.g. ur10-sim)",
     )
     p.add_argument(
         "--warmup",
@@ -177,7 +178,7 @@ def watch(
     if model is None:
         if not robot:
             raise ConfigError(f"{path} does not name its robot; give --model NAME_OR_DIR")
-        model = f"{robot}-sim"
+        model = get_robot_entry(robot).shipped_model
     from timedexec.execution import check_model_robot, load_delay_model
 
     loaded = load_delay_model(model)

@@ -18,8 +18,14 @@ from timedexec.cli._common import (
     note,
 )
 from timedexec.errors import ConfigError
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = ["add_parser", "run"]
+
+
+def _speaks(interface: str) -> list[str]:
+    """The catalog's robots whose controller speaks ``interface``."""
+    return [n for n in ROBOT_NAMES if get_robot_entry(n).twin.interface == interface]
 
 
 def add_parser(sub: Any) -> None:
@@ -29,12 +35,13 @@ def add_parser(sub: Any) -> None:
         "serve",
         help="run a protocol twin: a simulated UR or KUKA controller on the network",
         description=(
-            "Serve a simulated robot controller that real clients talk to: for ur10/ur10e a "
-            "UR controller (RTDE on 30004, dashboard on 29999, script port 30003) for the "
-            "ur_rtde client; for kr5 a KUKA controller sending RSI XML over UDP to the PC's "
-            "port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro on the "
-            "flange streams over a pseudo-terminal linked at that path. Runs until Ctrl-C or "
-            "SIGTERM, then exits 0. Binds 127.0.0.1 unless told otherwise.\n\n"
+            "Serve a simulated robot controller that real clients talk to: for "
+            f"{'/'.join(_speaks('ur_rtde'))} a UR controller (RTDE on 30004, dashboard on "
+            "29999, script port 30003) for the ur_rtde client; for "
+            f"{'/'.join(_speaks('kuka_rsi'))} a KUKA controller sending RSI XML over UDP to "
+            "the PC's port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro "
+            "on the flange streams over a pseudo-terminal linked at that path. Runs until "
+            "Ctrl-C or SIGTERM, then exits 0. Binds 127.0.0.1 unless told otherwise.\n\n"
             "examples:\n  timedexec serve --robot ur10 --imu-link /tmp/gyro\n"
             "  timedexec calibrate --robot-url ur://127.0.0.1 --imu /tmp/gyro --trials 20 "
             "--out ur.h5\n  timedexec serve --robot kr5 --rsi-port 49152"
@@ -57,9 +64,9 @@ def add_parser(sub: Any) -> None:
         "--rsi-port",
         type=int_arg(1, 65535),
         default=49152,
-        help="the PC's RSI UDP port (kr5; 1 .. 65535)",
+        help="the PC's RSI UDP port (KUKA; 1 .. 65535)",
     )
-    add_period(p, help="RSI period, s (kr5: 0.012 or 0.004)")
+    add_period(p, help="RSI period, s (KUKA kr5: 0.012 or 0.004)")
     add_seed(p)
     p.set_defaults(func=run)
 
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    if not args.robot.startswith("ur"):  # options of the UR twin only, before any path
+    if not _is_ur(args.robot):  # options of the UR twin only, before any path
         if args.urcap is not None:
             raise ConfigError(
                 f"--urcap applies to the UR twins (External Control URCap); {args.robot} "
@@ -97,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         args.urcap = _URCAP_DEFAULT
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.robot.startswith("ur"):
+    if _is_ur(args.robot):
         from timedexec.twins import run_ur_twin
 
         print(
@@ -122,13 +129,15 @@ def run(args: argparse.Namespace) -> int:
     # Wait for the PC's first answer before counting late answers (else RSI stops with
     # RSITimeout 1.2 s after start when no PC listens yet, as a real KSS would).
     options: dict[str, Any] = {
-        "host": args.host, "seed": args.seed, "truth_path": args.truth, "wait_for_pc": True,
+        "robot": args.robot, "host": args.host, "seed": args.seed, "truth_path": args.truth,
+        "wait_for_pc": True,
     }  # fmt: skip
     if args.period:
         options["period_s"] = args.period
     with RSITwin(args.rsi_port, **options):
         print(
-            f"sending RSI frames of a simulated kr5 to {args.host}:{args.rsi_port} (Ctrl-C stops)",
+            f"sending RSI frames of a simulated {args.robot} to {args.host}:{args.rsi_port} "
+            "(Ctrl-C stops)",
             file=sys.stderr,
         )
         with contextlib.suppress(KeyboardInterrupt):
@@ -153,6 +162,11 @@ def _is_truth_file(path: str) -> bool:
     return isinstance(record, dict) and record.get("event") == "meta"
 
 
+def _is_ur(robot: str) -> bool:
+    """Whether ``robot``'s controller is a UR (RTDE); else it speaks KUKA RSI."""
+    return get_robot_entry(robot).twin.interface == "ur_rtde"
+
+
 def _check_serve_paths(args: argparse.Namespace) -> None:
     """Refuse ``--truth`` and ``--imu-link`` paths the twin could not write, before serving.
 
@@ -170,7 +184,7 @@ def _check_serve_paths(args: argparse.Namespace) -> None:
     import os
     from pathlib import Path
 
-    ur = args.robot.startswith("ur")
+    ur = _is_ur(args.robot)
     check_files(
         args,
         "serve",

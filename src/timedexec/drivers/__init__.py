@@ -24,7 +24,7 @@ from timedexec.drivers._url import (
 if TYPE_CHECKING:
     from timedexec.drivers._rsi import KukaRSIDriver
     from timedexec.drivers._sim import SimDriver, VirtualGyro
-    from timedexec.drivers._ur import URDriver
+    from timedexec.drivers._ur import URDriver, ur_robot_named
 
 __all__ = [
     "DEFAULT_SIM_ROBOT",
@@ -41,6 +41,7 @@ __all__ = [
     "URDriver",
     "VirtualGyro",
     "open_driver",
+    "ur_robot_named",
 ]
 
 _LAZY = {
@@ -48,6 +49,7 @@ _LAZY = {
     "SimDriver": "timedexec.drivers._sim",
     "VirtualGyro": "timedexec.drivers._sim",
     "URDriver": "timedexec.drivers._ur",
+    "ur_robot_named": "timedexec.drivers._ur",
     "KukaRSIDriver": "timedexec.drivers._rsi",
 }
 

@@ -54,7 +54,7 @@ class SimDriver(RobotDriver):
     Parameters
     ----------
     robot : str
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     virtual : bool
         Virtual time (default) or real time.
     effects, settings, seed, q0_rad, physics_rate_hz

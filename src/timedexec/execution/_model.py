@@ -189,7 +189,7 @@ def model_period_s(model: Any) -> float:
 
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:
     """A delay model object: a bundle folder is loaded with ``DelayModel.load``, a bundled
-    model's name (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``) from the package, and a
+    model's name (one of :data:`BUNDLED_MODELS`, e.g. ``"ur10-sim"``) from the package, and a
     model object is checked for the delay-model interface.
 
     Raises

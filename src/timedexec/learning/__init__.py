@@ -49,6 +49,7 @@ from timedexec.learning._train import (
     fold_of_configuration,
     make_estimator,
     noise_floor,
+    paper_family,
     train_delay_models,
 )
 
@@ -109,6 +110,7 @@ __all__ = [
     "make_estimator",
     "neg_log_likelihood",
     "noise_floor",
+    "paper_family",
     "predictor_from_arrays",
     "single_threaded_blas",
     "std_scale_factor",

@@ -493,7 +493,7 @@ class DelayModel:
         ----------
         path : path or str
             Bundle directory, or its ``manifest.json``, or the name of a shipped model
-            (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``; see ``models/README.md``).
+            (:data:`~timedexec.learning.BUNDLED_MODELS`; see ``models/README.md``).
         robot : str or RobotSpec, optional
             Refuse a bundle trained for another robot. A RobotSpec also fixes the period.
         period_s : float, optional

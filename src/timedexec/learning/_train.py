@@ -35,6 +35,7 @@ from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
 from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
 from timedexec.learning._features import encode_inputs
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = [
     "DELAYS",
@@ -45,6 +46,7 @@ __all__ = [
     "cross_validate",
     "make_estimator",
     "noise_floor",
+    "paper_family",
     "train_delay_models",
 ]
 
@@ -88,6 +90,13 @@ PAPER_TABLES: dict[str, dict[str, dict[str, tuple[float, ...]]]] = {
     },
 }
 _PAPER_COLUMNS = ("1", "2", "3", "5", "combined", "average")
+_PAPER_ROBOTS = {"kuka": "KUKA KR 5", "ur": "UR10"}
+
+
+def paper_family(robot: str) -> str | None:
+    """The key of :data:`PAPER_TABLES` a robot's figures sit beside (its catalog entry's
+    ``paper_family``: ``"ur"`` or ``"kuka"``), or None for a robot outside the catalog."""
+    return get_robot_entry(robot).paper_family if robot in ROBOT_NAMES else None
 
 
 def make_estimator(method: str, *, random_state: int | None = None) -> Any:
@@ -395,8 +404,8 @@ class CVResult:
 
     def table_text(self) -> str:
         """Tables I/II: ours beside the paper's (same robot family), plus the noise floor."""
-        family = "kuka" if self.robot.startswith("kr") else "ur"
-        paper = PAPER_TABLES[family]
+        family = paper_family(self.robot)
+        paper = PAPER_TABLES.get(family or "", {})
         lines: list[str] = []
         for n_tab, delay in zip(("I", "II"), DELAYS, strict=True):
             if delay not in self.scores_ms:
@@ -406,14 +415,14 @@ class CVResult:
             heads = [f"J{c}" if c.isdigit() else c for c in cols]
             lines.append(
                 f"Table {n_tab}: {delay.replace('_', ' ')}, {self.folds}-fold CV error (ms), "
-                f"{self.robot}: ours / paper ({'KUKA KR 5' if family == 'kuka' else 'UR10'})"
+                f"{self.robot}: ours / paper ({_PAPER_ROBOTS.get(family or '', 'none')})"
             )
             lines.append(f"{'':8}" + "".join(f"{h:>16}" for h in heads))
             for m, scores in methods.items():
                 cells = []
                 for c in cols:
                     ours = scores[c]
-                    ref = _paper_value(paper[delay].get(m), c)
+                    ref = _paper_value(paper.get(delay, {}).get(m), c)
                     ref_text = f"{ref:5.2f}" if ref is not None else "    -"
                     cells.append(f"{ours:8.2f} / {ref_text}")
                 lines.append(f"{m:8}" + "".join(f"{c:>16}" for c in cells))

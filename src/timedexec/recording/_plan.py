@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.robots import RobotSpec, check_configuration, get_robot
+from timedexec.robots import RobotSpec, check_configuration, get_robot, get_robot_entry
 
 __all__ = ["FULL_SWEEP_TRIALS", "SweepPlan", "calibration_ranges"]
 
@@ -29,18 +29,16 @@ def calibration_ranges(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Joint ranges the plan samples from, rad, shapes (6,) and (6,).
 
-    The joint limits shrunk by ``margin_rad`` (room for the trial motion) and, for the
-    shoulder and elbow, restricted to poses that keep the arm above its base plane (a
-    calibration sweep must not drive into the table).
+    The joint limits shrunk by ``margin_rad`` (room for the trial motion), within the
+    robot's sweep ranges (its catalog entry's ``sweep_q_min_rad`` / ``sweep_q_max_rad``:
+    poses that keep the arm above its base plane; a calibration sweep must not drive into
+    the table).
     """
+    entry = get_robot_entry(spec.name)
     lo = np.array(spec.q_min_rad, dtype=float) + margin_rad
     hi = np.array(spec.q_max_rad, dtype=float) - margin_rad
-    if spec.vendor == "universal_robots":
-        lo[:] = np.maximum(lo, [-np.pi, -np.pi, -2.6, -np.pi, -np.pi, -np.pi])
-        hi[:] = np.minimum(hi, [np.pi, 0.0, 2.6, np.pi, np.pi, np.pi])
-    else:
-        lo[:] = np.maximum(lo, np.deg2rad([-150, -170, -100, -170, -110, -170]))
-        hi[:] = np.minimum(hi, np.deg2rad([150, 10, 145, 170, 110, 170]))
+    lo[:] = np.maximum(lo, entry.sweep_q_min_rad)
+    hi[:] = np.minimum(hi, entry.sweep_q_max_rad)
     if np.any(hi <= lo):
         raise ConfigError(f"robot {spec.name}: empty calibration range after margins")
     return lo, hi

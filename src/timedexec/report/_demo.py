@@ -99,7 +99,8 @@ def run_demo(
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e", "kr5"}
+    robot : str
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     out_dir : path
         Output folder (created): ``ROBOT-sweep.h5`` (recording), ``ROBOT-delays.csv``,
         ``model/`` (bundle with ``cv.json``), ``evaluation.json``, ``conveyor.json`` and

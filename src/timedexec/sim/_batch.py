@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from timedexec._signal import ONSET_FRACTION, interp_rows
 from timedexec.effects import EffectSet
 from timedexec.recording import SweepPlan, trial_layout
-from timedexec.robots import RobotSpec, joint_axis_in_tool
+from timedexec.robots import RobotSpec, get_robot_entry, joint_axis_in_tool
 from timedexec.sim._physics import JointBank, joint_params, pulse_profile
 from timedexec.sim._settings import SimSettings
 
@@ -228,8 +228,8 @@ def simulate_block(
     qd_pkg = np.zeros_like(q_pkg)
     r = np.arange(n)
     q_pkg[r, :, col] = q_rep
-    if spec.vendor == "kuka":
-        # RSI reports positions only; the host differentiates (a T/2 lag, documented).
+    if not get_robot_entry(spec.name).timing.state_velocity:
+        # Positions only (RSI); the host differentiates (a T/2 lag, documented).
         qd_rep = np.diff(q_rep, axis=1, prepend=q_rep[:, :1]) / period
     else:
         qd_rep = interp_rows(v_hist, pos)

@@ -169,7 +169,7 @@ class ControllerSim:
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec).
     effects : EffectSet, optional
         Defaults to the robot's default effect set.
     q0_rad : array (6,), optional

@@ -19,7 +19,7 @@ import numpy as np
 from timedexec._validation import DictMixin, check_joint_tuple, check_non_negative, check_positive
 from timedexec.errors import ConfigError
 from timedexec.recording import GyroHeader, SweepProtocol, TrialProfile
-from timedexec.robots import RobotSpec, get_robot, joint_inertia
+from timedexec.robots import RobotSpec, get_robot, get_robot_entry, joint_inertia
 
 __all__ = [
     "GyroModel",
@@ -322,9 +322,16 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"`` (or its spec).
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec). The controller's
+        timing (pipeline, packing phase, jitter, velocity loop, breakaway) is the robot's
+        catalog entry's :class:`~timedexec.robots.ControllerTiming`.
     period_s : float, optional
         Controller period (the KR 5 also runs RSI at 0.004 s).
+
+    Raises
+    ------
+    ConfigError
+        For a robot the catalog does not hold (a spec of another name).
     """
     spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
     if period_s is not None:
@@ -332,25 +339,14 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
     protocol = SweepProtocol.for_robot(spec)
     period = spec.controller_period_s
     profile = protocol.profile
-    if spec.vendor == "universal_robots":
-        # CB3: the script thread takes the register one cycle after intake; e-Series has a
-        # longer pipeline in cycles but a 4x shorter cycle.
-        pipeline = 1 if spec.name == "ur10" else 4
-        timing = TimingSettings(
-            pipeline_cycles=pipeline, packing_phase_s=(0.02 * period, 0.97 * period)
-        )
-        bandwidth = (25.0, 25.0, 25.0, 40.0, 40.0, 40.0)
-        breakaway_time = (0.0045, 0.0045, 0.0045, 0.0045, 0.0045, 0.0045)
-    else:
-        # RSI: the IPO cycle interpolates and a drive-bus stage follows; the pipeline is a
-        # time (about 72 ms), so at 4 ms it holds three times as many cycles.
-        timing = TimingSettings(
-            pipeline_cycles=max(1, round(0.072 / period)),
-            packing_phase_s=(0.0005, min(0.0095, 0.8 * period)),
-            cycle_jitter_s=10e-6,
-        )
-        bandwidth = (12.0, 12.0, 12.0, 25.0, 25.0, 25.0)
-        breakaway_time = (0.0015, 0.0015, 0.0015, 0.0015, 0.0015, 0.0015)
+    controller = get_robot_entry(spec.name).timing  # the catalog's numbers for this controller
+    timing = TimingSettings(
+        pipeline_cycles=controller.pipeline_cycles_at(period),
+        packing_phase_s=controller.packing_phase_at(period),
+        cycle_jitter_s=controller.cycle_jitter_s,
+    )
+    bandwidth = controller.bandwidth_hz
+    breakaway_time = controller.breakaway_time_s
     # Warm breakaway torque per joint, N·m: what the nominal velocity loop (kp = J_nom·ω)
     # builds in `breakaway_time` under the calibration ramp. Published friction data of
     # these drives do not exist; this ties the torques to the drives' scale instead.

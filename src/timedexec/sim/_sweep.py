@@ -104,7 +104,7 @@ def simulate_sweep(
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec).
     n_trials : int
         Trials (1 .. 10,000,000); ignored when ``plan`` is given.
     out : path
