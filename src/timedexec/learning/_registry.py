@@ -31,6 +31,7 @@ _MODULES = (
     "timedexec.learning._nn",
     "timedexec.learning._tree",
     "timedexec.learning._gp",
+    "timedexec.learning._phys",
 )
 
 
