@@ -6,7 +6,9 @@ fast predictor, model info). The paper's four are the default (:data:`DEFAULT_ME
 the baseline :class:`MedianDelay`, the Levenberg-Marquardt neural net
 :class:`LMNeuralNet`, the linear-leaf regression tree :class:`LinearLeafTree` and the
 Gaussian process :class:`DelayGP` (mean and standard deviation, exact on
-replicate-collapsed data, FITC for very large sweeps); all take encoded inputs
+replicate-collapsed data, FITC for very large sweeps). Beside them, on request,
+:class:`PhysicalLinearModel` ("phys": Bayesian linear regression on the gravity torque and
+inertia of the start pose, mean and standard deviation). All take encoded inputs
 (:func:`encode_inputs`) and follow scikit-learn's estimator contract.
 :func:`train_delay_models` cross-validates them per joint and combined for both delays
 (the paper's Tables I/II) and trains a :class:`DelayModel` bundle whose
@@ -42,6 +44,7 @@ from timedexec.learning._gpcore import (
 from timedexec.learning._median import MedianDelay
 from timedexec.learning._method import DelayMethod, MeanPredictor, ModelInputs, Predictor
 from timedexec.learning._nn import LMNeuralNet
+from timedexec.learning._phys import PhysicalLinearModel
 from timedexec.learning._registry import (
     DEFAULT_METHODS,
     METHODS,
@@ -86,6 +89,7 @@ __all__ = [
     "MeanPredictor",
     "MedianDelay",
     "ModelInputs",
+    "PhysicalLinearModel",
     "Predictor",
     "TrainResult",
     "build_predictor",
