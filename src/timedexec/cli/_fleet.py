@@ -64,8 +64,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     add_scheduler(p, what="every robot")
     add_jobs(p, help="robots processed at once on this machine (without --scheduler)")
+    from timedexec.learning import DEFAULT_METHODS, METHODS
+
     p.add_argument(
-        "--methods", default="median,nn,rt,gpr", help="comma list of median, nn, rt, gpr"
+        "--methods",
+        default=",".join(DEFAULT_METHODS),
+        help=f"comma list of {', '.join(METHODS)} (`timedexec train --help` describes them)",
     )
     p.add_argument("--folds", type=int_arg(2), default=10, help="cross-validation folds (>= 2)")
     add_seed(p, help="seed of the folds and the estimators")

@@ -36,6 +36,7 @@ from timedexec._files import make_dir, write_atomic
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
 from timedexec.fleet._drift import drift_check
 from timedexec.fleet._manifest import RobotEntry
+from timedexec.learning import DEFAULT_METHODS
 
 __all__ = ["STAGES", "FleetSettings", "RobotResult", "run_robot"]
 
@@ -51,7 +52,8 @@ class FleetSettings:
     Attributes
     ----------
     methods : tuple of str
-        Delay models to cross-validate and train (any of median, nn, rt, gpr).
+        Delay models to cross-validate and train: registered methods
+        (:data:`timedexec.learning.METHODS`); default the paper's four.
     folds : int
         Cross-validation folds (>= 2), split by start configuration.
     seed : int
@@ -70,7 +72,7 @@ class FleetSettings:
         False-alarm probability of the drift check per robot.
     """
 
-    methods: tuple[str, ...] = ("median", "nn", "rt", "gpr")
+    methods: tuple[str, ...] = DEFAULT_METHODS
     folds: int = 10
     seed: int = 0
     extract_method: str = "fit"
