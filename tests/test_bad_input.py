@@ -187,6 +187,20 @@ def _setup_input_fifos(work: Path) -> None:
     os.mkfifo(work / "pipe.csv")
 
 
+def _setup_ms_profile(work: Path) -> None:
+    (work / "gyro.json").write_text('{"group_delay_s": 0.98, "transport_latency_s": 0.8}\n')
+
+
+def _huge_delay(cols: dict[str, Any]) -> None:
+    cols["actuation_delay"] = cols["actuation_delay"].copy()
+    cols["actuation_delay"][5] = 1e300
+
+
+def _negative_delay(cols: dict[str, Any]) -> None:
+    cols["actuation_delay"] = cols["actuation_delay"].copy()
+    cols["actuation_delay"][7] = -0.02
+
+
 _LONG = "b" * 250
 
 
@@ -484,6 +498,44 @@ CASES: dict[str, Case] = {
         f"extract rec.h5 --out {_LONG}.csv",
         ["--out: the name bbbb", "is 254 bytes long", "give a shorter name"],
     ),
+    "calibrate-missing-gyro-port": Case(
+        "calibrate --robot-url sim://ur10 --trials 2 --out c.h5 --imu /dev/ttyNOPE",
+        ["--imu /dev/ttyNOPE: no such port", "ls /dev/ttyUSB*"],
+        absent=["c.h5"],
+    ),
+    "calibrate-broken-profile-before-connecting": Case(
+        "calibrate --robot-url ur://127.0.0.1 --imu sim:// --trials 2 --out c.h5 "
+        "--sensor-profile nope.json",
+        ["sensor profile nope.json: cannot read it as JSON"],
+        absent=["c.h5"],
+    ),
+    "calibrate-profile-in-milliseconds": Case(
+        "calibrate --robot-url sim://ur10 --imu sim:// --trials 2 --out c.h5 "
+        "--sensor-profile gyro.json",
+        ["group_delay_s=0.98 s is not plausible", "give group_delay_s=0.00098"],
+        setup=_setup_ms_profile,
+        absent=["c.h5"],
+    ),
+    "calibrate-sim-gyro-constants-contradict": Case(
+        "calibrate --robot-url sim://ur10 --trials 2 --out c.h5 --gyro-group-delay 30 "
+        "--gyro-transport-latency 8",
+        ["sim://ur10 records its own simulated gyro",
+         "group_delay_s 30 ms (the simulated gyro's: 0.98 ms)"],
+        absent=["c.h5"],
+    ),
+    "train-delay-1e300": Case(
+        "train big.csv --out b --folds 2 --quiet",
+        ["column 'actuation_delay' row 5 is 1e+300 s", "lies in 0 .. 1 s"],
+        setup=_setup_table("big.csv", _huge_delay),
+        absent=["b"],
+    ),
+    "train-delay-negative": Case(
+        "train neg.csv --out b --folds 2 --quiet",
+        ["column 'actuation_delay' row 7 is -0.02 s", "no arm moves before its command"],
+        setup=_setup_table("neg.csv", _negative_delay),
+        absent=["b"],
+    ),
+
 }
 
 

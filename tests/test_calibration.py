@@ -228,9 +228,11 @@ def test_ctrl_c_before_anything_is_recorded_says_interrupted(tmp_path, monkeypat
 
 def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
     """`calibrate --gyro-group-delay/--gyro-transport-latency` (ms) land in the recording's
-    gyro header in seconds, which is what extraction subtracts. The one trial starts at
-    the simulator's start pose (a ``--plan`` file): the header is what is checked here, and
-    the move to a random start configuration was about half of the run."""
+    gyro header in seconds, which is what extraction subtracts; for a ``sim://`` robot's own
+    simulated gyro only its true constants are accepted (others would shift every delay by
+    the difference: issue 40). The one trial starts at the simulator's start pose (a
+    ``--plan`` file): the header is what is checked here, and the move to a random start
+    configuration was about half of the run."""
     import h5py
 
     home = np.asarray(get_robot("ur10").home_q_rad, dtype=float)
@@ -239,15 +241,16 @@ def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
     np.savez(tmp_path / "plan.npz", **plan.to_arrays())
     out = tmp_path / "c.h5"
     argv = ["calibrate", "--robot-url", "sim://ur10", "--plan", str(tmp_path / "plan.npz"),
-            "--seed", "2", "--out", str(out), "--quiet", "--gyro-group-delay", "2.5",
-            "--gyro-transport-latency", "0.7"]  # fmt: skip
-    assert main(argv) == 0
+            "--seed", "2", "--out", str(out), "--quiet"]  # fmt: skip
+    assert main([*argv, "--gyro-group-delay", "2.5", "--gyro-transport-latency", "0.7"]) == 2
+    assert not out.exists()
+    assert main([*argv, "--gyro-group-delay", "0.98", "--gyro-transport-latency", "0.8"]) == 0
     assert h5py.is_hdf5(out)
     with RecordingReader(out) as r:
         gyro = r.header["gyro"]
         assert r.n_trials == 1
-    assert gyro["group_delay_s"] == pytest.approx(2.5e-3, rel=1e-12)
-    assert gyro["transport_latency_s"] == pytest.approx(0.7e-3, rel=1e-12)
+    assert gyro["group_delay_s"] == pytest.approx(0.98e-3, rel=1e-12)
+    assert gyro["transport_latency_s"] == pytest.approx(0.8e-3, rel=1e-12)
 
 
 class _FakeDriver:

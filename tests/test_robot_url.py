@@ -63,8 +63,8 @@ def test_the_grammar_tables_name_every_scheme() -> None:
 @pytest.mark.parametrize(
     ("url", "message"),
     [
-        ("http://h", "unknown scheme 'http'; use one of sim://ROBOT (ur10, ur10e, kr5), ur://HOST"),
-        ("sim://ur11", "unknown robot 'ur11'; choose one of ur10, ur10e, kr5"),
+        ("http://h", "unknown scheme 'http'; use one of sim://ROBOT (ur10, ur10e, kr5, ur5e), ur://HOST"),
+        ("sim://ur11", "unknown robot 'ur11'; choose one of ur10, ur10e, kr5, ur5e"),
         ("sim://ur10/x", "unexpected path '/x'; use sim://ROBOT"),
         ("sim://ur10#frag", "unexpected fragment #frag"),
         (

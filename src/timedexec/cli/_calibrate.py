@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import os
 from typing import TYPE_CHECKING, Any
 
 from timedexec.cli._common import (
@@ -113,6 +115,16 @@ def run(args: argparse.Namespace) -> int:
         devices=("--imu",),
     )
     _check_gyro_constants(args, real=not simulated)
+    # Everything the user gave is checked before anything connects: the first error
+    # reported is the real one (a broken profile was found only after the robot answered).
+    if imu is not None and not os.path.exists(imu):
+        raise ConfigError(
+            f"--imu {imu}: no such port; check that the sensor is plugged in and the path is "
+            "right (ls /dev/ttyUSB* /dev/ttyACM* /dev/serial/by-id/)"
+        )
+    gyro_constants = _gyro_constants(args)
+    if simulated and not args.imu and gyro_constants is not None:
+        _check_simulated_gyro(gyro_constants, SweepProtocol.for_robot(robot).gyro, url.text)
     # The driver gets the robot model the user named (a UR controller reporting another
     # model, or a KUKA that says nothing, is then driven as that model); without --robot a
     # UR driver asks the controller's dashboard, and the sweep is planned for its answer.
@@ -124,10 +136,11 @@ def run(args: argparse.Namespace) -> int:
             driver = stack.enter_context(open_driver(url, **options))
             # The robot's default protocol at the period the controller runs (RSI: 12 or
             # 4 ms, as the URL's period= says), from its spec: no simulator involved.
-            protocol = _protocol(
-                args,
-                SweepProtocol.for_robot(robot or driver.robot, period_s=driver.controller_period_s),
+            protocol = SweepProtocol.for_robot(
+                robot or driver.robot, period_s=driver.controller_period_s
             )
+            if gyro_constants is not None:
+                protocol = dataclasses.replace(protocol, gyro=gyro_constants)
             if args.plan:
                 plan = _read_plan(args.plan, protocol.robot)
             else:
@@ -219,24 +232,63 @@ def _check_gyro_constants(args: argparse.Namespace, *, real: bool) -> None:
         )
 
 
-def _protocol(args: argparse.Namespace, default: Any) -> Any:
-    """The sweep protocol with the gyro's constants as the user measured them (a simulated
-    robot keeps the defaults, its simulated sensor's constants, unless told otherwise)."""
-    import dataclasses
+def _gyro_constants(args: argparse.Namespace) -> Any:
+    """The gyro's constants as the user gave them (``--sensor-profile``, then the options
+    on top of it, or of the default sensor's), or None when none were given (the robot's
+    default protocol then keeps its sensor's: a simulated robot's simulated gyro).
 
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid profile, or implausible values (e.g. milliseconds where
+        seconds belong), before anything connects.
+    """
     from timedexec.recording import GyroHeader
 
-    gyro = default.gyro
-    if args.sensor_profile is not None:
-        gyro = GyroHeader.from_json(args.sensor_profile)
+    if args.sensor_profile is None and (
+        args.gyro_group_delay is None and args.gyro_transport_latency is None
+    ):
+        return None
+    gyro = GyroHeader.from_json(args.sensor_profile) if args.sensor_profile else GyroHeader()
     changes: dict[str, float] = {}
     if args.gyro_group_delay is not None:
         changes["group_delay_s"] = args.gyro_group_delay * 1e-3
     if args.gyro_transport_latency is not None:
         changes["transport_latency_s"] = args.gyro_transport_latency * 1e-3
-    if changes:
-        gyro = dataclasses.replace(gyro, **changes)
-    return dataclasses.replace(default, gyro=gyro)
+    return dataclasses.replace(gyro, **changes)
+
+
+#: How far a constant given for a simulated gyro may be from the simulated sensor's, s.
+_SIM_GYRO_TOLERANCE_S = 1e-6
+
+
+def _check_simulated_gyro(given: Any, simulated: Any, url: str) -> None:
+    """Refuse constants for the simulated gyro of a ``sim://`` robot that are not its own:
+    every gyro sample would be dated by their difference, and every delay with it.
+
+    Raises
+    ------
+    ConfigError
+        Naming each contradicting constant, the simulated sensor's value and the fix.
+    """
+    wrong = [
+        f"{key} {getattr(given, key) * 1e3:g} ms (the simulated gyro's: "
+        f"{getattr(simulated, key) * 1e3:g} ms)"
+        for key in ("group_delay_s", "transport_latency_s")
+        if abs(getattr(given, key) - getattr(simulated, key)) > _SIM_GYRO_TOLERANCE_S
+    ]
+    if given.full_scale_dps != simulated.full_scale_dps:
+        wrong.append(
+            f"full_scale_dps {given.full_scale_dps} (the simulated gyro's: "
+            f"{simulated.full_scale_dps})"
+        )
+    if wrong:
+        raise ConfigError(
+            f"{url} records its own simulated gyro, whose constants are known; the given "
+            f"{'; '.join(wrong)} would shift every extracted delay by the difference: drop "
+            "--sensor-profile / --gyro-group-delay / --gyro-transport-latency, or give --imu "
+            "with a real gyro"
+        )
 
 
 def _read_plan(path: str, robot: Any) -> Any:

@@ -130,6 +130,16 @@ class _Data:
         return encode_inputs(self.q[rows], self.direction[rows], t_h=t)
 
 
+#: What a measured delay can be, s: a joint cannot move before its command arrives, and a
+#: state cannot be older than... a second is ten times the slowest controller's delay; the
+#: response fit's noise can put a near-zero age slightly below 0.
+DELAY_RANGE_S = {"actuation_delay": (0.0, 1.0), "response_delay": (-0.005, 1.0)}
+DELAY_RANGE_WHY = {
+    "actuation_delay": "no arm moves before its command arrives, none waits a second",
+    "response_delay": "a state's age: at least 0 (less 5 ms of fit noise), at most a second",
+}
+
+
 def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     if not isinstance(table, DelayTable):
         raise ConfigError(f"expected a DelayTable, got {type(table).__name__}")
@@ -144,6 +154,16 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
             raise ConfigError(
                 f"{table.source}: column {name!r} row {row} is {values[row]}; delays must be "
                 "finite seconds to train (mark unmeasurable trials in the 'flag' column)"
+            )
+        low, high = DELAY_RANGE_S[name]
+        out = keep & ((values < low) | (values > high))
+        if out.any():
+            row = int(np.flatnonzero(out)[0])
+            raise ConfigError(
+                f"{table.source}: column {name!r} row {row} is {float(values[row])!r} s "
+                f"({out.sum()} such row(s)); a measured {name.replace('_', ' ')} lies in "
+                f"{low:g} .. {high:g} s ({DELAY_RANGE_WHY[name]}): fix the row, or mark the "
+                "trial in the 'flag' column"
             )
     t = table.validated_for_training()
     if len(t) == 0:

@@ -23,6 +23,19 @@ __all__ = ["FULL_SCALE_RANGES_DPS", "GyroHeader"]
 FULL_SCALE_RANGES_DPS = (250, 500, 1000, 2000)
 
 
+#: Largest plausible group delay of a gyro's own filter, s (the MPU-6000's slowest DLPF
+#: setting delays 18.6 ms; docs/sensor-constants.md).
+MAX_GROUP_DELAY_S = 0.05
+#: Largest plausible sample-to-host latency of a flange gyro, s (USB: about 1 ms).
+MAX_TRANSPORT_LATENCY_S = 0.05
+#: Output rates a gyro for calibration can have, Hz.
+MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
+_WHY = {
+    "group_delay_s": "the MPU-6000's slowest filter setting delays 18.6 ms",
+    "transport_latency_s": "a USB gyro's samples reach the host within about 1 ms",
+}
+
+
 @dataclass(frozen=True, kw_only=True)
 class GyroHeader(DictMixin):
     """What extraction must know of the gyro (a recording header's ``gyro`` entry).
@@ -63,6 +76,24 @@ class GyroHeader(DictMixin):
         check_non_negative(
             "gyro", group_delay_s=self.group_delay_s, transport_latency_s=self.transport_latency_s
         )
+        # Units: a value typed in ms (0.98 for 0.98 ms) would date every gyro sample a
+        # second off and every delay with it. Nothing a flange gyro does takes this long.
+        for key, value, largest in (
+            ("group_delay_s", self.group_delay_s, MAX_GROUP_DELAY_S),
+            ("transport_latency_s", self.transport_latency_s, MAX_TRANSPORT_LATENCY_S),
+        ):
+            if value > largest:
+                raise ConfigError(
+                    f"gyro: {key}={value!r} s is not plausible (at most {largest:g} s: "
+                    f"{_WHY[key]}); the constants are in seconds — if {value:g} is in "
+                    f"milliseconds, give {key}={value / 1e3:g}"
+                )
+        if not MIN_RATE_HZ <= self.nominal_rate_hz <= MAX_RATE_HZ:
+            raise ConfigError(
+                f"gyro: nominal_rate_hz={self.nominal_rate_hz!r} is out of range; use "
+                f"{MIN_RATE_HZ:g} .. {MAX_RATE_HZ:g} Hz (8000 for an MPU-6000 with its DLPF "
+                "off; the rate is in Hz, not kHz)"
+            )
 
     @property
     def lsb_per_dps(self) -> float:
