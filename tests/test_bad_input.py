@@ -830,3 +830,22 @@ def test_scheduler_waits_have_a_deadline(
     # the deadline (1 s) plus the thread's grace (1 s) and imports; the hang was minutes
     assert elapsed < 8.0
     assert not (work / "d.csv").exists()
+
+
+def test_a_bundle_without_a_gp_serves_evaluate_monitor_and_report(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bundle trained with `--methods median,rt` answers with its best method (least CV
+    error): `evaluate`, `monitor` and `report` accept it. Before issue 40 all three refused
+    it ("method 'gpr' is not in this bundle")."""
+    _table(work / "t.csv")
+    assert main(["train", "t.csv", "--out", "b", "--methods", "median,rt", "--folds", "2",
+                 "--quiet"]) == 0  # fmt: skip
+    model = DelayModel.load(work / "b")
+    assert model.default_method in ("median", "rt")
+    argv = ["evaluate", "--robot", "ur10", "--model", "b", "--configs", "2", "--draws", "2",
+            "--quiet"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert main(["monitor", "rec.h5", "--model", "b"]) == 0, capsys.readouterr().err
+    assert main(["report", "b", "t.csv", "--out", "rep"]) == 0, capsys.readouterr().err
+    assert (work / "rep" / "report.md").exists()

@@ -180,6 +180,25 @@ def _robot_of(robot: Any) -> tuple[str | None, float | None]:
     return name, float(period) if period is not None else None
 
 
+def _default_method(methods: Sequence[str], cv: Mapping[str, Any] | None) -> str:
+    """The method a bundle answers with when none is named: the GP where it has one (its
+    variance is what timing bounds are made of), else the method with the least CV error
+    of the actuation delay (averaged over the columns), else the first it holds."""
+    if CALIBRATED_METHOD in methods:
+        return CALIBRATED_METHOD
+    if cv is not None:
+        scores = cv.get("actuation_delay", {})
+
+        def error(method: str) -> float:
+            value = scores.get(method, {}).get("average", math.inf)
+            return float(value) if math.isfinite(float(value)) else math.inf
+
+        best = min(methods, key=error)
+        if math.isfinite(error(best)):
+            return best
+    return methods[0]
+
+
 def _read_std_scale(raw: Any, keys: Sequence[str]) -> dict[str, dict[str, float]]:
     """The manifest's ``std_scale`` ``{delay: {key: factor}}``; missing entries mean 1.0."""
     if raw is None:
@@ -250,6 +269,7 @@ class DelayModel:
         self.std_scale: dict[str, dict[str, float]] = _read_std_scale(
             manifest.get("std_scale"), self.keys
         )
+        self.default_method: str = _default_method(self.methods, self.cv_scores_ms)
 
     # ---------------------------------------------------------- building
     @classmethod
@@ -529,7 +549,7 @@ class DelayModel:
         direction: int,
         q: ArrayLike,
         t_s: float | None = None,
-        method: str = "gpr",
+        method: str | None = None,
         combined: bool = False,
     ) -> DelayPrediction:
         """Delays of one single-joint command: means and standard deviations, s.
@@ -546,9 +566,10 @@ class DelayModel:
             Bundles with a time input (``time_input`` in the manifest): time since the robot
             started working, s, on the calibration sweep's clock; default the end of the
             sweep (warm). Refused for bundles without a time input.
-        method : str
-            One of the bundle's methods (``methods``): "gpr" (default), "nn", "rt",
-            "median", ... (:data:`~timedexec.learning.METHODS`).
+        method : str, optional
+            One of the bundle's methods (``methods``): "gpr", "nn", "rt", "median", ...
+            (:data:`~timedexec.learning.METHODS`); default :attr:`default_method` (the GP
+            where the bundle has one).
         combined : bool
             Use the combined model instead of the joint's own.
 
@@ -557,6 +578,8 @@ class DelayModel:
         DelayPrediction
             Floats in s.
         """
+        if method is None:
+            method = self.default_method
         fast = self._fast.get((method, joint, combined))
         if fast is None and (spec := self._method(method)).variance:
             # a method with a variance: its predictors (fused where it can), cached
@@ -663,7 +686,7 @@ class DelayModel:
         q: ArrayLike,
         *,
         t_s: ArrayLike | None = None,
-        method: str = "gpr",
+        method: str | None = None,
         combined: bool = False,
     ) -> DelayPrediction:
         """Vectorised :meth:`predict`: joints, directions (and times) scalars or (n,), q (n, 6).
@@ -673,6 +696,8 @@ class DelayModel:
         DelayPrediction
             Arrays of shape (n,), s.
         """
+        if method is None:
+            method = self.default_method
         self._method(method)
         qa = np.asarray(q, dtype=float)
         if qa.ndim != 2 or qa.shape[1] != 6:
