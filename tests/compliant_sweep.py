@@ -30,7 +30,11 @@ Physics (per trial; the actuated joint moves, the others are held rigid)
     (20 N·m/arcmin, 6.9e4 N·m/rad), elbow 0.5 and wrist 0.1 of that;
   - hysteresis as a Dahl element in parallel (rate-independent: the loop's width at the
     rated torque is the catalogue's "hysteresis loss", drawn 0.3-1 arcmin for the
-    harmonic drives, 0.2-0.6 arcmin for the cycloidal gears);
+    harmonic drives, 0.2-0.6 arcmin for the cycloidal gears; its pre-sliding stiffness
+    twice the gear's K3, so a loop closes within a quarter of its width; tooth friction
+    grows with the load, so the loop narrows to a quarter of that at no load: its friction
+    torque is 0.25 + 0.75·min(|τ|/τ_rated, 1) of the rated one, τ_rated 108 N·m x size
+    (harmonic; the size-32 example's T2) or 58 N·m x size (cycloidal));
   - light structural damping (ζ 0.03-0.08 of the link on the spring) and a viscous link
     bearing.
   The link's gravity preload sets where on the stiffness curve a trial works, so the
@@ -131,8 +135,14 @@ ARMS: dict[str, Arm] = {
         a=(0.0, -0.612, -0.5723, 0.0, 0.0, 0.0),
         alpha=(math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0),
         mass=(7.1, 12.7, 4.27, 2.0, 2.0, 0.365),
-        com=((0.021, 0.0, 0.027), (0.38, 0.0, 0.158), (0.24, 0.0, 0.068),
-             (0.0, 0.007, 0.018), (0.0, 0.007, 0.018), (0.0, 0.0, -0.026)),  # fmt: skip
+        com=(
+            (0.021, 0.0, 0.027),
+            (0.38, 0.0, 0.158),
+            (0.24, 0.0, 0.068),
+            (0.0, 0.007, 0.018),
+            (0.0, 0.007, 0.018),
+            (0.0, 0.0, -0.026),
+        ),
         gyration_m=0.06,
         payload_kg=(0.0, 5.0),
         size=(1.0, 1.0, 0.5, 0.1, 0.1, 0.1),
@@ -151,8 +161,14 @@ ARMS: dict[str, Arm] = {
         a=(0.075, 0.270, 0.090, 0.0, 0.0, 0.0),
         alpha=(-math.pi / 2, 0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, 0.0),
         mass=(9.0, 7.0, 5.0, 3.5, 2.0, 1.5),
-        com=((0.03, 0.0, 0.05), (-0.13, 0.0, 0.03), (-0.04, 0.0, 0.02),
-             (0.0, -0.05, 0.0), (0.0, 0.0, 0.02), (0.0, 0.0, -0.02)),  # fmt: skip
+        com=(
+            (0.03, 0.0, 0.05),
+            (-0.13, 0.0, 0.03),
+            (-0.04, 0.0, 0.02),
+            (0.0, -0.05, 0.0),
+            (0.0, 0.0, 0.02),
+            (0.0, 0.0, -0.02),
+        ),
         gyration_m=0.05,
         payload_kg=(0.0, 3.0),
         size=(1.0, 1.0, 0.5, 0.1, 0.1, 0.1),
@@ -189,6 +205,9 @@ class CompliantConditions:
         Multiplies the gears' hysteresis (0: none; for studies).
     gravity : bool
         Gravity load on the links (False: none; for studies).
+    hysteresis_load : bool
+        The gear's friction (its hysteresis loop's width) grows with the transmitted
+        torque (default); False: the rated torque's loop at every load.
     """
 
     noise_factor: float = 1.0
@@ -200,6 +219,7 @@ class CompliantConditions:
     stiffness_scale: float = 1.0
     hysteresis_scale: float = 1.0
     gravity: bool = True
+    hysteresis_load: bool = True
 
 
 # ---- arm --------------------------------------------------------------------------------------
@@ -232,8 +252,8 @@ def arm_loads(arm: Arm, q: FloatArray, joint: int, payload_kg: float) -> dict[st
     axis = frames[joint - 1][:3, 2]
     origin = frames[joint - 1][:3, 3]
     flange = frames[6][:3, 3]
-    masses = list(arm.mass[joint - 1 :]) + [payload_kg]
-    points = list(coms[joint - 1 :]) + [flange]
+    masses = [*arm.mass[joint - 1 :], payload_kg]
+    points = [*coms[joint - 1 :], flange]
     inertia = 0.0
     hold = 0.0  # torque the gear supplies about the axis to hold the links still
     lever = 0.0  # d(hold)/dΔ
@@ -313,7 +333,9 @@ def joint_params(
         "axis": np.array([ld["axis_flange"] for ld in loads]),
         "t1": curve[0], "t2": curve[1], "k1": curve[2], "k2": curve[3], "k3": curve[4],
         "t_h": t_h,
-        "sigma_h": 3.0 * curve[2],
+        "t_rated": np.where(arm.kind == "harmonic", 108.0, 58.0) * size,
+        "load_share": np.full(n, 0.75 if cond.hysteresis_load else 0.0),
+        "sigma_h": 2.0 * curve[4],
         "c_gear": 2 * zeta * np.sqrt(curve[4] * inertia),
         "b_link": rng.uniform(0.2, 1.0, n) * size,
         "f_c": arm.coulomb_nm * size * rng.uniform(0.7, 1.3, n),
@@ -363,7 +385,7 @@ def simulate_joints(
     quantum = 2 * np.pi / (2**17 * ratio)
     # Static equilibrium at the start: the hysteresis state from the arm's history, the
     # spring holding the rest of the gravity torque.
-    h = par["hyst0"] * par["t_h"]
+    h = par["hyst0"] * par["t_h"] * _load_factor(par["grav_a"], par)
     g0 = par["grav_a"]
     delta = spring_deflection(g0 - h, curve)
     ql = np.zeros(n)
@@ -402,10 +424,12 @@ def simulate_joints(
             u = ff + kp * err + ki * integ
         d = qm - ql
         dd = wm - wl
-        # Dahl hysteresis: dh = σ·dδ·(1 - h/T_h·sign(dδ)).
-        h = h + par["sigma_h"] * dd * dt * (1 - h / np.maximum(par["t_h"], 1e-9) * np.sign(dd))
+        # Dahl hysteresis: dh = σ·dδ·(1 - h/T_h·sign(dδ)), T_h growing with the load.
+        elastic = spring_torque(d, curve)
+        t_h = par["t_h"] * _load_factor(elastic, par)
+        h = h + par["sigma_h"] * dd * dt * (1 - h / np.maximum(t_h, 1e-9) * np.sign(dd))
         h = np.where(par["t_h"] > 0, h, 0.0)
-        tau_g = spring_torque(d, curve) + h + par["c_gear"] * dd
+        tau_g = elastic + h + par["c_gear"] * dd
         grav = par["grav_a"] * np.cos(ql) + par["grav_b"] * np.sin(ql)
         drive = u - tau_g
         breaks = stuck & (np.abs(drive) > f_s)
@@ -427,6 +451,13 @@ def simulate_joints(
     # a step (16 µs) ahead of the speeds, which would make every state look younger.
     return {"w_link": out_wl, "q_link": _integral(out_wl, dt),
             "q_motor": _integral(out_wm, dt), "deflection0": delta}  # fmt: skip
+
+
+def _load_factor(torque: FloatArray, par: dict[str, FloatArray]) -> FloatArray:
+    """The gear friction's (hysteresis loop's) share of its rated-torque width at
+    ``torque`` (N·m): 1 - s + s·min(|τ|/τ_rated, 1), s = ``load_share``."""
+    s = par["load_share"]
+    return np.asarray(1.0 - s + s * np.minimum(np.abs(torque) / par["t_rated"], 1.0))
 
 
 def _integral(w: FloatArray, dt: float) -> FloatArray:
@@ -457,7 +488,9 @@ class Oscillator:
 
     def ppm(self, t: FloatArray) -> FloatArray:
         w = 2 * math.pi / self.period
-        return np.asarray(self.off + self.drift * t / self.T + self.wander * np.sin(w * t + self.phi))
+        return np.asarray(
+            self.off + self.drift * t / self.T + self.wander * np.sin(w * t + self.phi)
+        )
 
     def index(self, t: FloatArray) -> FloatArray:
         """Fractional sample index at host time t."""
@@ -668,9 +701,14 @@ def write_compliant_sweep(
         "robot": {"name": robot, "vendor": arm.vendor},
         "profile": prof,
         "controller_period_s": period,
-        "gyro": {"full_scale_dps": 500, "nominal_rate_hz": FS_GYRO, "block_samples": BLOCK,
-                 "lsb_per_dps": lsb, "group_delay_s": group_delay,
-                 "transport_latency_s": 0.0006},  # fmt: skip
+        "gyro": {
+            "full_scale_dps": 500,
+            "nominal_rate_hz": FS_GYRO,
+            "block_samples": BLOCK,
+            "lsb_per_dps": lsb,
+            "group_delay_s": group_delay,
+            "transport_latency_s": 0.0006,
+        },
         "conditions": json.loads(json.dumps(dataclasses.asdict(cond))),
         "truth": {"seed": seed, "response": "age of the motor-side sample on arrival"},
     }
