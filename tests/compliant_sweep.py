@@ -19,8 +19,8 @@ Physics (per trial; the actuated joint moves, the others are held rigid)
   0.365 kg), centres of mass of the order of UR's table. KR 5 sixx R650: DH of its
   data sheet's dimensions (d1 0.335, a1 0.075, a2 0.270, a3 0.090, d4 0.295, d6 0.080 m),
   its 28 kg spread over the links by judgement (no published mass table).
-* **Gear.** Motor-side inertia (rotor x ratio², ratio 101 for UR's harmonic drives) and a
-  torsional spring between motor and link with
+* **Gear.** Motor-side inertia (rotor x ratio², ratio 101 for UR's harmonic drives, 121
+  for the KR 5 by judgement) and a torsional spring between motor and link with
   - the three-segment piecewise-linear stiffness harmonic-drive catalogues publish (limit
     torques T1, T2 and stiffnesses K1 < K2 < K3; Harmonic Drive AG's worked example for a
     size-32 gear: T1 = 29 N·m, T2 = 108 N·m, K1 = 6.7e4, K2 = 1.1e5, K3 = 1.2e5 N·m/rad),
@@ -59,8 +59,9 @@ Sensor, clock, USB (our own models, not the simulator's nor independent_sweep's)
 --------------------------------------------------------------------------------
 * Gyro sampled internally at 32 kHz, a 4-sample average decimating to 8 kHz, then a
   first-order low-pass (its DC group delay, with the average's, is the stated constant);
-  white noise (the "1x" density 0.005 °/s/√Hz), a random-walk zero-rate, ±3 % scale and
-  ±2 % cross-axis sensitivity, int16 at 65.5 LSB/(°/s).
+  white noise (the "1x" density 0.005 °/s/√Hz), a slowly wandering zero-rate, ±3 % scale
+  and ±2 % cross-axis sensitivity, int16 at 65.5 LSB/(°/s); mounted on the flange at a
+  random orientation (the joint's axis reaches it through the pose's rotation).
 * Oscillator: an offset, a linear drift over the sweep and a slow thermal wander.
 * USB: the device sends transfers of 16 samples (two recorded blocks of 8 share one
   arrival); a minimum latency, gamma jitter, host stalls, lost and duplicated transfers.
@@ -608,7 +609,7 @@ def write_compliant_sweep(
     counter0 = int(rng.integers(0, 65536))
 
     def bias_at(t: FloatArray) -> FloatArray:
-        """Zero-rate, °/s: a slow random walk (0.3 °/s/√h), smooth at the trial scale."""
+        """Zero-rate, °/s: a slow wander (0.005 °/s over ~10 min), smooth at the trial scale."""
         return bias0 + 0.005 * np.sin(t[..., None] / 97.0 + np.arange(3))
 
     def sensor_counts(rate_dps: FloatArray, t_host: FloatArray) -> NDArray[np.int16]:

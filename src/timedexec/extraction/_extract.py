@@ -799,7 +799,8 @@ def _extract(
         cols[f"true_{k}"] = v
     cols["flag"] = res["flag"]
     for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
-              "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
+              "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s",
+              "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
     if damaged is not None and lost.size:

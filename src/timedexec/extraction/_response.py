@@ -31,10 +31,12 @@ or lags the link by a frequency-dependent amount that the shift fit takes for ag
 spring lags by ∝ ω² below its resonance, a hysteretic gear by the friction inside it
 (half the loop's width over the speed, up to 0.4 ms at 1 arcmin and 0.4 rad/s), and the
 increments (a fit of speeds) weight the high frequencies where that lag is largest.
-On ``tests/compliant_sweep.py``'s UR10 the fit read the age 0.44 ms short (joints 1/2/3/5:
--0.63 / -0.78 / -0.48 / -0.01 ms) with standard errors of 0.03-0.07 ms; with a perfect
-gyro the same fit was -0.56 / -0.85 / -0.48 / -0.01 ms off, a least-squares shift of the
-positions -0.25 / -0.33 / -0.23 / -0.01 ms: the bias is the deflection's, not the gyro's.
+On ``tests/compliant_sweep.py``'s UR10 (200 trials) the fit read the age -0.46 / -0.69 /
+-0.44 / -0.03 ms off (joints 1/2/3/5) with standard errors of 0.03-0.15 ms; with a perfect
+gyro (96 trials, no noise) -0.43 / -0.67 / -0.42 / -0.03 ms, a least-squares shift of the
+positions onto the true link -0.14 / -0.24 / -0.17 / -0.03 ms: the bias is the
+deflection's, not the gyro's; with the deflection terms (below) +0.18 / -0.00 / +0.03 /
+-0.02 ms.
 
 So the fit can carry the deflection, linear in unknown coefficients, as a function of the
 link acceleration the gyro measures (:func:`deflection_regressors`): the acceleration and
@@ -495,13 +497,11 @@ class _NoiseModel:
         expect0 = gamma[:, :1] * self.span_rel[rows] + e2 * (self.v2[rows] + self.v2_prev[rows])
         var = np.sum(z * z * (res * res - expect0), axis=1)
         for lag in range(1, _HAC_LAGS + 1):
-            g_l = gamma[:, lag, None] if lag < gamma.shape[1] else 0.0
-            expect = g_l - (e2 * self.v2[rows][:, :-1] if lag == 1 else 0.0)
-            prod = (
-                res[:, lag:] * res[:, :-lag] - expect
-                if lag == 1
-                else res[:, lag:] * res[:, :-lag] - g_l
-            )
+            # The noise model's lag covariance: γ_l, and at lag 1 the shared level's -v²σ_ε².
+            expect = gamma[:, lag, None] if lag < gamma.shape[1] else np.zeros((z.shape[0], 1))
+            if lag == 1:
+                expect = expect - e2 * self.v2[rows][:, :-1]
+            prod = res[:, lag:] * res[:, :-lag] - expect
             w_l = 2 * (1 - lag / (_HAC_LAGS + 1))
             var = var + w_l * np.sum(z[:, lag:] * z[:, :-lag] * prod, axis=1)
         out: FloatArray = var
