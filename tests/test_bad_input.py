@@ -849,3 +849,42 @@ def test_a_bundle_without_a_gp_serves_evaluate_monitor_and_report(
     assert main(["monitor", "rec.h5", "--model", "b"]) == 0, capsys.readouterr().err
     assert main(["report", "b", "t.csv", "--out", "rep"]) == 0, capsys.readouterr().err
     assert (work / "rep" / "report.md").exists()
+
+
+def test_damaged_chunks_one_policy_across_commands(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recording with one damaged chunk (bytes overwritten after it was written): every
+    command says the same sentence (`timedexec.recording.damage_note`); `check` reports it as
+    a problem (exit 2), `extract`, `report` and `fleet` go on without those trials (exit 0)
+    and `report --trial` refuses a trial inside the chunk by name. Before issue 40 `check`
+    said "cannot be read", `report` refused the whole file and `fleet` said nothing of it."""
+    import h5py
+
+    from timedexec.recording import damage_note
+
+    rec = work / "big.h5"
+    assert main(["simulate", "--robot", "ur10", "--trials", "320", "--seed", "3", "--out",
+                 str(rec), "--quiet"]) == 0  # fmt: skip
+    with h5py.File(rec, "r") as f:
+        ds = f["trials/gyro_raw"]
+        tpc = ds.chunks[0]
+        info = ds.id.get_chunk_info(1)
+    with open(rec, "r+b") as fh:
+        fh.seek(info.byte_offset + info.size // 2)
+        fh.write(np.random.default_rng(5).bytes(256))
+    sentence = damage_note("big.h5", tpc, 320)
+    capsys.readouterr()
+    assert main(["check", "big.h5"]) == 2
+    assert sentence in capsys.readouterr().out
+    assert main(["extract", "big.h5", "--out", "d.csv", "--quiet"]) == 0
+    assert sentence in capsys.readouterr().err
+    assert main(["report", "big.h5", "--out", "rep", "--trial", "0"]) == 0
+    assert sentence in (work / "rep" / "report.md").read_text()
+    assert main(["report", "big.h5", "--out", "rep2", "--trial", str(tpc)]) == 2
+    assert f"trial {tpc} of big.h5 lies in a damaged chunk" in capsys.readouterr().err
+    (work / "m.csv").write_text(f"name,robot,source\ncell,ur10,{rec}\n")
+    assert main(["fleet", "m.csv", "--out", "fl", "--methods", "median", "--folds", "2",
+                 "--configs", "2", "--draws", "2", "--quiet"]) == 0  # fmt: skip
+    assert damage_note(str(rec), tpc, 320) in capsys.readouterr().out
+    assert "## Damaged recordings" in (work / "fl" / "report.md").read_text()

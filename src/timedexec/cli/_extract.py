@@ -96,12 +96,9 @@ def run(args: argparse.Namespace) -> int:
         )
     info = {**result.summary(), "out": args.out, "method": args.method}
     if info.get("damaged_rows"):
-        warn(
-            "extract",
-            f"{info['damaged_rows']} trials of {args.recording} lie in damaged chunks (they "
-            "fail their checksum): flagged 'damaged', the others extracted; `timedexec check "
-            f"{args.recording}` names the field",
-        )
+        from timedexec.recording import damage_note
+
+        warn("extract", damage_note(args.recording, info["damaged_rows"], len(result.table)))
     result.table.to_csv(args.out)
     table = result.table
     text = (

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
-from timedexec.recording import RecordingReader
+from timedexec.recording import DamagedChunkError, RecordingReader, damage_note
 
 __all__ = [
     "REQUIRED_FIELDS",
@@ -279,9 +279,29 @@ def check_recording(path: str | os.PathLike[str], *, deep: bool = True) -> list[
             problems, contract = _problems(reader)
             if contract is None or not deep:
                 return problems
-            return problems + _deep_problems(reader, contract)
+            try:
+                return problems + _deep_problems(reader, contract)
+            except DamagedChunkError:
+                return problems + _damage_problems(reader, path)
     except (TimedExecError, OSError, KeyError, ValueError, TypeError) as exc:
         return [f"{os.fspath(path)}: cannot be read ({type(exc).__name__}: {exc})"]
+
+
+def _damage_problems(reader: RecordingReader, path: str | os.PathLike[str]) -> list[str]:
+    """The damaged chunks, in the words every command uses (:func:`damage_note`), and per
+    field the rows that fail."""
+    total = np.zeros(reader.n_trials, dtype=bool)
+    per_field: list[str] = []
+    for name in reader.fields:
+        bad = reader.damaged_rows([name])
+        if bad.any():
+            total |= bad
+            rows = np.flatnonzero(bad)
+            per_field.append(
+                f"field {name!r}: rows {int(rows[0])}..{int(rows[-1])} ({rows.size} rows) "
+                "fail their checksum or do not decompress"
+            )
+    return [damage_note(path, int(total.sum()), reader.n_trials), *per_field]
 
 
 def _deep_problems(reader: RecordingReader, contract: Contract) -> list[str]:

@@ -82,7 +82,7 @@ from timedexec.extraction._onset import (
 )
 from timedexec.extraction._response import RESPONSE_SMOOTH_S, response_delay
 from timedexec.extraction._stationary import StillAnalysis
-from timedexec.recording import DamagedChunkError, RecordingReader
+from timedexec.recording import DamagedChunkError, RecordingReader, damage_note
 from timedexec.sensors import (
     relative_counter_rows,
 )
@@ -607,15 +607,43 @@ def trial_traces(path: str | os.PathLike[str], rows: Any) -> dict[str, Any]:
     Also the commanded profile (``profile``), the still PSD and the filter taps."""
     path = os.fspath(path)
     rows = np.atleast_1d(np.asarray(rows, dtype=np.int64))
-    with RecordingReader(path) as reader:
+    try:
+        return _trial_traces(path, rows, None)
+    except DamagedChunkError:
+        # The policy of extract_recording: the damaged chunks' rows are left out of the
+        # sweep's statistics; a trial asked for that lies in one is refused by name.
+        with RecordingReader(path) as reader:
+            damaged = np.flatnonzero(reader.damaged_rows())
+            n = reader.n_trials
+        hit = np.intersect1d(rows, damaged)
+        if damaged.size == 0 or damaged.size == n:
+            raise
+        if hit.size:
+            raise RecordingError(
+                f"trial {int(hit[0])} of {path} lies in a damaged chunk (rows "
+                f"{int(damaged[0])}..{int(damaged[-1])} fail their checksum); choose another "
+                "trial (report --trial)"
+            ) from None
+        out = _trial_traces(path, rows, np.setdiff1d(np.arange(n), damaged))
+        out["damage_note"] = damage_note(path, int(damaged.size), n)
+        return out
+
+
+def _trial_traces(
+    path: str, rows: NDArray[np.int64], keep: NDArray[np.int64] | None
+) -> dict[str, Any]:
+    """:func:`trial_traces` with only the rows ``keep`` read (all when None)."""
+    with open_rows(path, keep) as reader:
         ctx, still, cutoff, _, _ = sweep_context(reader, clock_window_s=None, numtaps=161)
-        chunk = _read_chunk(reader, rows, ctx)
+        ctx = dataclasses.replace(ctx, keep=keep)
+        local = rows if keep is None else np.searchsorted(keep, rows)
+        chunk = _read_chunk(reader, local, ctx)
         truth = {
-            k: reader.read(f"true_{k}_s", rows=rows)
+            k: reader.read(f"true_{k}_s", rows=local)
             for k in ("actuation_delay", "response_delay")
             if f"true_{k}_s" in reader.fields
         }
-    out: dict[str, Any] = dict(_extract_chunk(ctx, chunk, rows, "fit", traces=True))
+    out: dict[str, Any] = dict(_extract_chunk(ctx, chunk, local, "fit", traces=True))
     out.update(
         profile=dict(ctx.profile), still=still, taps=ctx.taps, cutoff_hz=cutoff,
         fs_hz=ctx.fs_hz, truth=truth, robot=ctx.robot,

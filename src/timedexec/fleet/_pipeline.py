@@ -345,6 +345,7 @@ def _extraction_summary(result: Any) -> dict[str, Any]:
         "flags": dict(sorted(counts.items())),
         "filter_cutoff_hz": float(result.cutoff_hz),
         "gyro_rate_error_ppm": float(result.clock_rate_error_ppm),
+        "damaged_trials": int(getattr(result, "damaged_rows", 0)),
     }
     for name in ("actuation_delay", "response_delay"):
         values = np.asarray(table[name], dtype=float)

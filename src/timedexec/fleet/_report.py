@@ -37,6 +37,7 @@ FLEET_COLUMNS = (
     "status",
     "trials",
     "flagged",
+    "damaged",
     "actuation_median_ms",
     "actuation_p2_5_ms",
     "actuation_p97_5_ms",
@@ -78,6 +79,7 @@ def fleet_rows(results: Sequence[RobotResult]) -> list[dict[str, Any]]:
             "status": r.status if r.ok else f"failed ({r.failed_stage})",
             "trials": _get(ext, "trials"),
             "flagged": _get(ext, "flagged"),
+            "damaged": _get(ext, "damaged_trials"),
             "model": _get(tr, "actuation_delay", "model"),
             "eval_none_ms": _get(ev, "timing_rms_ms", "none"),
             "eval_model_ms": _get(ev, "timing_rms_ms", "model"),
@@ -157,6 +159,21 @@ def _markdown(
     if recal:
         lines += ["## Robots that need a new calibration", ""]
         lines += [f"- **{row['name']}** ({row['robot']}): {row['reason']}" for row in recal]
+        lines.append("")
+    damaged = [r for r in results if (r.summary.get("extraction") or {}).get("damaged_trials")]
+    if damaged:
+        from timedexec.recording import damage_note
+
+        lines += ["## Damaged recordings", ""]
+        lines += [
+            f"- **{r.name}**: "
+            + damage_note(
+                r.entry.source,
+                r.summary["extraction"]["damaged_trials"],
+                r.summary["extraction"]["trials"],
+            )
+            for r in damaged
+        ]
         lines.append("")
     if failed:
         lines += ["## Failures", ""]

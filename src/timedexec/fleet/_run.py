@@ -99,6 +99,12 @@ class FleetResult:
                 lines.append(
                     f"  {r.name:<14} {r.entry.robot:<6} FAILED ({r.failed_stage}): {r.error}"
                 )
+            damaged = r.summary.get("extraction", {}).get("damaged_trials", 0)
+            if damaged:
+                from timedexec.recording import damage_note
+
+                total = r.summary["extraction"]["trials"]
+                lines.append(f"  {'':<14} {damage_note(r.entry.source, damaged, total)}")
             kept = r.summary.get("training", {}).get("deployed_kept_as")
             if kept:
                 lines.append(

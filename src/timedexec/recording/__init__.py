@@ -16,7 +16,7 @@ from timedexec.recording._fields import Field
 from timedexec.recording._gyro import GyroHeader
 from timedexec.recording._plan import FULL_SWEEP_TRIALS, SweepPlan, calibration_ranges
 from timedexec.recording._protocol import FORMAT_NAME, FORMAT_VERSION
-from timedexec.recording._reader import DamagedChunkError, RecordingReader
+from timedexec.recording._reader import DamagedChunkError, RecordingReader, damage_note
 from timedexec.recording._schema import TrialLayout, trial_fields, trial_layout
 from timedexec.recording._sweep_protocol import SweepProtocol, TrialProfile
 from timedexec.recording._writer import RecordingWriter
@@ -35,6 +35,7 @@ __all__ = [
     "TrialLayout",
     "TrialProfile",
     "calibration_ranges",
+    "damage_note",
     "trial_fields",
     "trial_layout",
 ]

@@ -34,13 +34,28 @@ from timedexec.recording._journal import (
 )
 from timedexec.recording._protocol import JOURNAL
 
-__all__ = ["DamagedChunkError", "RecordingReader"]
+__all__ = ["DamagedChunkError", "RecordingReader", "damage_note"]
 
 
 class DamagedChunkError(RecordingError):
     """Rows of a per-trial field cannot be read: a chunk fails its checksum or does not
     decompress (the file changed after it was written). :meth:`RecordingReader.damaged_rows`
     finds every such row."""
+
+
+def damage_note(path: str | os.PathLike[str], damaged: int, total: int) -> str:
+    """The one sentence every command says of a recording with damaged chunks.
+
+    The policy (docs/recording-format.md, "Damaged chunks"): a damaged chunk costs only the
+    trials in it. The commands that use the trials (``extract``, ``report``, ``fleet``) go
+    on without them, flag them ``damaged`` and say this sentence (exit 0); ``check``, whose
+    job is to say whether a file is whole, says it as a problem (exit 2).
+    """
+    return (
+        f"{damaged} of {total} trials of {os.fspath(path)} lie in damaged chunks (they fail "
+        "their checksum): flagged 'damaged' and left out, the others used; restore the file "
+        "from its source or record those trials again"
+    )
 
 
 def _inode(path: str) -> tuple[int, int]:

@@ -351,6 +351,7 @@ def _section(
         md += [
             f"## Recording `{title}` ({traces['robot']})",
             "",
+            *([f"**{traces['damage_note']}.**", ""] if "damage_note" in traces else []),
             f"Gyro noise while still, before and after the {traces['cutoff_hz']:.0f} Hz "
             "low-pass filter designed from it:",
             "",
