@@ -99,6 +99,14 @@ def run(args: argparse.Namespace) -> int:
         from timedexec.recording import damage_note
 
         warn("extract", damage_note(args.recording, info["damaged_rows"], len(result.table)))
+    bad_time = int(sum(str(f) == "bad_time" for f in result.table["flag"]))
+    if bad_time:
+        warn(
+            "extract",
+            f"{bad_time} trial(s) of {args.recording} have a t0_s or cmd_send_time_s that is "
+            "not finite: flagged 'bad_time' and left out, the others extracted; `timedexec "
+            f"check {args.recording}` names the field",
+        )
     result.table.to_csv(args.out)
     table = result.table
     text = (

@@ -48,7 +48,9 @@ each step assumes of the recording):
    delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
    needs), ``package_gap``, ``no_motion``, ``no_onset``, ``gain`` (implausible gyro gain),
    ``response_fit``, ``uncertain`` (standard error above ``max_se_s``), ``damaged`` (the
-   trial's rows lie in a chunk of the file that fails its checksum: the rest is extracted).
+   trial's rows lie in a chunk of the file that fails its checksum: the rest is extracted),
+   ``bad_time`` (its ``t0_s`` or ``cmd_send_time_s`` is not finite: the trial is left out
+   of every sweep-wide statistic, the others are extracted as if it were not there).
 """
 
 from __future__ import annotations
@@ -724,8 +726,9 @@ def extract_recording(
         "max_se_s": max_se_s,
         "progress": progress,
     }
+    bad_time = _bad_time_rows(path)
     try:
-        return _extract(path, None, **kw)
+        return _extract(path, bad_time, **kw)
     except DamagedChunkError:
         # Say it per trial: leave the damaged chunks' rows out, flag those trials.
         with RecordingReader(path) as reader:
@@ -733,32 +736,83 @@ def extract_recording(
             n = reader.n_trials
         if damaged.size == 0 or damaged.size == n:
             raise
-        return _extract(path, damaged, **kw)
+        flags = {int(r): "damaged" for r in damaged}
+        if bad_time is not None:
+            flags = {**bad_time[1], **flags}
+        rows = np.array(sorted(flags), dtype=np.int64)
+        return _extract(path, (rows, flags), damaged_rows=int(damaged.size), **kw)
+
+
+#: Per-trial scalar times extraction cannot do without; a trial where one is not finite is
+#: left out of the sweep's statistics and flagged ``bad_time``.
+_TIME_FIELDS = ("t0_s", "cmd_send_time_s")
+
+
+def _bad_time_rows(path: str) -> tuple[NDArray[np.int64], dict[int, str]] | None:
+    """Rows whose ``t0_s`` or ``cmd_send_time_s`` is not finite (a corrupt value, a
+    recorder's bug) with their flag, or None. One such value used to spoil every trial of
+    the sweep (NaN in a sweep-wide statistic) or end in a traceback.
+
+    Raises
+    ------
+    RecordingError
+        When no trial has finite times: nothing can be extracted (the message names the
+        field).
+    """
+    with RecordingReader(path) as reader:
+        n = reader.n_trials
+        bad = np.zeros(n, dtype=bool)
+        for name in _TIME_FIELDS:
+            if name not in reader.fields:
+                continue
+            try:
+                values = np.asarray(reader.read(name), dtype=np.float64)
+            except DamagedChunkError:
+                continue  # the damaged-chunk path deals with it
+            wrong = ~np.isfinite(values)
+            if n and wrong.all():
+                raise RecordingError(
+                    f"{path}: field {name!r} is not finite in any of its {n} trials; no "
+                    "trial can be timed: the recorder wrote no usable times (record the "
+                    "sweep again)"
+                )
+            bad |= wrong
+    if not bad.any():
+        return None
+    rows = np.flatnonzero(bad)
+    return rows, {int(r): "bad_time" for r in rows}
 
 
 def _lost_trials(
     reader: RecordingReader, rows: NDArray[np.int64], t0_scale: float
-) -> tuple[NDArray[np.int64], FloatArray]:
-    """Plan index and start time (s; NaN if unreadable) of the damaged ``rows`` whose plan
-    index can still be read; rows whose ``trial`` chunk is damaged too are left out."""
+) -> tuple[NDArray[np.int64], FloatArray, NDArray[np.int64]]:
+    """Plan index, start time (s; NaN if unreadable) and row of the left-out ``rows`` whose
+    plan index can still be read; rows whose ``trial`` chunk is damaged too are left out."""
     trials: list[int] = []
     starts: list[float] = []
+    kept: list[int] = []
     for r in rows.tolist():
         try:
             trials.append(int(reader.read("trial", np.array([r]))[0]))
         except RecordingError:
             continue
+        kept.append(r)
         try:
             starts.append(float(reader.read("t0_s", np.array([r]))[0]) * t0_scale)
         except RecordingError:
             starts.append(math.nan)
-    return np.array(trials, dtype=np.int64), np.array(starts, dtype=np.float64)
+    return (
+        np.array(trials, dtype=np.int64),
+        np.array(starts, dtype=np.float64),
+        np.array(kept, dtype=np.int64),
+    )
 
 
 def _extract(
     path: str,
-    damaged: NDArray[np.int64] | None,
+    excluded: tuple[NDArray[np.int64], dict[int, str]] | None,
     *,
+    damaged_rows: int = 0,
     method: str,
     jobs: int,
     chunk_trials: int,
@@ -767,12 +821,14 @@ def _extract(
     max_se_s: float,
     progress: bool,
 ) -> ExtractionResult:
-    """:func:`extract_recording` of the rows not in ``damaged`` (all when None); the
-    damaged rows whose trial can be identified are in the table, flagged ``damaged``."""
+    """:func:`extract_recording` of the rows not in ``excluded`` (rows, and each row's flag;
+    all rows when None); the excluded rows whose trial can be identified are in the table
+    with their flag (``damaged``, ``bad_time``) and NaN delays."""
     keep = None
-    if damaged is not None:
+    left_out = None if excluded is None else excluded[0]
+    if left_out is not None:
         with RecordingReader(path) as whole:
-            keep = np.setdiff1d(np.arange(whole.n_trials), damaged)
+            keep = np.setdiff1d(np.arange(whole.n_trials), left_out)
     with open_rows(path, keep) as reader:
         ctx, still, cutoff, rate, clock_info = sweep_context(
             reader, clock_window_s=clock_window_s, numtaps=numtaps, jobs=jobs
@@ -789,8 +845,10 @@ def _extract(
             for k in ("actuation_delay", "response_delay")
             if f"true_{k}_s" in reader.fields
         }
-        if damaged is not None:
-            lost, lost_t0 = _lost_trials(reader.whole, damaged, ctx.contract.scale["t0_s"])
+        if left_out is not None:
+            lost, lost_t0, lost_rows = _lost_trials(
+                reader.whole, left_out, ctx.contract.scale["t0_s"]
+            )
     chunks = [np.arange(s, min(s + chunk_trials, n)) for s in range(0, n, chunk_trials)]
     bar = Progress(n, f"extract ({method})", enabled=progress)
     if jobs == 1:
@@ -831,20 +889,27 @@ def _extract(
               "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
-    if damaged is not None and lost.size:
+    if left_out is not None and excluded is not None and lost.size:
         known = {
             "trial": lost,
             "joint": plan_joint[lost],
             "direction": plan_dir[lost],
             **{f"q{i + 1}": plan_q[lost, i] for i in range(6)},
-            "t_start": lost_t0,
-            "flag": np.full(lost.size, "damaged"),
+            "t_start": np.where(np.isfinite(lost_t0), lost_t0, np.nan),
+            "flag": np.array([excluded[1][int(r)] for r in lost_rows]),
         }
         for k, v in cols.items():
             if isinstance(v, np.ndarray):
                 add = known.get(k, np.full(lost.size, np.nan))
                 cols[k] = np.concatenate([v, np.asarray(add, dtype=np.result_type(v, add))])
         trial = cols["trial"]
+        # A left-out trial's start time may be what is wrong with it: it sits between its
+        # neighbours in the sweep (t_start dates the trial for drift; it is no measurement).
+        t_start = np.asarray(cols["t_start"], dtype=np.float64)
+        bad = ~np.isfinite(t_start)
+        if bad.any() and (~bad).any():
+            t_start[bad] = np.interp(trial[bad], trial[~bad], t_start[~bad])
+            cols["t_start"] = t_start
     order = np.argsort(trial)
     table = DelayTable(
         {k: (v[order] if isinstance(v, np.ndarray) else v) for k, v in cols.items()}, source=path
@@ -858,5 +923,5 @@ def _extract(
         still=still,
         n_flagged=n_flagged,
         clock=clock_info,
-        damaged_rows=0 if damaged is None else int(damaged.size),
+        damaged_rows=damaged_rows,
     )
