@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._model import FittedModel, SimModel, closed_form_shift_s
-from timedexec.effects import Effect, TermInputs, Variable
+from timedexec.effects import Effect, TermInputs, Variable, effect_type
 
 __all__ = ["describe_parameters", "gaps_ms", "observed_effect"]
 
@@ -40,19 +40,21 @@ def observed_effect(
     contribution to every condition mean (ms; the simulator's form, or a closed-form
     effect's shift, plus ``extra_ms``, its measured shape beyond that form)."""
     cond = model.cond
+    cls = effect_type(name)
+    # None when the effect entered by its measured shape alone (its simulated form does
+    # not fit): its contribution is the shape.
     eff = after.effects.get(name)
-    assert eff is not None
-    if eff.closed_form is not None:
+    if eff is not None and eff.closed_form is not None:
         contrib = closed_form_shift_s(eff, model) * 1e3
     else:
         without = after.effects.without(name)
-        contrib = (after.sim[eff.acts_on] - model.simulate(without)[eff.acts_on]) * 1e3
+        contrib = (after.sim[cls.acts_on] - model.simulate(without)[cls.acts_on]) * 1e3
     if extra_ms is not None:
         contrib = contrib + extra_ms
-    told = eff.explain(inputs, contrib, shaped=extra_ms is not None)
+    told = None if eff is None else eff.explain(inputs, contrib, shaped=extra_ms is not None)
     if told is not None:
         return (*told, contrib)
-    var = variables[eff.variable_key]
+    var = variables[cls.variable_key]
     slopes: dict[str, float] = {}
     rows: list[tuple[float, str]] = []
     for j in cond.joints:
@@ -74,7 +76,7 @@ def observed_effect(
         )
         rows.append((float(np.ptp(y)), text))
     rows.sort(reverse=True)
-    head = f"{eff.acts_on.replace('_', ' ')} {eff.explain_verb} with the {var.label}"
+    head = f"{cls.acts_on.replace('_', ' ')} {cls.explain_verb} with the {var.label}"
     texts = [t for _, t in rows]
     return (
         {f"slope_ms_per_{var.unit}": slopes},
