@@ -383,8 +383,10 @@ def step_name(state: Search, min_excess_ms: float) -> Proposal | None:
     Scores every registered effect the model lacks by its simulator signature, then
     searches the residuals of both delays for structure: first the families of effects
     the model lacks (and those outside the vocabulary), then, when none passes, the
-    families of the effects it has (a shape their simulated form misses refines them).
-    When no structure is significant although the actuation delay does not fit, every
+    families of the effects it has (a shape their simulated form misses refines them). An
+    effect that declares ``named_after_shapes`` (its signature looks like a reshaped effect
+    of the model's) is named only when it explains the residuals better, held out, than
+    the best such shape. When no structure is significant although the actuation delay does not fit, every
     simulated candidate is tried by recalibrating the whole model with it. Returns the
     first proposal (best evidence first).
     """
@@ -403,6 +405,14 @@ def step_name(state: Search, min_excess_ms: float) -> Proposal | None:
     args = (s.model, s.fitted, s.shapes, s.terms, scores, s.noise, s.alpha, s.min_share)
     s.selections = search(*args, "name")
     proposals = find_proposals(s.selections, s.terms.families, s.excluded)
+    if proposals and EFFECTS[proposals[0].effect].named_after_shapes:
+        # Its signature looks like a reshaped effect of the model's: named only when it
+        # explains the residuals better (held out) than the best such shape.
+        refine = search(*args, "refine")
+        shaped = find_proposals(refine, s.terms.families, s.excluded)
+        held_out = "cv_mse_with_ms2"
+        if shaped and shaped[0].evidence[held_out] <= proposals[0].evidence[held_out]:
+            proposals, s.selections = shaped, refine
     if not proposals:
         refine = search(*args, "refine")
         proposals = find_proposals(refine, s.terms.families, s.excluded)

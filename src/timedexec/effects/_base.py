@@ -272,6 +272,10 @@ class Effect:
     #: The key of the term family its measured shape is made of, when the simulator's
     #: form does not reproduce the measured dependence (one of :meth:`term_families`).
     shape_family: ClassVar[str | None] = None
+    #: Its signature resembles a reshaped effect the model may already have (a tool's
+    #: load looks like more load): it is named only when it explains the residuals better
+    #: (held out) than the best measured shape of the model's own effects would.
+    named_after_shapes: ClassVar[bool] = False
     #: The verb of its generic explanation: "grows" for an effect that only lengthens the
     #: delay along its variable.
     explain_verb: ClassVar[str] = "changes"
