@@ -51,6 +51,7 @@ from timedexec.effects._gravity_direction import GravityDirection
 from timedexec.effects._gravity_load import GravityLoad
 from timedexec.effects._inertia import Inertia
 from timedexec.effects._joint_offset import JointOffset
+from timedexec.effects._payload import Payload as Payload  # registers "payload"
 from timedexec.effects._registry import (
     EFFECTS,
     EffectRegistry,
