@@ -147,8 +147,8 @@ class SimModel:
         self, effects: EffectSet, rows: NDArray[np.bool_] | None = None
     ) -> dict[str, FloatArray]:
         """Simulated condition means for the simulated part of ``effects`` (closed-form
-        effects are ignored here). With ``rows``, only those conditions are simulated (the others
-        are NaN). Returns ``actuation_delay``, ``response_delay`` (s) and
+        effects are ignored here). With ``rows``, only those conditions are simulated (the
+        others are NaN). Returns ``actuation_delay``, ``response_delay`` (s) and
         ``gravity_torque_nm`` of every condition, arrays (m,)."""
         physical = EffectSet(tuple(e for e in effects if e.simulated))
         key = json.dumps(physical.to_dict(), sort_keys=True)
