@@ -4,8 +4,8 @@ Each candidate effect not yet in the model is turned into *signature* columns: h
 simulated condition means change when the effect is switched on at its vocabulary
 magnitude, from the calibrated current model (one simulation per candidate; an effect with
 ``signature_per_joint`` gives one column per joint, per-joint levels one indicator per
-joint, whole response periods one period of response). The residuals of the condition means are
-regressed on the model's nuisance columns (its constants and the sensitivities of its own
+joint, whole response periods one period of response). The residuals of the condition
+means are regressed on the model's nuisance columns (its constants and the sensitivities of its own
 parameters, which may move when the candidate enters) plus the signature, with the
 amplitudes bounded to the physically possible sign.
 
