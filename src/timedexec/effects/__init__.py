@@ -31,6 +31,12 @@ The vocabulary (how each acts in the simulator is in its class's docstring):
     Each joint's drive applies the setpoint ``offsets_s[j]`` later.
 ``response_extra_cycle``
     State sampling and transmission fall in separate controller cycles.
+
+After DESIGN.md's table:
+
+``payload``
+    A tool on the flange the robot model lacks: its gravity torque and inertia load the
+    joints that carry it.
 """
 
 from __future__ import annotations
