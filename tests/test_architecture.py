@@ -12,7 +12,7 @@ imported or run) enforces:
   top, inside functions, under ``if TYPE_CHECKING:`` and lazy imports by name (a string
   naming a ``timedexec`` module, as ``importlib.import_module`` tables hold) all count, both
   between modules and between packages (only the package root's lazy re-exports are left
-  out, and the one temporary exception in ``ALLOWED_CIRCLE_EDGES``);
+  out);
 * **size** — no module is over ``MAX_LINES`` lines except the ones listed with a reason.
 
 Plus what the layering promises a user: importing ``timedexec.report`` neither imports
@@ -192,19 +192,6 @@ def test_no_import_of_another_packages_private_module() -> None:
     assert not bad, "imports of another package's private module:\n" + "\n".join(bad)
 
 
-#: Import edges (importer, imported) left out of the circle check, and why. TEMPORARY: the
-#: discrepancy circle ``_result -(function-level)-> _report -(TYPE_CHECKING)-> _workflow ->
-#: _result`` (and ``_workflow -> _grow -> _result -> _report -> _workflow`` through the same
-#: edge) is being opened on another branch (issue 33, effects/discrepancy); the lead removes
-#: this entry when that branch is merged. Nothing else may be added here: open a circle by
-#: moving the shared type to a leaf module instead.
-ALLOWED_CIRCLE_EDGES: dict[tuple[str, str], str] = {
-    ("timedexec.discrepancy._report", "timedexec.discrepancy._workflow"): (
-        "temporary, opened on the discrepancy branch (issue 33)"
-    ),
-}
-
-
 def _import_graph() -> dict[str, dict[str, _Import]]:
     """``importer -> {imported: the import}`` over ``src``, every kind of import included.
     The package root's lazy re-exports (``timedexec.__getattr__``: the one import that goes
@@ -215,7 +202,7 @@ def _import_graph() -> dict[str, dict[str, _Import]]:
         if me == "timedexec":
             continue
         for imp in _imports(path, me):
-            if imp.target != me and (me, imp.target) not in ALLOWED_CIRCLE_EDGES:
+            if imp.target != me:
                 graph[me].setdefault(imp.target, imp)
     return graph
 
@@ -282,16 +269,6 @@ def test_no_import_cycles() -> None:
         steps = [f"{a} -> {b} (first at {via[a, b]})" for a, b in pairwise(circle)]
         found.append("package circle:\n    " + "\n    ".join(steps))
     assert not found, "import circles:\n" + "\n".join(found)
-
-
-def test_allowed_circle_edges_exist() -> None:
-    """Every allow-listed edge is still an import (a stale entry would hide a future one)."""
-    stale = []
-    for importer, imported in ALLOWED_CIRCLE_EDGES:
-        path = SRC / (importer.replace(".", "/") + ".py")
-        if not path.exists() or imported not in {i.target for i in _imports(path, importer)}:
-            stale.append(f"{importer} -> {imported}")
-    assert not stale, f"ALLOWED_CIRCLE_EDGES lists imports that are gone, remove them: {stale}"
 
 
 def test_independent_ur_peer_imports_no_timedexec() -> None:

@@ -19,7 +19,7 @@ from timedexec.cli._common import (
     warn,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_path
-from timedexec.effects import EFFECT_NAMES
+from timedexec.effects import EFFECTS
 
 __all__ = ["add_parser", "run"]
 
@@ -37,7 +37,7 @@ def add_parser(sub: Any) -> None:
             "the repeats, score every effect of the vocabulary as the missing explanation "
             "(cross-validated, significance-tested), add the best, recalibrate and repeat. "
             "What no effect explains is reported as unexplained, with where it sits.\n\n"
-            f"Effect vocabulary: {', '.join(EFFECT_NAMES)}.\n\n"
+            f"Effect vocabulary: {', '.join(EFFECTS)}.\n\n"
             "Output: a summary on stdout; the JSON result (--json) is the full result "
             "(added_effects, gap_before_ms, gap_after_ms, noise_floor_ms, steps, unexplained, "
             "...); with --report DIR a markdown report with PNG figures.\n\n"
@@ -55,7 +55,7 @@ def add_parser(sub: Any) -> None:
         "--start",
         default="default",
         help="model to start from: base (base timing only), default (the robot's default "
-        "effects) or a comma list of effect names",
+        "effects) or a comma list of effect names (default,NAME: the defaults plus NAME)",
     )
     add_period(p)
     add_json(p, "the full result (added_effects, gap_before_ms, steps, unexplained, ...)")

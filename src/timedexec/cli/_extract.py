@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         from timedexec.recording import damage_note
 
         warn("extract", damage_note(args.recording, info["damaged_rows"], len(result.table)))
-    bad_time = int(sum(str(f) == "bad_time" for f in result.table["flag"]))
+    bad_time = int(info.get("flags", {}).get("bad_time", 0))
     if bad_time:
         warn(
             "extract",

@@ -19,6 +19,7 @@ from timedexec.cli._common import (
     sweep_stopped,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
+from timedexec.effects import EFFECTS
 from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "resume_command", "run"]
@@ -51,7 +52,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--effects",
         default="default",
-        help="effect set: default, base, or a comma list of effect names",
+        help="effect set: default, base, a comma list of effect names, or default,NAME,... "
+        f"(the robot's defaults plus those named); the vocabulary: {', '.join(EFFECTS)}",
     )
     add_period(p)
     add_jobs(p, help="worker processes (output does not depend on it)")

@@ -23,7 +23,6 @@ from timedexec.discrepancy._conditions import (
     replicate_noise,
 )
 from timedexec.discrepancy._model import (
-    SIMULATED_EFFECTS,
     FittedModel,
     SimModel,
     calibrate,
@@ -40,7 +39,6 @@ from timedexec.discrepancy._workflow import (
 )
 
 __all__ = [
-    "SIMULATED_EFFECTS",
     "CandidateScore",
     "Conditions",
     "DiscrepancyResult",

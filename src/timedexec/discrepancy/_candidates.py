@@ -2,10 +2,10 @@
 
 Each candidate effect not yet in the model is turned into *signature* columns: how the
 simulated condition means change when the effect is switched on at its vocabulary
-magnitude, from the calibrated current model (one simulation per candidate; ``direction``
-gives one column per joint, ``joint_offset`` one indicator per joint,
-``response_extra_cycle`` one period of response). The residuals of the condition means are
-regressed on the model's nuisance columns (its constants and the sensitivities of its own
+magnitude, from the calibrated current model (one simulation per candidate; an effect with
+``signature_per_joint`` gives one column per joint, per-joint levels one indicator per
+joint, whole response periods one period of response). The residuals of the condition
+means are regressed on the model's nuisance columns (its constants and the sensitivities of its own
 parameters, which may move when the candidate enters) plus the signature, with the
 amplitudes bounded to the physically possible sign.
 
@@ -39,27 +39,13 @@ from numpy.typing import NDArray
 
 from timedexec.discrepancy._conditions import NoiseFloor
 from timedexec.discrepancy._model import (
-    SIMULATED_EFFECTS,
     FittedModel,
     SimModel,
     calibrate,
     default_effect,
-    model_params,
+    joint_levels,
 )
-from timedexec.effects import (
-    EFFECT_NAMES,
-    Direction,
-    Effect,
-    EffectSet,
-    GravityDirection,
-    GravityLoad,
-    Inertia,
-    JointOffset,
-    ResponseExtraCycle,
-    ThermalDrift,
-    make_effect,
-)
-from timedexec.errors import ConfigError
+from timedexec.effects import EFFECTS, Effect, effect_type
 
 __all__ = [
     "CandidateScore",
@@ -72,18 +58,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-
-#: Amplitude bounds of each candidate's signature columns: effects that only add friction
-#: or inertia act with the sign they were simulated with.
-_SIGN: dict[str, tuple[float, float]] = {
-    "gravity_load": (0.0, np.inf),
-    "gravity_direction": (0.0, np.inf),
-    "direction": (-np.inf, np.inf),
-    "inertia": (0.0, np.inf),
-    "thermal_drift": (0.0, np.inf),
-    "joint_offset": (-np.inf, np.inf),
-    "response_extra_cycle": (0.0, np.inf),
-}
 
 
 @dataclass(eq=False)
@@ -150,7 +124,7 @@ def _nuisance(
     sensitivities. Returns (columns, lower, upper, labels)."""
     m = len(model.cond)
     if delay == "actuation_delay":
-        if "joint_offset" in fitted.effects:
+        if joint_levels(fitted.effects):
             cols = [mk.astype(float) for mk in model.joint_rows.values()]
             labels = [f"offset joint {j}" for j in model.joint_rows]
         else:
@@ -171,7 +145,8 @@ def signature(model: SimModel, fitted: FittedModel, name: str) -> tuple[FloatArr
     """The candidate's columns (ms per unit amplitude) and their labels."""
     cond = model.cond
     m = len(cond)
-    if name == "joint_offset":
+    cls = effect_type(name)
+    if cls.closed_form == "joint_levels":
         joints = list(model.joint_rows)
         # The constant stays in the nuisance: one joint is the reference.
         cols = [model.joint_rows[j].astype(float) for j in joints[1:]]
@@ -179,11 +154,11 @@ def signature(model: SimModel, fitted: FittedModel, name: str) -> tuple[FloatArr
             np.column_stack(cols) if cols else np.zeros((m, 0)),
             [f"joint {j} - joint {joints[0]} (ms)" for j in joints[1:]],
         )
-    if name == "response_extra_cycle":
+    if cls.closed_form == "response_periods":
         return np.full((m, 1), model.period_s * 1e3), ["periods"]
     with_e = fitted.effects.with_effect(default_effect(name, model))
-    diff = (model.simulate(with_e)["actuation_delay"] - fitted.sim["actuation_delay"]) * 1e3
-    if name == "direction":
+    diff = (model.simulate(with_e)[cls.acts_on] - fitted.sim[cls.acts_on]) * 1e3
+    if cls.signature_per_joint:
         cols = [np.where(model.joint_rows[j], diff, 0.0) for j in model.joint_rows]
         return np.column_stack(cols), [f"joint {j}" for j in model.joint_rows]
     return diff[:, None], ["x vocabulary magnitude"]
@@ -237,19 +212,19 @@ def score_candidates(
     """
     from scipy import stats
 
-    names = [n for n in EFFECT_NAMES if n not in fitted.effects and n not in exclude]
+    names = [n for n in EFFECTS if n not in fitted.effects and n not in exclude]
     m = len(model.cond)
     fold = _folds(m, min(folds, m), seed)
     scores: list[CandidateScore] = []
     null_cache: dict[str, tuple[float, float]] = {}
     for name in names:
-        delay = make_effect(name).acts_on
+        delay = effect_type(name).acts_on
         b = fitted.resid_s[delay] * 1e3
         a0, lo0, hi0, _ = _nuisance(model, fitted, delay)
         cols, labels = signature(model, fitted, name)
         if cols.shape[1] == 0 or not np.any(np.abs(cols) > 1e-9):
             continue
-        lo_c, hi_c = _SIGN[name]
+        lo_c, hi_c = effect_type(name).signature_bounds
         a = np.column_stack([a0, cols])
         lo = np.r_[lo0, np.full(cols.shape[1], lo_c)]
         hi = np.r_[hi0, np.full(cols.shape[1], hi_c)]
@@ -310,30 +285,9 @@ def score_candidates(
 def initial_effect(score: CandidateScore, model: SimModel) -> Effect:
     """The candidate at the magnitude its fitted amplitude suggests (start of the
     nonlinear calibration)."""
-    a = score.coef
-    name = score.name
-    if name == "gravity_load":
-        return GravityLoad(friction_per_load=float(np.clip(0.2 * a[0], 0.01, 3.0)))
-    if name == "gravity_direction":
-        return GravityDirection(friction_per_load=float(np.clip(0.08 * a[0], 0.005, 3.0)))
-    if name == "direction":
-        asym = [0.0] * 6
-        for j, amp in zip(model.joint_rows, a, strict=True):
-            asym[j - 1] = float(np.clip(0.2 * amp, -0.8, 0.8))
-        return Direction(asymmetry=tuple(asym))
-    if name == "inertia":
-        return Inertia(scale=float(np.clip(a[0], 0.05, 20.0)))
-    if name == "thermal_drift":
-        base = default_effect(name, model)
-        assert isinstance(base, ThermalDrift)
-        return ThermalDrift(
-            cold_excess=float(np.clip(0.6 * a[0], 0.01, 5.0)), time_constant_s=base.time_constant_s
-        )
-    if name == "joint_offset":
-        return JointOffset(offsets_s=(0.0,) * 6)
-    if name == "response_extra_cycle":
-        return ResponseExtraCycle(cycles=max(1, round(float(a[0]))))
-    raise ConfigError(f"unknown effect {name!r}")
+    return effect_type(score.name).from_amplitude(
+        score.coef, tuple(model.joint_rows), model.sweep_span_s
+    )
 
 
 def compare_models(
@@ -372,11 +326,8 @@ def compare_models(
 
 
 def n_new_params(effect: str, model: SimModel) -> int:
-    if effect == "joint_offset":
-        return max(len(model.cond.joints) - 1, 1)
-    if effect == "response_extra_cycle":
-        return 1
-    return len(model_params(EffectSet((default_effect(effect, model),)), model))
+    """Parameters the effect ``effect`` adds to the model of the measured conditions."""
+    return effect_type(effect).n_parameters(len(model.cond.joints))
 
 
 def _loo_cv_mse(cols: FloatArray, resid_ms: FloatArray, fold: NDArray[np.int64]) -> float:
@@ -396,7 +347,7 @@ def _loo_cv_mse(cols: FloatArray, resid_ms: FloatArray, fold: NDArray[np.int64])
 def _act_columns(model: SimModel, fitted: FittedModel) -> FloatArray:
     """All sensitivities of a calibrated model's actuation means (ms per unit)."""
     m = len(model.cond)
-    if "joint_offset" in fitted.effects:
+    if joint_levels(fitted.effects):
         const = [mk.astype(float) for mk in model.joint_rows.values()]
     else:
         const = [np.ones(m)]
@@ -425,7 +376,11 @@ def refit_candidates(
     folds of conditions (each model's leave-fold-out fit approximated by one Gauss-Newton
     step from its full-data optimum). Bonferroni over the candidates refitted.
     """
-    names = [n for n in SIMULATED_EFFECTS if n not in fitted.effects and n not in exclude]
+    names = [
+        n
+        for n, cls in EFFECTS.items()
+        if cls.closed_form is None and n not in fitted.effects and n not in exclude
+    ]
     by_name = {s.name: s for s in screened}
     delay = "actuation_delay"
     m = len(model.cond)

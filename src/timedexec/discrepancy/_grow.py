@@ -27,31 +27,23 @@ from timedexec.discrepancy._candidates import (
 )
 from timedexec.discrepancy._conditions import NoiseFloor
 from timedexec.discrepancy._explain import describe_parameters, gaps_ms, observed_effect
-from timedexec.discrepancy._locate import Variable
 from timedexec.discrepancy._model import (
-    SIMULATED_EFFECTS,
     FittedModel,
     SimModel,
     calibrate,
     default_effect,
     get_values,
+    joint_levels,
 )
 from timedexec.discrepancy._result import DiscrepancyStep
 from timedexec.discrepancy._select import Selection, forward_select, score_unit
 from timedexec.discrepancy._terms import (
-    EFFECT_FAMILY,
     TermFamily,
     actuation_families,
     response_families,
+    term_inputs,
 )
-from timedexec.effects import (
-    Direction,
-    Effect,
-    GravityDirection,
-    GravityLoad,
-    Inertia,
-    ThermalDrift,
-)
+from timedexec.effects import TermInputs, Variable, effect_type
 from timedexec.robots import joint_inertia
 
 __all__ = [
@@ -89,6 +81,14 @@ class TermContext:
         self.families: dict[str, TermFamily] = {}
         #: The columns of every shape in the model, frozen when it was attached.
         self.frozen: dict[str, TermFamily] = {}
+        #: The conditions as the effects' explanations take them.
+        self.inputs: TermInputs = term_inputs(
+            cond,
+            gravity_torque_nm=gravity_torque_nm,
+            inertia_kgm2=model.true_inertia_kgm2,
+            nominal_inertia_kgm2=self.nominal_inertia,
+            period_s=model.period_s,
+        )
 
     def freeze(self, key: str) -> str:
         """Fix the columns of generic family ``key`` as they are now (a change point is
@@ -112,10 +112,12 @@ class TermContext:
             resid_ms=resid_ms,
         )
         # Families of effects the model has stay candidates: a shape of theirs the
-        # simulator's form does not reproduce refines them (never a new name). The linear
-        # effects are exact: their families would only repeat the model's constants.
-        present_a = ("joint_offset",) if "joint_offset" in fitted.effects else ()
-        present_r = ("response_extra_cycle",) if "response_extra_cycle" in fitted.effects else ()
+        # simulator's form does not reproduce refines them (never a new name). The
+        # closed-form effects are exact: their families would only repeat the model's
+        # constants.
+        exact = [e for e in fitted.effects if e.closed_form is not None]
+        present_a = tuple(e.name for e in exact if e.acts_on == "actuation_delay")
+        present_r = tuple(e.name for e in exact if e.acts_on == "response_delay")
         fam_a = actuation_families(
             cond,
             gravity_torque_nm=self.tau,
@@ -133,9 +135,9 @@ class TermContext:
 
 
 def model_constants(model: SimModel, fitted: FittedModel) -> FloatArray:
-    """The actuation constants of a model: one, or one per joint with ``joint_offset``."""
+    """The actuation constants of a model: one, or one per joint with per-joint levels."""
     m = len(model.cond)
-    if "joint_offset" in fitted.effects:
+    if joint_levels(fitted.effects):
         return np.column_stack([mk.astype(float) for mk in model.joint_rows.values()])
     return np.ones((m, 1))
 
@@ -243,7 +245,9 @@ def search(
     sigs = {
         s.name: s.signature
         for s in scores
-        if s.name in SIMULATED_EFFECTS and s.signature.size and s.acts_on == "actuation_delay"
+        if effect_type(s.name).closed_form is None
+        and s.signature.size
+        and s.acts_on == "actuation_delay"
     }
     resid = with_shapes(model, fitted, shapes, terms).resid_s["actuation_delay"] * 1e3
     families = terms.build(fitted, sigs, resid)
@@ -343,19 +347,6 @@ def shape_test(
     return {**unit.to_dict(), "needed": needed}
 
 
-def weaker(effect: Effect, f: float) -> Effect:
-    """``effect`` with its magnitude scaled by ``f`` (0 < f < 1)."""
-    if isinstance(effect, GravityLoad | GravityDirection):
-        return dataclasses.replace(effect, friction_per_load=effect.friction_per_load * f)
-    if isinstance(effect, Direction):
-        return dataclasses.replace(effect, asymmetry=tuple(a * f for a in effect.asymmetry))
-    if isinstance(effect, ThermalDrift):
-        return dataclasses.replace(effect, cold_excess=effect.cold_excess * f)
-    if isinstance(effect, Inertia):
-        return dataclasses.replace(effect, scale=float(effect.scale**f))
-    return effect
-
-
 def calibrate_with(
     name: str, score: CandidateScore | None, model: SimModel, fitted: FittedModel
 ) -> FittedModel:
@@ -375,12 +366,12 @@ def calibrate_with(
         first = initial_effect(score, model)
     else:
         first = base
-    if name not in SIMULATED_EFFECTS:
+    if not first.simulated:
         return calibrate(model, fitted.effects.with_effect(first))
-    news = [first, base, weaker(first, 0.5), weaker(first, 0.25)]
+    news = [first, base, first.scaled(0.5), first.scaled(0.25)]
     reset = fitted.effects
     for e in fitted.effects:
-        if e.name in SIMULATED_EFFECTS:
+        if e.simulated:
             reset = reset.with_effect(default_effect(e.name, model))
     starts = [fitted.effects.with_effect(e) for e in news]
     starts += [reset.with_effect(e) for e in news[:2]]
@@ -433,8 +424,9 @@ def add_effect(
     width = 0
     # The family the effect's measured shape is made of: the one that named it, or (named
     # by the simulator's form alone, or by recalibration) the effect's generic family.
-    shape_key = prop.family if prop.family in terms.generic else EFFECT_FAMILY.get(name)
-    if name in SIMULATED_EFFECTS and shape_key in terms.generic:
+    cls = effect_type(name)
+    shape_key = prop.family if prop.family in terms.generic else cls.shape_family
+    if cls.closed_form is None and shape_key in terms.generic:
         assert shape_key is not None
         test = shape_test(model, new, new_shapes, terms, shape_key, noise, alpha)
         if test["needed"]:
@@ -486,7 +478,9 @@ def add_effect(
     share = float(np.clip((g0**2 - g1**2) / excess0, 0.0, 1.0))
     shape_s = new_current.info.get("shape_s", {}).get(name)
     extra_ms = None if shape_s is None else shape_s * 1e3
-    observed, sentence, contrib_ms = observed_effect(name, model, new, variables, extra_ms)
+    observed, sentence, contrib_ms = observed_effect(
+        name, model, new, variables, terms.inputs, extra_ms
+    )
     size = float(np.sqrt(np.mean((contrib_ms - contrib_ms.mean()) ** 2)))
     explanation = (
         f"{sentence}; explains {100 * share:.0f} % of the {delay.replace('_', ' ')} gap "

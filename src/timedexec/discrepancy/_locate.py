@@ -8,17 +8,15 @@ chi-square with as many degrees of freedom as conditions.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.discrepancy._conditions import Conditions, NoiseFloor
+from timedexec.effects import Variable
 
 __all__ = [
-    "EFFECT_VARIABLE",
-    "Variable",
     "condition_variables",
     "locate",
     "sequence_entries",
@@ -30,28 +28,6 @@ FloatArray = NDArray[np.float64]
 
 #: A group whose chi-square p-value exceeds this shows no sign of a disagreement.
 CLEAN_P = 0.1
-
-#: The variable of the residual plots of each effect (a key of ``condition_variables``).
-EFFECT_VARIABLE = {
-    "gravity_load": "gravity_torque",
-    "gravity_direction": "direction_x_gravity",
-    "direction": "direction",
-    "inertia": "inertia",
-    "thermal_drift": "time",
-    "joint_offset": "joint",
-    "response_extra_cycle": "time",
-}
-
-
-@dataclass(frozen=True, eq=False)
-class Variable:
-    """A variable the residuals may follow: its values per condition and how to fit it."""
-
-    key: str
-    label: str
-    unit: str
-    kind: str  # "angle", "linear" or "binary"
-    values: FloatArray
 
 
 def condition_variables(

@@ -16,10 +16,13 @@ latter is bounded: without ``response_extra_cycle`` the packing phase lies withi
 controller period (``TimingSettings``), so the base timing cannot produce a mean response
 delay above one period plus the wire latency.
 
-Two effects are exact additive shifts of the simulator's output and are applied here in
-closed form instead of by simulation (``test_linear_effects_are_additive`` checks it):
-``joint_offset`` (each joint's drive takes the reference later: the onset moves by the
-offset) and ``response_extra_cycle`` (every package leaves ``cycles`` periods later).
+Effects that are exact additive shifts of the simulator's output (``Effect.closed_form``:
+``joint_offset``, each joint's drive takes the reference later, so the onset moves by the
+offset; ``response_extra_cycle``, every package leaves ``cycles`` periods later) are applied
+here in closed form, through the effect's own timing hooks, instead of by simulation
+(``test_linear_effects_are_additive`` checks it), and fitted by the effect's
+``fit_closed_form``. Everything else about an effect (its free parameters, the magnitude its
+signature is simulated with) is declared by its class (:mod:`timedexec.effects`).
 """
 
 from __future__ import annotations
@@ -37,38 +40,23 @@ from numpy.typing import NDArray
 
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._conditions import Conditions
-from timedexec.effects import (
-    Direction,
-    Effect,
-    EffectSet,
-    GravityDirection,
-    GravityLoad,
-    Inertia,
-    JointOffset,
-    ResponseExtraCycle,
-    ThermalDrift,
-)
-from timedexec.robots import RobotSpec, joint_inertia
+from timedexec.effects import Effect, EffectSet, Pose, effect_type
+from timedexec.robots import RobotSpec
 from timedexec.sim import SimSettings, default_settings, simulate_delays
 
 __all__ = [
-    "LINEAR_EFFECTS",
-    "SIMULATED_EFFECTS",
     "FittedModel",
     "Param",
     "SimModel",
     "calibrate",
+    "closed_form_shift_s",
+    "default_effect",
+    "joint_levels",
     "model_params",
 ]
 
 FloatArray = NDArray[np.float64]
 
-#: Effects that change the joint physics: the simulator runs them.
-SIMULATED_EFFECTS = ("gravity_load", "gravity_direction", "direction", "inertia", "thermal_drift")
-#: Effects that shift the simulator's output by a constant per joint or per package.
-LINEAR_EFFECTS = ("joint_offset", "response_extra_cycle")
-#: Largest ``response_extra_cycle.cycles`` the calibration tries.
-MAX_EXTRA_CYCLES = 4
 #: Window after the trigger in which the model looks for the onset, s (delays up to 0.12 s
 #: and friction far beyond the vocabulary's defaults fit; a joint that does not break
 #: away inside it counts as starting at its end).
@@ -137,9 +125,20 @@ class SimModel:
         self.sim_time_s = 0.0
         self._cache: dict[str, dict[str, FloatArray]] = {}
         m = len(cond)
-        self.true_inertia_kgm2 = joint_inertia(spec, cond.q_rad)[np.arange(m), cond.joint - 1]
+        #: The conditions as poses (what the effects' hooks are asked at).
+        self.pose = Pose(
+            spec=spec,
+            q_start_rad=cond.q_rad,
+            joint=cond.joint,
+            t_start_s=cond.t_start_s,
+            direction=cond.direction.astype(float),
+        )
+        self.true_inertia_kgm2 = self.pose.inertia_kgm2
         self.joint_rows = {j: cond.joint == j for j in cond.joints}
         self._rows = np.arange(m)
+        t = cond.t_start_s
+        #: Length of the sweep the conditions span, s.
+        self.sweep_span_s = float(t.max() - t.min()) if len(t) else 0.0
 
     @property
     def response_offset_bounds_s(self) -> tuple[float, float]:
@@ -149,11 +148,11 @@ class SimModel:
     def simulate(
         self, effects: EffectSet, rows: NDArray[np.bool_] | None = None
     ) -> dict[str, FloatArray]:
-        """Simulated condition means for the simulated part of ``effects`` (linear effects
-        are ignored here). With ``rows``, only those conditions are simulated (the others
-        are NaN). Returns ``actuation_delay``, ``response_delay`` (s) and
+        """Simulated condition means for the simulated part of ``effects`` (closed-form
+        effects are ignored here). With ``rows``, only those conditions are simulated (the
+        others are NaN). Returns ``actuation_delay``, ``response_delay`` (s) and
         ``gravity_torque_nm`` of every condition, arrays (m,)."""
-        physical = EffectSet(tuple(e for e in effects if e.name in SIMULATED_EFFECTS))
+        physical = EffectSet(tuple(e for e in effects if e.simulated))
         key = json.dumps(physical.to_dict(), sort_keys=True)
         cached = self._cache.get(key)
         if cached is not None:
@@ -216,44 +215,22 @@ class Param:
 
 
 def model_params(effects: EffectSet, model: SimModel) -> list[Param]:
-    """The free parameters of the simulated effects in ``effects``."""
+    """The free parameters of the simulated effects in ``effects`` (each effect's
+    ``fit_params``; a per-joint one once per measured joint)."""
     out: list[Param] = []
     for e in effects:
-        if e.name in ("gravity_load", "gravity_direction"):
-            out.append(Param(e.name, "friction_per_load", None, False, 0.0, 3.0, 0.03, e.name))
-        elif e.name == "direction":
-            for j in model.cond.joints:
-                out.append(
-                    Param(
-                        e.name,
-                        "asymmetry",
-                        j - 1,
-                        False,
-                        -0.85,
-                        0.85,
-                        0.04,
-                        e.name,
-                        model.joint_rows[j],
-                    )
-                )
-        elif e.name == "inertia":
-            out.append(
-                Param(e.name, "scale", None, True, math.log(0.05), math.log(20.0), 0.1, e.name)
+        for fp in e.fit_params:
+            lower, upper = (
+                (math.log(fp.lower), math.log(fp.upper)) if fp.log else (fp.lower, fp.upper)
             )
-        elif e.name == "thermal_drift":
-            out.append(Param(e.name, "cold_excess", None, False, 0.0, 5.0, 0.04, e.name + ".c"))
-            out.append(
-                Param(
-                    e.name,
-                    "time_constant_s",
-                    None,
-                    True,
-                    math.log(60.0),
-                    math.log(1e6),
-                    0.1,
-                    e.name + ".t",
-                )
-            )
+            group = e.name + fp.group
+            if fp.per_joint:
+                out += [
+                    Param(e.name, fp.field, j - 1, fp.log, lower, upper, fp.step, group, rows)
+                    for j, rows in model.joint_rows.items()
+                ]
+            else:
+                out.append(Param(e.name, fp.field, None, fp.log, lower, upper, fp.step, group))
     return out
 
 
@@ -289,29 +266,25 @@ def set_values(effects: EffectSet, params: list[Param], x: FloatArray) -> Effect
 
 
 def default_effect(name: str, model: SimModel) -> Effect:
-    """The effect ``name`` at the magnitude its candidate signature is simulated with.
+    """The effect ``name`` at the magnitude its candidate signature is simulated with
+    (``Effect.signature_effect`` for the sweep the conditions span)."""
+    return effect_type(name).signature_effect(model.sweep_span_s)
 
-    Vocabulary defaults, except that ``direction`` uses one asymmetry (0.2) on every joint
-    and ``thermal_drift`` a time constant of the sweep's length (at least 10 min), so that
-    its signature has the shape of a warm-up seen within the sweep.
-    """
-    if name == "gravity_load":
-        return GravityLoad()
-    if name == "gravity_direction":
-        return GravityDirection()
-    if name == "direction":
-        return Direction(asymmetry=(0.2,) * 6)
-    if name == "inertia":
-        return Inertia()
-    if name == "thermal_drift":
-        t = model.cond.t_start_s
-        span = float(t.max() - t.min()) if len(t) else 0.0
-        return ThermalDrift(cold_excess=0.6, time_constant_s=max(600.0, span))
-    if name == "joint_offset":
-        return JointOffset(offsets_s=(0.0,) * 6)
-    if name == "response_extra_cycle":
-        return ResponseExtraCycle()
-    raise KeyError(name)
+
+def joint_levels(effects: EffectSet) -> bool:
+    """The model's actuation constant is one per joint (an effect of per-joint levels,
+    ``joint_offset``, is present)."""
+    return any(e.closed_form == "joint_levels" for e in effects)
+
+
+def closed_form_shift_s(effect: Effect, model: SimModel) -> FloatArray:
+    """What a closed-form effect adds to its delay in every condition, s (m,): its timing
+    hooks, exactly as the simulator applies them."""
+    m = len(model.cond)
+    if effect.acts_on == "actuation_delay":
+        delay = effect.drive_delay_s(model.pose)
+        return np.zeros(m) if delay is None else np.zeros(m) + delay
+    return np.full(m, effect.response_delay_s(model.period_s))
 
 
 # ---------------------------------------------------------------------------- fitting
@@ -364,8 +337,8 @@ class FittedModel:
 
 def _act_centre(model: SimModel, effects: EffectSet) -> Callable[[FloatArray], FloatArray]:
     """The projection that removes the linear actuation parameters from residuals: the
-    mean (one constant) or the per-joint means (with ``joint_offset``)."""
-    if "joint_offset" not in effects:
+    mean (one constant) or the per-joint means (with per-joint levels)."""
+    if not joint_levels(effects):
         return lambda r: r - r.mean(axis=0)
     masks = list(model.joint_rows.values())
 
@@ -381,41 +354,32 @@ def _act_centre(model: SimModel, effects: EffectSet) -> Callable[[FloatArray], F
 def _linear_fit(
     model: SimModel, effects: EffectSet, sim: dict[str, FloatArray]
 ) -> tuple[EffectSet, float, float, dict[str, FloatArray]]:
-    """Closed-form fit of the constants, the joint offsets and the extra cycles."""
+    """Closed-form fit of the constants and the closed-form effects (per-joint levels,
+    whole periods), each by its effect's ``fit_closed_form``."""
     cond = model.cond
-    ya = cond.mean_s["actuation_delay"] - sim["actuation_delay"]
-    if "joint_offset" in effects:
-        means = {j: float(ya[mk].mean()) for j, mk in model.joint_rows.items()}
-        base = min(means.values())
-        offsets = [0.0] * 6
-        for j, mu in means.items():
-            offsets[j - 1] = min(mu - base, 0.05)
-        effects = effects.with_effect(JointOffset(offsets_s=tuple(offsets)))
-        act_offset = base
-        shift = np.asarray(offsets)[cond.joint - 1]
-    else:
-        act_offset = float(ya.mean())
-        shift = np.zeros(len(cond))
-    pred_a = sim["actuation_delay"] + act_offset + shift
-    yr = cond.mean_s["response_delay"] - sim["response_delay"]
-    lo, hi = model.response_offset_bounds_s
-    if "response_extra_cycle" in effects:
-        best: tuple[float, int, float] | None = None
-        for k in range(1, MAX_EXTRA_CYCLES + 1):
-            off = float(np.clip(yr.mean() - k * model.period_s, lo, hi))
-            ss = float(np.sum((yr - k * model.period_s - off) ** 2))
-            if best is None or ss < best[0] - 1e-15:
-                best = (ss, k, off)
-        assert best is not None
-        _, cycles, resp_offset = best
-        effects = effects.with_effect(ResponseExtraCycle(cycles=cycles))
-        extra = cycles * model.period_s
-    else:
-        resp_offset = float(np.clip(yr.mean(), lo, hi))
-        extra = 0.0
-    pred_r = sim["response_delay"] + resp_offset + extra
-    pred = {"actuation_delay": pred_a, "response_delay": pred_r}
-    return effects, act_offset, resp_offset, pred
+    # The response constant is the packing phase: within one period (module docstring).
+    bounds = {
+        "actuation_delay": (-np.inf, np.inf),
+        "response_delay": model.response_offset_bounds_s,
+    }
+    pred: dict[str, FloatArray] = {}
+    offsets: dict[str, float] = {}
+    for delay in DELAY_COLUMNS:
+        y = cond.mean_s[delay] - sim[delay]
+        shift: FloatArray | None = None
+        for e in effects:
+            if e.closed_form is not None and e.acts_on == delay:
+                fitted, offsets[delay] = type(e).fit_closed_form(
+                    y, model.pose, model.period_s, bounds[delay]
+                )
+                effects = effects.with_effect(fitted)
+                shift = closed_form_shift_s(fitted, model)
+        if delay not in offsets:
+            offsets[delay] = float(np.clip(y.mean(), *bounds[delay]))
+        if shift is None:
+            shift = np.zeros(len(cond))
+        pred[delay] = sim[delay] + offsets[delay] + shift
+    return effects, offsets["actuation_delay"], offsets["response_delay"], pred
 
 
 def _finite_jacobian(
@@ -531,8 +495,8 @@ def calibrate(
         jac_final = _finite_jacobian(model, effects, params, x, sim["actuation_delay"])
     effects, act_offset, resp_offset, pred = _linear_fit(model, effects, sim)
     resid = {d: model.cond.mean_s[d] - pred[d] for d in DELAY_COLUMNS}
-    n_act = len(params) + (len(model.cond.joints) if "joint_offset" in effects else 1)
-    n_resp = 1 + (1 if "response_extra_cycle" in effects else 0)
+    n_act = len(params) + (len(model.cond.joints) if joint_levels(effects) else 1)
+    n_resp = 1 + sum(1 for e in effects if e.closed_form == "response_periods")
     return FittedModel(
         effects=effects,
         act_offset_s=act_offset,

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,16 +15,110 @@ from numpy.typing import NDArray
 from timedexec._files import check_paths, make_dir, write_atomic
 from timedexec._plot import subplots
 from timedexec.delays import DELAY_COLUMNS
-from timedexec.discrepancy._locate import EFFECT_VARIABLE
-from timedexec.effects import make_effect
+from timedexec.effects import Variable, effect_type
 
-if TYPE_CHECKING:
-    from timedexec.discrepancy._locate import Variable
-    from timedexec.discrepancy._workflow import DiscrepancyResult
-
-__all__ = ["write_report"]
+__all__ = ["ReportSource", "write_report"]
 
 _WORDS = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
+
+FloatArray = NDArray[np.float64]
+
+
+class _Step(Protocol):
+    """What the report reads of one added effect (``DiscrepancyStep``)."""
+
+    @property
+    def effect(self) -> str: ...
+    @property
+    def acts_on(self) -> str: ...
+    @property
+    def explanation(self) -> str: ...
+    @property
+    def evidence(self) -> dict[str, Any]: ...
+    @property
+    def parameters(self) -> dict[str, Any]: ...
+    @property
+    def gap_after_ms(self) -> dict[str, float]: ...
+    @property
+    def resid_before_s(self) -> FloatArray: ...
+    @property
+    def resid_after_s(self) -> FloatArray: ...
+
+
+class _Conditions(Protocol):
+    @property
+    def joint(self) -> NDArray[np.int64]: ...
+    @property
+    def direction(self) -> NDArray[np.int64]: ...
+
+
+class _Fitted(Protocol):
+    @property
+    def resid_s(self) -> dict[str, FloatArray]: ...
+
+
+class _Noise(Protocol):
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+class ReportSource(Protocol):
+    """What the report reads of a result (``ReportSource``): the report is a leaf that
+    imports nothing of the workflow."""
+
+    @property
+    def robot(self) -> str: ...
+    @property
+    def source(self) -> str: ...
+    @property
+    def start(self) -> str: ...
+    @property
+    def start_effects(self) -> list[str]: ...
+    @property
+    def n_trials(self) -> int: ...
+    @property
+    def n_conditions(self) -> int: ...
+    @property
+    def gap_before_ms(self) -> dict[str, float]: ...
+    @property
+    def gap_after_ms(self) -> dict[str, float]: ...
+    @property
+    def noise_floor_ms(self) -> dict[str, float]: ...
+    @property
+    def noise(self) -> _Noise: ...
+    @property
+    def steps(self) -> Sequence[_Step]: ...
+    @property
+    def unexplained(self) -> list[dict[str, Any]]: ...
+    @property
+    def lack_of_fit_before(self) -> dict[str, Any]: ...
+    @property
+    def lack_of_fit_after(self) -> dict[str, Any]: ...
+    @property
+    def locations_before(self) -> dict[str, Any]: ...
+    @property
+    def locations_after(self) -> dict[str, Any]: ...
+    @property
+    def rejected(self) -> list[dict[str, Any]]: ...
+    @property
+    def calibration_before(self) -> dict[str, Any]: ...
+    @property
+    def calibration_after(self) -> dict[str, Any]: ...
+    @property
+    def warnings(self) -> list[str]: ...
+    @property
+    def runtime_s(self) -> float: ...
+    @property
+    def simulations(self) -> dict[str, Any]: ...
+    @property
+    def settings(self) -> dict[str, Any]: ...
+    @property
+    def cond(self) -> _Conditions: ...
+    @property
+    def variables(self) -> Mapping[str, Variable]: ...
+    @property
+    def after(self) -> _Fitted: ...
+    @property
+    def refined_effects(self) -> list[dict[str, Any]]: ...
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -71,7 +166,7 @@ def _residual_panel(
     ax.grid(alpha=0.3)
 
 
-def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
+def _gap_figure(result: ReportSource, path: Path) -> None:
     labels = ["start"] + [f"+ {s.effect}" for s in result.steps]
     fig, axes = subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     floor = result.noise_floor_ms
@@ -88,7 +183,7 @@ def _gap_figure(result: DiscrepancyResult, path: Path) -> None:
     _save(fig, path)
 
 
-def _where_figure(result: DiscrepancyResult, path: Path) -> None:
+def _where_figure(result: ReportSource, path: Path) -> None:
     fig, axes = subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for ax, d in zip(axes, DELAY_COLUMNS, strict=True):
         before = result.locations_before[d]["by_joint_direction"]
@@ -106,10 +201,10 @@ def _where_figure(result: DiscrepancyResult, path: Path) -> None:
     _save(fig, path)
 
 
-def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
+def _step_figure(result: ReportSource, k: int, path: Path) -> None:
 
     step = result.steps[k]
-    var = result.variables[EFFECT_VARIABLE[step.effect]]
+    var = result.variables[effect_type(step.effect).variable_key]
     floor = result.noise_floor_ms[step.acts_on]
     fig, axes = subplots(1, 2, figsize=(11, 4), sharey=True, constrained_layout=True)
     joints = result.cond.joint
@@ -124,7 +219,7 @@ def _step_figure(result: DiscrepancyResult, k: int, path: Path) -> None:
     _save(fig, path)
 
 
-def _unexplained_figure(result: DiscrepancyResult, entry: dict[str, Any], path: Path) -> None:
+def _unexplained_figure(result: ReportSource, entry: dict[str, Any], path: Path) -> None:
     d = entry["delay"]
     cond = result.cond
     mask = np.isin(cond.joint, entry["joints"])
@@ -150,7 +245,7 @@ def _fmt_p(p: float) -> str:
     return f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
 
 
-def _lines_intro(result: DiscrepancyResult) -> list[str]:
+def _lines_intro(result: ReportSource) -> list[str]:
     fl = result.noise_floor_ms
     out = [
         f"# Where the simulated {result.robot} disagrees with the measurement",
@@ -171,7 +266,7 @@ def _lines_intro(result: DiscrepancyResult) -> list[str]:
         )
         out.append("")
         for k, s in enumerate(result.steps, 1):
-            out.append(f"{k}. **{s.effect}** ({make_effect(s.effect).meaning}): {s.explanation}.")
+            out.append(f"{k}. **{s.effect}** ({effect_type(s.effect).meaning}): {s.explanation}.")
         out.append("")
     else:
         out.append(
@@ -219,7 +314,7 @@ def _lines_terms() -> list[str]:
     ]
 
 
-def _lines_summary_table(result: DiscrepancyResult) -> list[str]:
+def _lines_summary_table(result: ReportSource) -> list[str]:
     out = [
         "| delay | gap at start (ms) | gap at end (ms) | noise floor (ms) | lack of fit p, start | lack of fit p, end |",
         "|---|---|---|---|---|---|",
@@ -233,10 +328,10 @@ def _lines_summary_table(result: DiscrepancyResult) -> list[str]:
     return [*out, "", "![gap per step](gap_per_step.png)", ""]
 
 
-def _lines_steps(result: DiscrepancyResult, figures: list[str]) -> list[str]:
+def _lines_steps(result: ReportSource, figures: list[str]) -> list[str]:
     out: list[str] = []
     for k, s in enumerate(result.steps):
-        e = make_effect(s.effect)
+        e = effect_type(s.effect)
         ev = s.evidence
         out += [
             f"## Step {k + 1}: {s.effect}",
@@ -306,7 +401,7 @@ def _evidence_sentence(ev: dict[str, Any], alpha: float) -> str:
     return text
 
 
-def _lines_refined(result: DiscrepancyResult) -> list[str]:
+def _lines_refined(result: ReportSource) -> list[str]:
     """Effects the model had whose simulated form missed the measured dependence."""
     if not result.refined_effects:
         return []
@@ -342,7 +437,7 @@ def _compact(d: dict[str, Any]) -> str:
     return ", ".join(f"{k} = {fmt(v)}" for k, v in d.items())
 
 
-def _lines_unexplained(result: DiscrepancyResult, figures: list[str]) -> list[str]:
+def _lines_unexplained(result: ReportSource, figures: list[str]) -> list[str]:
     out = ["## Unexplained", ""]
     if not result.unexplained:
         lof = result.lack_of_fit_after
@@ -362,7 +457,7 @@ def _lines_unexplained(result: DiscrepancyResult, figures: list[str]) -> list[st
     return [*out, ""]
 
 
-def _lines_where(result: DiscrepancyResult) -> list[str]:
+def _lines_where(result: ReportSource) -> list[str]:
     out = [
         "## Where the disagreement sat",
         "",
@@ -399,7 +494,7 @@ def _lines_where(result: DiscrepancyResult) -> list[str]:
     return out
 
 
-def _lines_model(result: DiscrepancyResult) -> list[str]:
+def _lines_model(result: ReportSource) -> list[str]:
     out = ["## The calibrated model", ""]
     for label, cal in (("start", result.calibration_before), ("final", result.calibration_after)):
         out.append(
@@ -418,7 +513,7 @@ def _lines_model(result: DiscrepancyResult) -> list[str]:
     return out
 
 
-def _lines_method(result: DiscrepancyResult) -> list[str]:
+def _lines_method(result: ReportSource) -> list[str]:
     nf = result.noise.to_dict()
     out = ["## How this was computed", ""]
     out.append(
@@ -449,7 +544,7 @@ def _lines_method(result: DiscrepancyResult) -> list[str]:
     return [*out, ""]
 
 
-def write_report(result: DiscrepancyResult, directory: str | os.PathLike[str]) -> Path:
+def write_report(result: ReportSource, directory: str | os.PathLike[str]) -> Path:
     """Write ``report.md`` and its PNG figures into ``directory`` (created if missing).
 
     Returns the path of the markdown file.

@@ -15,9 +15,9 @@ from numpy.typing import NDArray
 from timedexec._files import write_atomic
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._conditions import Conditions, NoiseFloor
-from timedexec.discrepancy._locate import Variable
 from timedexec.discrepancy._model import FittedModel
-from timedexec.effects import make_effect
+from timedexec.discrepancy._report import write_report
+from timedexec.effects import Variable, effect_type
 
 __all__ = ["DiscrepancyResult", "DiscrepancyStep"]
 
@@ -51,7 +51,7 @@ class DiscrepancyStep:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe form."""
-        e = make_effect(self.effect)
+        e = effect_type(self.effect)
         return {
             "effect": self.effect,
             "acts_on": self.acts_on,
@@ -157,8 +157,6 @@ class DiscrepancyResult:
     def write_report(self, directory: str | os.PathLike[str]) -> Path:
         """Write the engineer's report (markdown + PNG figures) into ``directory``;
         returns the markdown file."""
-        from timedexec.discrepancy._report import write_report
-
         return write_report(self, directory)
 
     def summary_text(self) -> str:

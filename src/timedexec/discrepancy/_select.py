@@ -346,8 +346,8 @@ def forward_select(
             u.threshold = alpha / n
             sign_ok = True
             fam = families[u.key]
-            if fam.effect == "response_extra_cycle":
-                # Whole extra periods only lengthen the response.
+            if fam.positive:
+                # An effect that only lengthens the delay (whole extra periods of response).
                 res_mean = float(np.mean(base[0]))
                 sign_ok = res_mean > 0
             u.passed = bool(

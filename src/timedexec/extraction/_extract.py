@@ -56,7 +56,6 @@ each step assumes of the recording):
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -75,6 +74,7 @@ from timedexec.extraction._context import (
     open_rows,
     sweep_context,
 )
+from timedexec.extraction._excluded import bad_time_rows, lost_trials
 from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
     _parabolic_peak,
@@ -726,7 +726,7 @@ def extract_recording(
         "max_se_s": max_se_s,
         "progress": progress,
     }
-    bad_time = _bad_time_rows(path)
+    bad_time = bad_time_rows(path)
     try:
         return _extract(path, bad_time, **kw)
     except DamagedChunkError:
@@ -741,71 +741,6 @@ def extract_recording(
             flags = {**bad_time[1], **flags}
         rows = np.array(sorted(flags), dtype=np.int64)
         return _extract(path, (rows, flags), damaged_rows=int(damaged.size), **kw)
-
-
-#: Per-trial scalar times extraction cannot do without; a trial where one is not finite is
-#: left out of the sweep's statistics and flagged ``bad_time``.
-_TIME_FIELDS = ("t0_s", "cmd_send_time_s")
-
-
-def _bad_time_rows(path: str) -> tuple[NDArray[np.int64], dict[int, str]] | None:
-    """Rows whose ``t0_s`` or ``cmd_send_time_s`` is not finite (a corrupt value, a
-    recorder's bug) with their flag, or None. One such value used to spoil every trial of
-    the sweep (NaN in a sweep-wide statistic) or end in a traceback.
-
-    Raises
-    ------
-    RecordingError
-        When no trial has finite times: nothing can be extracted (the message names the
-        field).
-    """
-    with RecordingReader(path) as reader:
-        n = reader.n_trials
-        bad = np.zeros(n, dtype=bool)
-        for name in _TIME_FIELDS:
-            if name not in reader.fields:
-                continue
-            try:
-                values = np.asarray(reader.read(name), dtype=np.float64)
-            except DamagedChunkError:
-                continue  # the damaged-chunk path deals with it
-            wrong = ~np.isfinite(values)
-            if n and wrong.all():
-                raise RecordingError(
-                    f"{path}: field {name!r} is not finite in any of its {n} trials; no "
-                    "trial can be timed: the recorder wrote no usable times (record the "
-                    "sweep again)"
-                )
-            bad |= wrong
-    if not bad.any():
-        return None
-    rows = np.flatnonzero(bad)
-    return rows, {int(r): "bad_time" for r in rows}
-
-
-def _lost_trials(
-    reader: RecordingReader, rows: NDArray[np.int64], t0_scale: float
-) -> tuple[NDArray[np.int64], FloatArray, NDArray[np.int64]]:
-    """Plan index, start time (s; NaN if unreadable) and row of the left-out ``rows`` whose
-    plan index can still be read; rows whose ``trial`` chunk is damaged too are left out."""
-    trials: list[int] = []
-    starts: list[float] = []
-    kept: list[int] = []
-    for r in rows.tolist():
-        try:
-            trials.append(int(reader.read("trial", np.array([r]))[0]))
-        except RecordingError:
-            continue
-        kept.append(r)
-        try:
-            starts.append(float(reader.read("t0_s", np.array([r]))[0]) * t0_scale)
-        except RecordingError:
-            starts.append(math.nan)
-    return (
-        np.array(trials, dtype=np.int64),
-        np.array(starts, dtype=np.float64),
-        np.array(kept, dtype=np.int64),
-    )
 
 
 def _extract(
@@ -846,7 +781,7 @@ def _extract(
             if f"true_{k}_s" in reader.fields
         }
         if left_out is not None:
-            lost, lost_t0, lost_rows = _lost_trials(
+            lost, lost_t0, lost_rows = lost_trials(
                 reader.whole, left_out, ctx.contract.scale["t0_s"]
             )
     chunks = [np.arange(s, min(s + chunk_trials, n)) for s in range(0, n, chunk_trials)]

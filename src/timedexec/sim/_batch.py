@@ -31,10 +31,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._signal import ONSET_FRACTION, interp_rows
-from timedexec.effects import EffectSet
+from timedexec.effects import EffectSet, Pose
 from timedexec.recording import SweepPlan, trial_layout
 from timedexec.robots import RobotSpec, get_robot_entry, joint_axis_in_tool
-from timedexec.sim._physics import JointBank, joint_params, pulse_profile
+from timedexec.sim._physics import (
+    JointBank,
+    drive_delay_s,
+    joint_params,
+    pulse_profile,
+    response_delay_s,
+)
 from timedexec.sim._settings import SimSettings
 
 __all__ = [
@@ -132,8 +138,7 @@ def simulate_block(
     col = joint - 1
 
     # -- control-box timing -------------------------------------------------------------
-    extra_cycle = effects.get("response_extra_cycle")
-    extra_s = period * extra_cycle.cycles if extra_cycle is not None else 0.0  # type: ignore[attr-defined]
+    extra_s = response_delay_s(effects, period)
     phase = rng.uniform(*timing.packing_phase_s, n)
     k = np.arange(lay.n_packages)
     latency = timing.to_host_latency_s + rng.exponential(
@@ -152,8 +157,8 @@ def simulate_block(
         + rng.exponential(timing.to_controller_jitter_s or 1e-12, n)
     )
     intake = s0 + np.ceil((at_controller - s0) / period) * period
-    offsets = effects.get("joint_offset")
-    drive_offset = np.asarray(offsets.offsets_s)[col] if offsets is not None else 0.0  # type: ignore[attr-defined]
+    pose = Pose(spec=spec, q_start_rad=q_start, joint=joint, t_start_s=t0, direction=direction)
+    drive_offset = drive_delay_s(effects, pose)
     t_ref = (
         intake
         + timing.pipeline_cycles * period

@@ -20,10 +20,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._validation import check_joint_array
-from timedexec.effects import EffectSet, default_effects
+from timedexec.effects import EffectSet, Pose, default_effects
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, check_configuration, get_robot, joint_axis_in_tool
-from timedexec.sim._physics import JointChain, joint_params
+from timedexec.sim._physics import JointChain, drive_delay_s, joint_params, response_delay_s
 from timedexec.sim._settings import SimSettings, default_settings
 
 __all__ = [
@@ -215,12 +215,15 @@ class ControllerSim:
         self.cycle_index = 0
         rng = np.random.default_rng(seed)
         self._phase0 = float(rng.uniform())
-        extra = self.effects.get("response_extra_cycle")
-        self._extra_s = self.period_s * extra.cycles if extra is not None else 0.0  # type: ignore[attr-defined]
-        offsets = self.effects.get("joint_offset")
-        self._offset_s = (
-            np.asarray(offsets.offsets_s) if offsets is not None else np.zeros(6)  # type: ignore[attr-defined]
+        self._extra_s = response_delay_s(self.effects, self.period_s)
+        # Each drive's dead time, asked of the effects once per joint at the start pose.
+        start = Pose(
+            spec=self.spec,
+            q_start_rad=np.broadcast_to(q0, (6, 6)),
+            joint=_JOINTS,
+            t_start_s=np.zeros(6),
         )
+        self._offset_s = np.zeros(6) + drive_delay_s(self.effects, start)
         self._bank = JointChain(
             self._params(q0), q0, self.dt_s, self.settings.servo.onset_threshold_rad_s
         )

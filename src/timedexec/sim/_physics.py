@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec.effects import EffectSet
+from timedexec.effects import EffectSet, Pose
 from timedexec.robots import RobotSpec, gravity_torque_coefficients, joint_inertia
 from timedexec.sim._drive import _drive_step
 
@@ -34,9 +34,11 @@ __all__ = [
     "JointBank",
     "JointChain",
     "JointParams",
+    "drive_delay_s",
     "joint_params",
     "pulse_derivative",
     "pulse_profile",
+    "response_delay_s",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -382,50 +384,58 @@ def joint_params(
 ) -> tuple[JointParams, FloatArray, FloatArray]:
     """Physical parameters of joint ``joint[i]`` (1-based) at configuration ``q_start[i]``.
 
-    Applies the friction and inertia effects of ``effects``. ``t0_s`` is the time since the
-    sweep (or the controller) started, for ``thermal_drift``. Returns the parameters, the
-    holding torque at the start pose (N·m) and the true inertia (kg·m²), each (n,).
+    Asks every effect of ``effects`` for its physics (the hooks of
+    :class:`timedexec.effects.Effect`, in this order): changes of the arm's mass model, the
+    inertia that acts instead of the nominal one, breakaway torque added (the sum floored at
+    a fifth of the drive's base breakaway), then scaled, and the viscous friction's factor.
+    ``t0_s`` is the time since the sweep (or the controller) started. Returns the
+    parameters, the holding torque at the start pose (N·m) and the true inertia (kg·m²),
+    each (n,).
     """
+    pose = Pose(spec=spec, q_start_rad=q_start, joint=joint, t_start_s=t0_s)
     n = len(joint)
     rows = np.arange(n)
     col = joint - 1
     q_j = q_start[rows, col]
     a_nm, b_nm = gravity_torque_coefficients(spec, q_start, joint)
+    extra_inertia = None
+    for e in effects:
+        mass = e.mass_change(pose)
+        if mass is not None:
+            a_nm = a_nm + mass.grav_a_nm
+            b_nm = b_nm + mass.grav_b_nm
+            extra_inertia = mass.inertia_kgm2 + (0.0 if extra_inertia is None else extra_inertia)
     tau_g = a_nm * np.cos(q_j) + b_nm * np.sin(q_j)
-    rotor = np.asarray(spec.rotor_inertia_kgm2)[col]
-    j_true_full = joint_inertia(spec, q_start)[rows, col]
     j_nominal = _nominal_inertia(spec)[col]
-    inertia = effects.get("inertia")
-    if inertia is not None:
-        j_true = rotor + inertia.scale * (j_true_full - rotor)  # type: ignore[attr-defined]
-    else:
-        j_true = j_nominal.copy()
+    j_true = None
+    for e in effects:
+        acting = e.acting_inertia_kgm2(pose)
+        if acting is not None:
+            j_true = acting
+    j_true = j_nominal.copy() if j_true is None else j_true
+    if extra_inertia is not None:
+        j_true = j_true + extra_inertia
 
     servo = settings.servo
     base = np.asarray(servo.breakaway_nm)[col]
-    thermal = effects.get("thermal_drift")
-    factor = thermal.friction_factor(t0_s) if thermal is not None else np.ones(n)  # type: ignore[attr-defined]
     f_pos = base.copy()
     f_neg = base.copy()
-    load = effects.get("gravity_load")
-    if load is not None:
-        extra = load.friction_per_load * np.abs(tau_g)  # type: ignore[attr-defined]
-        f_pos += extra
-        f_neg += extra
-    gdir = effects.get("gravity_direction")
-    if gdir is not None:
-        k = gdir.friction_per_load  # type: ignore[attr-defined]
-        f_pos += k * tau_g  # moving in + against a positive holding torque lifts the load
-        f_neg -= k * tau_g
+    for e in effects:
+        added = e.breakaway_extra_nm(pose, tau_g)
+        if added is not None:
+            f_pos += added[0]
+            f_neg += added[1]
     f_pos = np.maximum(f_pos, 0.2 * base)
     f_neg = np.maximum(f_neg, 0.2 * base)
-    direction = effects.get("direction")
-    if direction is not None:
-        asym = np.asarray(direction.asymmetry)[col]  # type: ignore[attr-defined]
-        f_pos *= 1.0 + asym
-        f_neg *= 1.0 - asym
-    f_pos *= factor
-    f_neg *= factor
+    viscous = np.asarray(servo.viscous_nms)[col]
+    for e in effects:
+        factors = e.breakaway_factors(pose)
+        if factors is not None:
+            f_pos *= factors[0]
+            f_neg *= factors[1]
+        factor = e.viscous_factor(pose)
+        if factor is not None:
+            viscous = viscous * factor
     # The drive schedules its gains on part of the pose-dependent inertia.
     j_tuned = j_nominal + settings.servo.inertia_scheduling * (j_true - j_nominal)
     params = JointParams(
@@ -437,10 +447,29 @@ def joint_params(
         breakaway_neg_nm=f_neg,
         kinetic_pos_nm=servo.kinetic_ratio * f_pos,
         kinetic_neg_nm=servo.kinetic_ratio * f_neg,
-        viscous_nms=np.asarray(servo.viscous_nms)[col] * factor,
+        viscous_nms=viscous,
         torque_max_nm=np.asarray(spec.torque_max_nm)[col],
         bandwidth_hz=np.asarray(servo.bandwidth_hz)[col],
         integral_ratio=servo.integral_ratio,
         current_time_constant_s=servo.current_time_constant_s,
     )
     return params, tau_g, j_true
+
+
+def drive_delay_s(effects: EffectSet, pose: Pose) -> FloatArray | float:
+    """The effects' dead time between the interpolator's reference and each drive at
+    ``pose``, s ((n,), or 0.0 when no effect has one)."""
+    total: FloatArray | float = 0.0
+    for e in effects:
+        d = e.drive_delay_s(pose)
+        if d is not None:
+            total = total + d
+    return total
+
+
+def response_delay_s(effects: EffectSet, period_s: float) -> float:
+    """The effects' extra wait of every state package beyond the packing phase, s."""
+    total = 0.0
+    for e in effects:
+        total += e.response_delay_s(period_s)
+    return total
