@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import argparse
 
-from timedexec.welding import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
+from timedexec.evaluation import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
 
 
 def main() -> None:
