@@ -340,4 +340,3 @@ class SendPhase:
         ):
             lead = self._lead = math.ceil((earliest_arrival_s - base) / period)
         return base + lead * period
-
