@@ -167,7 +167,6 @@ class TimedExecutor:
         self._predictions = PredictionCache(self.model)
         staleness = self._staleness = settings.staleness
         self._state = StateTracker(jitter=staleness.jitter(), max_gap_s=staleness.ceiling_s)
-        self._limits = settings.limits
         self._cmd = CommandStream(settings.limits, settings.position_gain_1_s)
         self._plan: JointPlan | None = None
         self._last_plan: JointPlan | None = None
@@ -282,7 +281,7 @@ class TimedExecutor:
         q0 = np.clip(q0, spec.q_min_rad, spec.q_max_rad)
         return plan_motion(
             spec,
-            self._limits,
+            self.settings.limits,
             q0,
             target_q_rad,
             target_qd_rad_s=target_qd_rad_s,
@@ -620,7 +619,7 @@ class TimedExecutor:
         moving = last is not None and float(np.max(np.abs(last.qd))) > REST_SPEED_RAD_S
         if self._plan is not None or self._cmd.moving or moving:
             raise DriverError("probe_intake needs the arm at rest with no plan running")
-        amax = self._limits.acceleration(self.spec)
+        amax = self.settings.limits.acceleration(self.spec)
 
         def read() -> RobotState:
             state = self.driver.read_state(timeout_s=self._staleness.idle_timeout_s(self._period))
