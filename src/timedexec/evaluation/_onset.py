@@ -17,8 +17,8 @@ Reported per strategy: the RMS of (true - predicted) onset timing (ms) and the s
 ``speed_m_s``: a velocity-interface stream that starts ``δ`` late leaves the tool ``speed ·
 δ`` behind a moving seam, so the error is ``speed · RMS δ`` (cm). ``coverage_95`` is the
 fraction of trials whose true onset lies in the model's 95 % bounds. Optionally the seam
-error is verified by running the stepped physics (:func:`track_seam` on ``sim://``) on a
-subset of held-out configurations with each strategy's shift.
+error is verified by running the stepped physics (:func:`timedexec.tasks.track_seam` on
+``sim://``) on a subset of held-out configurations with each strategy's shift.
 """
 
 from __future__ import annotations
