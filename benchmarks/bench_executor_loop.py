@@ -16,7 +16,7 @@ the same run, one after the other, quiet and with two busy processes
   sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority.
 
 ``--peer`` runs the same phases against the independently written UR peer
-(``tests/independent_ur_peer.py``: the real control script's semantics, standard library
+(``tests/independent_ur_peer/``: the real control script's semantics, standard library
 only) instead of the twin: it costs about a quarter of a core at 500 Hz where the twin costs
 0.8, so on a two-core machine the loops are measured rather than the controller's starvation
 (its input log gives each package's arrival and the cycle that took it).
@@ -393,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--peer",
         action="store_true",
-        help="run against the independent UR peer (tests/independent_ur_peer.py), not the twin",
+        help="run against the independent UR peer (tests/independent_ur_peer/), not the twin",
     )
     p.add_argument(
         "--loops",

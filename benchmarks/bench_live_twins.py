@@ -34,9 +34,8 @@ from timedexec._realtime import realtime
 from timedexec.calibration import run_calibration
 from timedexec.drivers import HostTimeTap, open_driver
 from timedexec.extraction import extract_recording
-from timedexec.recording import SweepPlan
+from timedexec.recording import GyroHeader, SweepPlan, SweepProtocol
 from timedexec.sensors import open_gyro
-from timedexec.sim import default_settings, with_gyro_latency
 from timedexec.twins import (
     GyroClockTruth,
     TwinTruth,
@@ -87,13 +86,13 @@ def run_ur(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any]
         ):
             clock = GyroClockTruth.from_truth(truth_path)
             latency = measure_gyro_transport_latency(gyro, clock)
-            settings = with_gyro_latency(default_settings("ur10"), latency)
+            protocol = SweepProtocol.for_robot("ur10", gyro=GyroHeader(transport_latency_s=latency))
             t_run = time.monotonic()
-            run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
+            run_calibration(robot, gyro, plan, out, protocol=protocol, progress=False)
             run_s = time.monotonic() - t_run
         stats = twin.stats()
     truth = twin_truth_table(out, truth_path, twin.t0_monotonic_s, host_times=robot)
-    row = evaluate(out, truth, clock, settings.profile.pre_s)
+    row = evaluate(out, truth, clock, protocol.profile.pre_s)
     row.update(
         _truth=truth,
         robot="ur10 (ur_rtde)",
@@ -125,13 +124,13 @@ def run_rsi(trials: int, seed: int, work: Path, rt: int | None) -> dict[str, Any
         ):
             clock = GyroClockTruth.from_truth(link + ".truth.jsonl")
             latency = measure_gyro_transport_latency(gyro, clock)
-            settings = with_gyro_latency(default_settings("kr5"), latency)
+            protocol = SweepProtocol.for_robot("kr5", gyro=GyroHeader(transport_latency_s=latency))
             t_run = time.monotonic()
-            run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
+            run_calibration(robot, gyro, plan, out, protocol=protocol, progress=False)
             run_s = time.monotonic() - t_run
         status = twin.stop()
     truth = twin_truth_table(out, truth_path, host_times=robot)
-    row = evaluate(out, truth, clock, settings.profile.pre_s)
+    row = evaluate(out, truth, clock, protocol.profile.pre_s)
     row.update(
         _truth=truth,
         robot="kr5 (RSI)",

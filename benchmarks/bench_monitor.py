@@ -41,7 +41,8 @@ JOINTS = (1, 2, 3, 5)
 def pool(robot: str = "ur10") -> dict:  # type: ignore[type-arg]
     spec = get_robot(robot)
     st = default_settings(spec)
-    st = st.replace(profile=dataclasses.replace(st.profile, record_s=0.2))
+    profile = dataclasses.replace(st.protocol.profile, record_s=0.2)
+    st = st.replace(protocol=dataclasses.replace(st.protocol, profile=profile))
     base = EffectSet(tuple(e for e in default_effects(robot) if e.name != "thermal_drift"))
     off = list(base.get("joint_offset").offsets_s)  # type: ignore[union-attr]
     off[1] += 0.002

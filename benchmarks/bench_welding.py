@@ -40,7 +40,7 @@ import time
 import numpy as np
 
 from timedexec.execution import FrictionFeed, load_delay_model
-from timedexec.robots import solve_ik
+from timedexec.robots import ROBOT_NAMES, get_robot_entry, solve_ik
 from timedexec.tasks import Seam, default_cell, plan_seam
 
 
@@ -54,7 +54,7 @@ def pct(x: np.ndarray) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--robot", default="ur10e", choices=("ur10", "ur10e", "kr5"))
+    p.add_argument("--robot", default="ur10e", choices=ROBOT_NAMES)
     p.add_argument("--cycles", type=int, default=5000)
     p.add_argument("--all-joints", action="store_true", help="query every joint every cycle")
     p.add_argument("--ik-tol-um", type=float, default=1.0, help="IK tolerance, µm and µrad")
@@ -69,7 +69,7 @@ def main() -> None:
     cell = default_cell(args.robot)
     period = cell.spec.controller_period_s
     sp = plan_seam(cell, Seam(), weld_s=0.8)  # the seam geometry (and a start configuration)
-    model = load_delay_model(f"{args.robot}-sim")
+    model = load_delay_model(get_robot_entry(args.robot).shipped_model)
     joints = np.array(getattr(model, "joints", (1, 2, 3, 5)))
     rot = np.asarray(cell.torch_rotation)
     pose = np.eye(4)

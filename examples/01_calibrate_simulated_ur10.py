@@ -19,8 +19,7 @@ import numpy as np
 from timedexec.calibration import run_calibration
 from timedexec.drivers import open_driver
 from timedexec.extraction import extract_recording
-from timedexec.recording import SweepPlan
-from timedexec.sim import default_settings
+from timedexec.recording import SweepPlan, SweepProtocol
 
 
 def main() -> None:
@@ -33,10 +32,10 @@ def main() -> None:
     rec = out_dir / "ur10-live-sim.h5"
     if rec.exists():
         rec.unlink()
-    settings = default_settings("ur10")
+    protocol = SweepProtocol.for_robot("ur10")  # from the robot's spec, as on a real robot
     plan = SweepPlan.generate("ur10", args.trials, seed=1)
     with open_driver("sim://ur10", seed=1) as driver:
-        run_calibration(driver, driver.gyro(seed=1), plan, rec, protocol=settings.protocol, progress=False)
+        run_calibration(driver, driver.gyro(seed=1), plan, rec, protocol=protocol, progress=False)
     table = extract_recording(rec, progress=False).table
     print("trial joint dir   actuation (ms)  truth (ms)   response (ms)  truth (ms)")
     for i in range(len(table)):

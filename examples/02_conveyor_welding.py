@@ -23,7 +23,7 @@ first weld (the model with its offsets too), through the real client against the
 corrections keep a lag of their own), the torch measured from the twin's truth; beside each
 row the simulator's per-run range (one twin weld is one publisher phase).
 
-    python examples/02_conveyor_welding.py [--robot kr5|ur10|ur10e] [--seam straight|curved]
+    python examples/02_conveyor_welding.py [--robot ROBOT] [--seam straight|curved]
         [--runs N] [--onset] [--twin] [--figure weld.png]
 """
 
@@ -32,13 +32,14 @@ from __future__ import annotations
 import argparse
 
 from timedexec.evaluation import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 
 def main() -> None:
     p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--robot", default="kr5", choices=("kr5", "ur10", "ur10e"))
+    p.add_argument("--robot", default="kr5", choices=ROBOT_NAMES)
     p.add_argument("--seam", default="straight", choices=("straight", "curved"))
     p.add_argument("--speed", type=float, default=0.5, help="belt speed, m/s")
     p.add_argument("--runs", type=int, default=2, help="publisher phases per strategy (stratified)")
@@ -51,7 +52,7 @@ def main() -> None:
     # The model bundled for this simulated robot (or a folder from `timedexec train`).
     result = evaluate_conveyor(
         args.robot,
-        f"{args.robot}-sim",
+        get_robot_entry(args.robot).shipped_model,
         seam=args.seam,
         speed_m_s=args.speed,
         cells=1,
@@ -78,8 +79,9 @@ def twin_table(result: ConveyorEvaluation, robot: str) -> None:
     # The model compensates by itself (its shifts and friction offsets), the others by shift.
     shifts: dict[str, object] = {n: result.examples[n].shifts_s for n in names}
     shifts.update(none=None, model=result.tracking_model)
-    runs = weld_on_twin(seam_plan, f"{robot}-sim", shifts)
-    client = "RSI XML" if robot == "kr5" else "ur_rtde"
+    entry = get_robot_entry(robot)
+    runs = weld_on_twin(seam_plan, entry.shipped_model, shifts)
+    client = "ur_rtde" if entry.twin.interface == "ur_rtde" else "RSI XML"
     print(f"\nthrough {client} against the {robot} twin, one weld per strategy (mm):")
     print(f"{'strategy':10} {'mean':>6} {'RMS':>6} {'max':>6}   simulator, per run")
     for name, run in runs.items():

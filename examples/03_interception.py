@@ -6,7 +6,7 @@ the meeting time with 95 % probability, and runs it on the embedded simulated ro
 (virtual time, a few seconds of CPU). A second request with too short a deadline shows the
 "cannot: misses by X ms" answer, before any motion.
 
-    python examples/03_interception.py [--robot kr5|ur10|ur10e]
+    python examples/03_interception.py [--robot ROBOT]
 """
 
 from __future__ import annotations
@@ -19,18 +19,18 @@ from timedexec.drivers import open_driver
 from timedexec.effects import default_effects
 from timedexec.errors import UnreachableError
 from timedexec.execution import TimedExecutor, load_delay_model
-from timedexec.robots import forward_kinematics, get_robot
+from timedexec.robots import ROBOT_NAMES, forward_kinematics, get_robot, get_robot_entry
 from timedexec.tasks import intercept
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--robot", default="kr5", choices=("kr5", "ur10", "ur10e"))
+    p.add_argument("--robot", default="kr5", choices=ROBOT_NAMES)
     args = p.parse_args()
     spec = get_robot(args.robot)
     # A warmed-up robot (the simulator's clock starts cold) and its bundled model.
     effects = default_effects(spec.name).without("thermal_drift")
-    model = load_delay_model(f"{spec.name}-sim")
+    model = load_delay_model(get_robot_entry(spec.name).shipped_model)
     q0 = np.array(spec.home_q_rad)
     q0[1] += 0.3
     tool0 = forward_kinematics(spec, q0)[6, :3, 3]

@@ -23,9 +23,8 @@ import numpy as np
 from timedexec.calibration import run_calibration
 from timedexec.drivers import open_driver
 from timedexec.extraction import extract_recording
-from timedexec.recording import SweepPlan
+from timedexec.recording import SweepPlan, SweepProtocol
 from timedexec.sensors import open_gyro
-from timedexec.sim import default_settings
 from timedexec.twins import URTwin
 
 
@@ -43,12 +42,14 @@ def main() -> None:
             print(f"no TIMEDEXEC_UR_HOST: using the simulated UR10 on {host}, gyro on {imu}")
         elif not imu:
             raise SystemExit("set TIMEDEXEC_IMU to the gyro's serial port (e.g. /dev/ttyUSB0)")
-        settings = default_settings("ur10")
+        # The robot's default protocol (from its spec); a real sensor states its measured
+        # constants: SweepProtocol.for_robot("ur10", gyro=GyroHeader.from_json("gyro.json")).
+        protocol = SweepProtocol.for_robot("ur10")
         plan = SweepPlan.generate("ur10", args.trials, seed=2)
         rec = tmp / "ur10.h5"
         driver = stack.enter_context(open_driver(f"ur://{host}"))
         gyro = stack.enter_context(open_gyro(imu))
-        run_calibration(driver, gyro, plan, rec, protocol=settings.protocol, progress=False,
+        run_calibration(driver, gyro, plan, rec, protocol=protocol, progress=False,
                         source=f"ur://{host}")  # fmt: skip
     table = extract_recording(rec, progress=False).table
     act = table["actuation_delay"] * 1e3

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Rebuild the shipped delay models in models/ (ur10-sim, ur10e-sim, kr5-sim).
+"""Rebuild the shipped delay models in models/ (one per robot of the catalog: ur10-sim ...).
 
 For each simulated robot, as a user would with a real one: simulate a calibration sweep
 (state packages, commands and an 8 kHz gyro, recorded to HDF5), extract the *measured*
@@ -18,13 +18,14 @@ The bundle carries the GP's standard-deviation calibration from that CV (``std_s
 the manifest, listed at the end of ``cv-table.txt``; docs/models.md, "Calibrated
 uncertainty").
 
-Trials: 8,000 for ur10 and kr5 (100 start configurations x 4 joints x 2 directions x 10
-repeats; ~2.5 min per robot on two cores); 33,500 (the published size) for ur10e, whose
-2 ms period leaves a noise floor of 0.59 ms that 8,000 trials do not resolve the pose
-dependence against (~10 min). ``--trials N`` sets one count for all. Same seed, same
-bundles (byte for byte, on the same platform).
+Trials: 8,000 (100 start configurations x 4 joints x 2 directions x 10 repeats; ~2.5 min
+per robot on two cores) for ur10 and kr5; 33,500 (the published size) for a controller
+period of 2 ms or less (ur10e, ur5e), which leaves a noise floor of about 0.6 ms that 8,000
+trials do not resolve the pose dependence against (~10 min). ``--trials N`` sets one count
+for all. Same seed, same bundles (byte for byte, on the same platform). Each bundle is
+written to ``<out>/<the robot's shipped_model>``.
 
-usage: python scripts/train_bundled_models.py [--robots ur10,ur10e,kr5] [--trials N]
+usage: python scripts/train_bundled_models.py [--robots ur10,ur10e,kr5,...] [--trials N]
        [--seed 1] [--jobs 2] [--out models]
 """
 
@@ -39,17 +40,21 @@ from pathlib import Path
 
 from timedexec.extraction import extract_recording
 from timedexec.learning import train_delay_models
-from timedexec.robots import ROBOT_NAMES, get_robot
+from timedexec.recording import FULL_SWEEP_TRIALS
+from timedexec.robots import ROBOT_NAMES, RobotSpec, get_robot, get_robot_entry
 from timedexec.sim import simulate_sweep
 
-#: Trials per robot: 8,000 where that resolves the pose dependence against the noise floor.
-DEFAULT_TRIALS = {"ur10": 8000, "kr5": 8000, "ur10e": 33_500}
+
+def default_trials(spec: RobotSpec) -> int:
+    """8,000 trials where that resolves the pose dependence against the noise floor; the
+    published 33,500 at a controller period of 2 ms or less (a noise floor of ~0.6 ms)."""
+    return FULL_SWEEP_TRIALS if spec.controller_period_s <= 0.002 else 8000
 
 
 def build(robot: str, trials: int, seed: int, jobs: int, out_root: Path) -> dict[str, object]:
     """Simulate, extract, train and save one robot's bundle; return a summary."""
     spec = get_robot(robot)
-    out = out_root / f"{spec.name}-sim"
+    out = out_root / get_robot_entry(spec.name).shipped_model
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=f"timedexec-{spec.name}-") as tmp:
         rec = Path(tmp) / "sweep.h5"
@@ -118,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     out_root = Path(args.out)
     out_root.mkdir(parents=True, exist_ok=True)
     for robot in [r.strip() for r in args.robots.split(",") if r.strip()]:
-        trials = args.trials or DEFAULT_TRIALS.get(robot, 8000)
+        trials = args.trials or default_trials(get_robot(robot))
         summary = build(robot, trials, args.seed, args.jobs, out_root)
         print(json.dumps(summary))
     return 0

@@ -210,7 +210,7 @@ def joint_response(
     wm = np.zeros(n)
     qm = np.zeros(n)
     wl = np.zeros(n)
-    ql = np.zeros(n)  # noqa: E702
+    ql = np.zeros(n)
     integ = np.zeros(n)
     stuck = np.ones(n, dtype=bool)
     out_w = np.zeros((n, grid.size))

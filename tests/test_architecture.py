@@ -8,8 +8,11 @@ imported or run) enforces:
 * **public faces** — outside a package, nobody imports its private modules
   (``timedexec.sim._batch``); only the shared top-level helpers (``timedexec._files`` ...) are
   importable from anywhere;
-* **no circles** — no cycle among the modules' run-time imports (imports under
-  ``if TYPE_CHECKING:`` do not run and are left out of the cycle check only);
+* **no circles** — no cycle among the modules' imports, whatever hides it: imports at the
+  top, inside functions, under ``if TYPE_CHECKING:`` and lazy imports by name (a string
+  naming a ``timedexec`` module, as ``importlib.import_module`` tables hold) all count, both
+  between modules and between packages (only the package root's lazy re-exports are left
+  out, and the one temporary exception in ``ALLOWED_CIRCLE_EDGES``);
 * **size** — no module is over ``MAX_LINES`` lines except the ones listed with a reason.
 
 Plus what the layering promises a user: importing ``timedexec.report`` neither imports
@@ -22,7 +25,8 @@ import ast
 import re
 import subprocess
 import sys
-from collections import defaultdict
+from collections import defaultdict, deque
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -76,29 +80,46 @@ def _layer_of(module: str) -> int | None:
     return None
 
 
+def _is_module(name: str) -> bool:
+    path = SRC / name.replace(".", "/")
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
 class _Import:
-    def __init__(self, target: str, line: int, type_only: bool) -> None:
-        self.target, self.line, self.type_only = target, line, type_only
+    """One import of a ``timedexec`` module; ``how`` says how it runs: ``top`` (at import),
+    ``function`` (inside a function or method), ``TYPE_CHECKING`` (only for the type
+    checker) or ``by name`` (a string naming the module, e.g. an ``importlib`` table)."""
+
+    def __init__(self, target: str, line: int, how: str) -> None:
+        self.target, self.line, self.how = target, line, how
+
+
+def _how_imports_run(tree: ast.Module) -> dict[int, str]:
+    """``id(node) -> "function" | "TYPE_CHECKING"`` for every node not run at import time."""
+    hidden: dict[int, str] = {}
+
+    def mark(nodes: list[ast.stmt], how: str) -> None:
+        for stmt in nodes:
+            for n in ast.walk(stmt):
+                hidden.setdefault(id(n), how)
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            mark(node.body, "TYPE_CHECKING")
+        elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            mark(node.body if isinstance(node.body, list) else [ast.Expr(node.body)], "function")
+    return hidden
 
 
 def _imports(path: Path, module: str | None) -> list[_Import]:
-    """Every ``timedexec`` import of a file: the imported module (or, for
-    ``from pkg import sub``, the submodule ``pkg.sub`` when it exists)."""
+    """Every ``timedexec`` import of a file, however it is written: the imported module (or,
+    for ``from pkg import sub``, the submodule ``pkg.sub`` when it exists)."""
     tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
-    type_only_lines: set[int] = set()
-    for node in ast.walk(tree):
-        if (
-            isinstance(node, ast.If)
-            and isinstance(node.test, ast.Name | ast.Attribute)
-            and "TYPE_CHECKING" in ast.unparse(node.test)
-        ):
-            for sub in node.body:
-                for n in ast.walk(sub):
-                    if hasattr(n, "lineno"):
-                        type_only_lines.add(n.lineno)
-    package = module if path.name == "__init__.py" else (module or "").rpartition(".")[0]
+    hidden = _how_imports_run(tree)
+    package = (module or "") if path.name == "__init__.py" else (module or "").rpartition(".")[0]
     out: list[_Import] = []
     for node in ast.walk(tree):
+        how = hidden.get(id(node), "top")
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")[: len(package.split(".")) - node.level + 1]
@@ -109,14 +130,19 @@ def _imports(path: Path, module: str | None) -> list[_Import]:
                 continue
             for alias in node.names:
                 sub = f"{target}.{alias.name}"
-                is_module = (SRC / sub.replace(".", "/")).with_suffix(".py").exists() or (
-                    SRC / sub.replace(".", "/") / "__init__.py"
-                ).exists()
-                out.append(_Import(sub if is_module else target, node.lineno, node.lineno in type_only_lines))
+                out.append(_Import(sub if _is_module(sub) else target, node.lineno, how))
         elif isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name.startswith("timedexec"):
-                    out.append(_Import(alias.name, node.lineno, node.lineno in type_only_lines))
+                    out.append(_Import(alias.name, node.lineno, how))
+        elif (
+            module is not None  # lazy tables are a library's; tests name modules in text
+            and isinstance(node, ast.Constant)
+            and isinstance(node.value, str)
+            and node.value.startswith("timedexec.")
+            and _is_module(node.value)
+        ):
+            out.append(_Import(node.value, node.lineno, "by name"))
     return out
 
 
@@ -166,37 +192,119 @@ def test_no_import_of_another_packages_private_module() -> None:
     assert not bad, "imports of another package's private module:\n" + "\n".join(bad)
 
 
-def test_no_import_cycles() -> None:
-    """No circle among run-time imports (function-level imports included)."""
-    graph: dict[str, set[str]] = defaultdict(set)
+#: Import edges (importer, imported) left out of the circle check, and why. TEMPORARY: the
+#: discrepancy circle ``_result -(function-level)-> _report -(TYPE_CHECKING)-> _workflow ->
+#: _result`` (and ``_workflow -> _grow -> _result -> _report -> _workflow`` through the same
+#: edge) is being opened on another branch (issue 33, effects/discrepancy); the lead removes
+#: this entry when that branch is merged. Nothing else may be added here: open a circle by
+#: moving the shared type to a leaf module instead.
+ALLOWED_CIRCLE_EDGES: dict[tuple[str, str], str] = {
+    ("timedexec.discrepancy._report", "timedexec.discrepancy._workflow"): (
+        "temporary, opened on the discrepancy branch (issue 33)"
+    ),
+}
+
+
+def _import_graph() -> dict[str, dict[str, _Import]]:
+    """``importer -> {imported: the import}`` over ``src``, every kind of import included.
+    The package root's lazy re-exports (``timedexec.__getattr__``: the one import that goes
+    upwards, documented in docs/architecture.md) are left out."""
+    graph: dict[str, dict[str, _Import]] = defaultdict(dict)
     for path in _files("src"):
         me = _module_name(path)
+        if me == "timedexec":
+            continue
         for imp in _imports(path, me):
-            if not imp.type_only and imp.target != me:
-                graph[me].add(imp.target)
-    # A package __init__ re-exports its submodules; a submodule importing its own package
-    # would close a circle through it, so the edges stay as written.
-    colour: dict[str, int] = {}
-    cycles: list[list[str]] = []
+            if imp.target != me and (me, imp.target) not in ALLOWED_CIRCLE_EDGES:
+                graph[me].setdefault(imp.target, imp)
+    return graph
 
-    def visit(node: str, stack: list[str]) -> None:
-        colour[node] = 1
-        stack.append(node)
-        for nxt in sorted(graph.get(node, ())):
-            if colour.get(nxt) == 1:
-                cycles.append([*stack[stack.index(nxt) :], nxt])
-            elif colour.get(nxt) is None:
-                visit(nxt, stack)
-        stack.pop()
-        colour[node] = 2
 
-    for node in sorted(graph):
-        if colour.get(node) is None:
-            visit(node, [])
-    # The package root lazily re-exports (inside __getattr__) from below: not a circle that
-    # runs at import time, and the only one allowed.
-    cycles = [c for c in cycles if "timedexec" not in c]
-    assert not cycles, "import circles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One circle ``[a, b, ..., a]`` per group of nodes that reach each other (a strongly
+    connected component of ``graph``), the shortest through its first node."""
+
+    def reachable(start: str) -> dict[str, str | None]:
+        """``node -> its predecessor`` on a shortest path from ``start`` (breadth first)."""
+        parent: dict[str, str | None] = {start: None}
+        queue = deque([start])
+        while queue:
+            node = queue.popleft()
+            for child in sorted(graph.get(node, ())):
+                if child not in parent:
+                    parent[child] = node
+                    queue.append(child)
+        return parent
+
+    reach = {node: reachable(node) for node in sorted(graph)}
+    circles, seen = [], set()
+    for first in sorted(graph):
+        back = [n for n in reach[first] if n != first and first in reach.get(n, {})]
+        if first in seen or not back:
+            continue
+        seen.update(back)
+        # the closest node on the way that leads straight back, then its path from first
+        closing = [n for n in back if first in graph.get(n, ())]
+        last = min(closing, key=lambda n: (len(_path(reach[first], n)), n))
+        circles.append([*_path(reach[first], last), first])
+    return circles
+
+
+def _path(parent: dict[str, str | None], node: str) -> list[str]:
+    path = [node]
+    while (up := parent[path[-1]]) is not None:
+        path.append(up)
+    return path[::-1]
+
+
+def test_no_import_cycles() -> None:
+    """No circle among the imports, whatever hides it (TYPE_CHECKING blocks, function-level
+    and by-name imports included): between modules, and between packages (a module of one
+    package importing another that imports back)."""
+    graph = _import_graph()
+    modules = {me: set(edges) for me, edges in graph.items()}
+
+    def unit(module: str) -> str:  # a package, or a top-level module
+        return ".".join(module.split(".")[:2])
+
+    packages: dict[str, set[str]] = defaultdict(set)
+    via: dict[tuple[str, str], str] = {}
+    for me, edges in graph.items():
+        for target, imp in edges.items():
+            if unit(me) != unit(target):
+                packages[unit(me)].add(unit(target))
+                via.setdefault((unit(me), unit(target)), f"{me}:{imp.line} ({imp.how})")
+    found = []
+    for circle in _circles(modules):
+        steps = [f"{a} -> {b} (line {graph[a][b].line}, {graph[a][b].how})" for a, b in pairwise(circle)]
+        found.append("module circle:\n    " + "\n    ".join(steps))
+    for circle in _circles(packages):
+        steps = [f"{a} -> {b} (first at {via[a, b]})" for a, b in pairwise(circle)]
+        found.append("package circle:\n    " + "\n    ".join(steps))
+    assert not found, "import circles:\n" + "\n".join(found)
+
+
+def test_allowed_circle_edges_exist() -> None:
+    """Every allow-listed edge is still an import (a stale entry would hide a future one)."""
+    stale = []
+    for importer, imported in ALLOWED_CIRCLE_EDGES:
+        path = SRC / (importer.replace(".", "/") + ".py")
+        if not path.exists() or imported not in {i.target for i in _imports(path, importer)}:
+            stale.append(f"{importer} -> {imported}")
+    assert not stale, f"ALLOWED_CIRCLE_EDGES lists imports that are gone, remove them: {stale}"
+
+
+def test_independent_ur_peer_imports_no_timedexec() -> None:
+    """The independent UR peer (tests/independent_ur_peer/) is written from the real device's
+    documentation, without our code: none of its modules imports timedexec, so a claim
+    checked against it is not checked against our own assumptions."""
+    bad = [
+        f"{path.relative_to(ROOT)}:{imp.line} imports {imp.target}"
+        for path in _files("tests/independent_ur_peer")
+        for imp in _imports(path, None)
+    ]
+    assert _files("tests/independent_ur_peer"), "the peer package moved: update this test"
+    assert not bad, "the independent peer imports timedexec:\n" + "\n".join(bad)
 
 
 def test_module_size() -> None:
@@ -258,9 +366,11 @@ def test_wheel_ships_the_models(tmp_path: Path) -> None:
     )  # fmt: skip
     (wheel,) = (tmp_path / "dist").glob("timedexec-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    for robot in ("ur10", "ur10e", "kr5"):
-        assert f"timedexec/models/{robot}-sim/arrays.npz" in names
-        assert f"timedexec/models/{robot}-sim/manifest.json" in names
+    from timedexec.learning import BUNDLED_MODELS
+
+    for model in BUNDLED_MODELS:  # one per robot of the catalog
+        assert f"timedexec/models/{model}/arrays.npz" in names
+        assert f"timedexec/models/{model}/manifest.json" in names
     site = tmp_path / "site"
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],

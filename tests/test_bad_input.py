@@ -9,6 +9,7 @@ file changed (sha256 of every file present before the run, compared after it).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -134,6 +135,73 @@ def _setup_link_file(work: Path) -> None:
 
 def _setup_garbage(work: Path) -> None:
     (work / "result.json").write_text("{'not': json,\n")
+
+
+def _setup_model_copy(work: Path) -> None:
+    shutil.copytree(DelayModel.load(MODEL).path, work / "bundle")
+
+
+def _cycle_log(work: Path, name: str, edit: Callable[[dict[str, np.ndarray]], None] | None = None,
+               meta: Any = None) -> None:  # fmt: skip
+    """A 50-row UR10 cycle log of an idle robot at ``work/name``, after ``edit``; ``meta``
+    replaces its metadata (to make malformed ones)."""
+    n = 50
+    cols = {"arrival_s": np.arange(n) * 0.008, "controller_s": np.arange(n) * 0.008,
+            "sequence": np.arange(n), "send_s": np.arange(n) * 0.008 + 0.001,
+            "qd_cmd": np.zeros((n, 6)), "q": np.zeros((n, 6))}  # fmt: skip
+    if edit is not None:
+        edit(cols)
+    if meta is None:
+        meta = {"format": "timedexec-cycle-log", "format_version": 1, "period_s": 0.008,
+                "robot": "ur10"}  # fmt: skip
+    np.savez(work / name, meta=np.array(json.dumps(meta)), **cols)
+
+
+def _setup_log(name: str, edit: Callable[[dict[str, np.ndarray]], None] | None = None,
+               meta: Any = None) -> Callable[[Path], None]:  # fmt: skip
+    return lambda work: _cycle_log(work, name, edit, meta)
+
+
+def _nan_times(cols: dict[str, np.ndarray]) -> None:
+    for key in ("arrival_s", "controller_s", "send_s"):
+        cols[key] = np.full(len(cols[key]), np.nan)
+
+
+def _inf_time(cols: dict[str, np.ndarray]) -> None:
+    cols["arrival_s"] = cols["arrival_s"].copy()
+    cols["arrival_s"][7] = np.inf
+
+
+def _reversed(cols: dict[str, np.ndarray]) -> None:
+    for key in ("arrival_s", "controller_s"):
+        cols[key] = cols[key][::-1].copy()
+
+
+def _setup_user_demo_file(work: Path) -> None:
+    (work / "demo").mkdir()
+    (work / "demo" / "ur10-delays.csv").write_text("my own table\n")
+
+
+def _setup_input_fifos(work: Path) -> None:
+    os.mkfifo(work / "pipe.h5")
+    os.mkfifo(work / "pipe.csv")
+
+
+def _setup_ms_profile(work: Path) -> None:
+    (work / "gyro.json").write_text('{"group_delay_s": 0.98, "transport_latency_s": 0.8}\n')
+
+
+def _huge_delay(cols: dict[str, Any]) -> None:
+    cols["actuation_delay"] = cols["actuation_delay"].copy()
+    cols["actuation_delay"][5] = 1e300
+
+
+def _negative_delay(cols: dict[str, Any]) -> None:
+    cols["actuation_delay"] = cols["actuation_delay"].copy()
+    cols["actuation_delay"][7] = -0.02
+
+
+_LONG = "b" * 250
 
 
 def _readonly_folder() -> Path:
@@ -288,7 +356,7 @@ CASES: dict[str, Case] = {
     ),
     "evaluate-negative-physics": Case(
         "evaluate --robot ur10 --physics -2",
-        ["argument --physics: -2 is out of range; use an integer >= 0"],
+        ["argument --physics: -2 is out of range; use an integer from 0 to 10000"],
     ),
     "extract-zero-jobs": Case(
         "extract rec.h5 --out d.csv --jobs 0",
@@ -317,6 +385,157 @@ CASES: dict[str, Case] = {
         ["trial 8 is not a trial of rec.h5", "rows 0 .. 7"],
         absent=["rep"],
     ),
+    # --- issue 40: nothing deployed replaced, no silent all-clear, every option applies
+    "evaluate-json-into-the-model-folder": Case(
+        "evaluate --robot ur10 --model bundle --configs 2 --draws 2 --quiet "
+        "--json bundle/manifest.json",
+        ["--json bundle/manifest.json is the same file as --model file bundle/manifest.json"],
+        setup=_setup_model_copy,
+    ),
+    "monitor-json-into-the-model-folder": Case(
+        "monitor rec.h5 --model bundle --json bundle/arrays.npz",
+        ["--json bundle/arrays.npz is the same file as --model file bundle/arrays.npz"],
+        setup=_setup_model_copy,
+    ),
+    "monitor-log-all-nan": Case(
+        "monitor nan.npz --fail-on-alarm",
+        ["nan.npz: arrival_s is nan at row 0 (50 such row(s))"],
+        setup=_setup_log("nan.npz", _nan_times),
+    ),
+    "monitor-log-inf-time": Case(
+        "monitor inf.npz",
+        ["inf.npz: arrival_s is inf at row 7"],
+        setup=_setup_log("inf.npz", _inf_time),
+    ),
+    "monitor-log-time-reversed": Case(
+        "monitor rev.npz",
+        ["rev.npz: arrival_s runs backwards at row 1", "a cycle log is in arrival order"],
+        setup=_setup_log("rev.npz", _reversed),
+    ),
+    "monitor-log-meta-a-list": Case(
+        "monitor m.npz",
+        ["m.npz: 'meta' is a list, not an object"],
+        setup=_setup_log("m.npz", meta=[1, 2]),
+    ),
+    "monitor-log-meta-period-text": Case(
+        "monitor m.npz",
+        ["m.npz: 'meta': period_s='abc' is not a controller period", "0.0001 .. 1"],
+        setup=_setup_log("m.npz", meta={"format": "timedexec-cycle-log", "format_version": 1,
+                                        "period_s": "abc"}),
+    ),
+    "monitor-log-meta-version-text": Case(
+        "monitor m.npz",
+        ["m.npz: 'meta': format 'timedexec-cycle-log' version 'x'"],
+        setup=_setup_log("m.npz", meta={"format": "timedexec-cycle-log", "format_version": "x",
+                                        "period_s": 0.008}),
+    ),
+    "monitor-another-robots-model": Case(
+        "monitor rec.h5 --model kr5-sim",
+        ["the delay model is for robot 'kr5' but rec.h5 comes from 'ur10'"],
+    ),
+    "monitor-figure-format-unknown": Case(
+        "monitor rec.h5 --figure f.xyz",
+        ["--figure f.xyz: .xyz is not a figure format matplotlib writes", ".png"],
+    ),
+    "monitor-every-trial-on-a-log": Case(
+        "monitor idle.npz --every-trial",
+        ["--every-trial applies to recordings", "drop --every-trial"],
+        setup=_setup_log("idle.npz"),
+    ),
+    "demo-out-holds-the-users-table": Case(
+        "demo --out demo --trials 160",
+        ["--out demo already holds ur10-delays.csv, which no earlier demo wrote there"],
+        setup=_setup_user_demo_file,
+    ),
+    "check-a-fifo": Case(
+        "check pipe.h5",
+        ["RECORDING pipe.h5 is a named pipe (FIFO), not a regular file"],
+        setup=_setup_input_fifos,
+    ),
+    "extract-a-fifo": Case(
+        "extract pipe.h5 --out d.csv",
+        ["RECORDING pipe.h5 is a named pipe (FIFO), not a regular file"],
+        setup=_setup_input_fifos,
+        absent=["d.csv"],
+    ),
+    "train-a-fifo": Case(
+        "train pipe.csv --out b",
+        ["DELAYS.csv pipe.csv is a named pipe (FIFO), not a regular file"],
+        setup=_setup_input_fifos,
+        absent=["b"],
+    ),
+    "report-a-fifo": Case(
+        "report pipe.h5 --out rep",
+        ["result pipe.h5 is a named pipe (FIFO), not a regular file"],
+        setup=_setup_input_fifos,
+        absent=["rep"],
+    ),
+    "evaluate-conveyor-options-on-onset": Case(
+        "evaluate --robot ur10 --runs 3 --seam curved",
+        ["--seam, --runs apply to --task conveyor, not to --task onset"],
+    ),
+    "evaluate-onset-options-on-conveyor": Case(
+        "evaluate --task conveyor --robot ur10 --configs 5",
+        ["--configs applies to --task onset, not to --task conveyor"],
+    ),
+    "evaluate-conveyor-runs-unbounded": Case(
+        "evaluate --task conveyor --robot ur10 --runs 100000",
+        ["argument --runs: 100000 is out of range; use an integer from 1 to 50"],
+    ),
+    "evaluate-conveyor-cells-unbounded": Case(
+        "evaluate --task conveyor --robot ur10 --cells 1000000",
+        ["argument --cells: 1000000 is out of range; use an integer from 1 to 20"],
+    ),
+    "serve-truth-over-a-recording": Case(
+        "serve --robot ur10 --truth rec.h5",
+        ["--truth rec.h5 exists and is not a twin's ground-truth file", "give a new path"],
+    ),
+    "serve-urcap-for-a-kr5": Case(
+        "serve --robot kr5 --urcap 127.0.0.1:50002",
+        ["--urcap applies to the UR twins", "drop --urcap"],
+    ),
+    "extract-out-name-too-long": Case(
+        f"extract rec.h5 --out {_LONG}.csv",
+        ["--out: the name bbbb", "is 254 bytes long", "give a shorter name"],
+    ),
+    "calibrate-missing-gyro-port": Case(
+        "calibrate --robot-url sim://ur10 --trials 2 --out c.h5 --imu /dev/ttyNOPE",
+        ["--imu /dev/ttyNOPE: no such port", "ls /dev/ttyUSB*"],
+        absent=["c.h5"],
+    ),
+    "calibrate-broken-profile-before-connecting": Case(
+        "calibrate --robot-url ur://127.0.0.1 --imu sim:// --trials 2 --out c.h5 "
+        "--sensor-profile nope.json",
+        ["sensor profile nope.json: cannot read it as JSON"],
+        absent=["c.h5"],
+    ),
+    "calibrate-profile-in-milliseconds": Case(
+        "calibrate --robot-url sim://ur10 --imu sim:// --trials 2 --out c.h5 "
+        "--sensor-profile gyro.json",
+        ["group_delay_s=0.98 s is not plausible", "give group_delay_s=0.00098"],
+        setup=_setup_ms_profile,
+        absent=["c.h5"],
+    ),
+    "calibrate-sim-gyro-constants-contradict": Case(
+        "calibrate --robot-url sim://ur10 --trials 2 --out c.h5 --gyro-group-delay 30 "
+        "--gyro-transport-latency 8",
+        ["sim://ur10 records its own simulated gyro",
+         "group_delay_s 30 ms (the simulated gyro's: 0.98 ms)"],
+        absent=["c.h5"],
+    ),
+    "train-delay-1e300": Case(
+        "train big.csv --out b --folds 2 --quiet",
+        ["column 'actuation_delay' row 5 is 1e+300 s", "lies in 0 .. 1 s"],
+        setup=_setup_table("big.csv", _huge_delay),
+        absent=["b"],
+    ),
+    "train-delay-negative": Case(
+        "train neg.csv --out b --folds 2 --quiet",
+        ["column 'actuation_delay' row 7 is -0.02 s", "no arm moves before its command"],
+        setup=_setup_table("neg.csv", _negative_delay),
+        absent=["b"],
+    ),
+
 }
 
 
@@ -511,3 +730,122 @@ def test_fig6_band_never_goes_below_zero(tmp_path: Path, monkeypatch: pytest.Mon
     fig_model(model, tmp_path / "fig6.png", points=20)
     assert lows
     assert min(float(y.min()) for y in lows) == 0.0
+
+
+# ------------------------------------------------------------- issue 40: no silent all-clear
+def test_a_monitor_that_measured_nothing_says_so_and_fails_on_alarm(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An empty cycle log, and a recording whose joints are all still in their warm-up, are
+    no all-clear: the text says what was (not) monitored, the JSON verdict says it, and
+    ``--fail-on-alarm`` exits 4. Before issue 40 both printed "no alarm" and exited 0."""
+    _cycle_log(work, "empty.npz", lambda cols: cols.update({k: v[:0] for k, v in cols.items()}))
+    assert main(["monitor", "empty.npz"]) == 0
+    assert "nothing measured" in capsys.readouterr().out
+    assert main(["monitor", "empty.npz", "--fail-on-alarm", "--json", "m.json"]) == 4
+    assert json.loads((work / "m.json").read_text())["verdict"] == "nothing measured"
+    # 8 trials: 2 moves per joint against a warm-up of 20
+    assert main(["monitor", "rec.h5", "--warmup", "20", "--fail-on-alarm"]) == 4
+    out = capsys.readouterr().out
+    assert "not yet monitoring: no joint has finished its warm-up of 20 moves" in out
+    assert "no alarm" not in out
+
+
+def _peer(kind: str) -> tuple[Any, int]:
+    """A TCP peer on loopback that accepts and then says nothing (``silent``) or answers
+    with HTTP garbage (``garbage``); returns (its socket, its port)."""
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    held: list[Any] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            held.append(conn)
+            if kind == "garbage":
+                with contextlib.suppress(OSError):
+                    conn.sendall(b"HTTP/1.1 200 OK\r\n\r\nhello" * 50)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server, server.getsockname()[1]
+
+
+@pytest.mark.parametrize(
+    ("kind", "code", "fragment"),
+    [
+        ("silent", 3, "accepted the connection but did not answer as a Dask scheduler within 1 s"),
+        ("garbage", 3, "is not a Dask scheduler"),
+        ("malformed", 2, "scheduler address 'tcp://[bad' is malformed"),
+        ("closed", 3, "cannot reach the Dask scheduler"),
+    ],
+)
+def test_scheduler_waits_have_a_deadline(
+    kind: str,
+    code: int,
+    fragment: str,
+    work: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`--scheduler` against a peer that accepts and never speaks, one that speaks another
+    protocol, a malformed address and a closed port: a clean one-line error (exit 3, or 2
+    for the address) within the connect deadline (1 s here; 10 s by default), no
+    traceback. Before issue 40 the silent peer hung for minutes and the others gave
+    tracebacks after ~22 s."""
+    import time
+
+    pytest.importorskip("distributed")
+    monkeypatch.setattr("timedexec.fleet._cluster.CONNECT_TIMEOUT_S", 1.0)
+    server = None
+    if kind in ("silent", "garbage"):
+        server, port = _peer(kind)
+        address = f"tcp://127.0.0.1:{port}"
+    elif kind == "closed":
+        import socket
+
+        with socket.socket() as probe:  # a free port that nothing listens on
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        address = f"tcp://127.0.0.1:{port}"
+    else:
+        address = "tcp://[bad"
+    t0 = time.monotonic()
+    try:
+        result = main(["extract", "rec.h5", "--out", "d.csv", "--scheduler", address])
+    finally:
+        if server is not None:
+            server.close()
+    elapsed = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert result == code, err
+    assert fragment in err
+    assert "Traceback" not in err
+    # the deadline (1 s) plus the thread's grace (1 s) and imports; the hang was minutes
+    assert elapsed < 8.0
+    assert not (work / "d.csv").exists()
+
+
+def test_a_bundle_without_a_gp_serves_evaluate_monitor_and_report(
+    work: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bundle trained with `--methods median,rt` answers with its best method (least CV
+    error): `evaluate`, `monitor` and `report` accept it. Before issue 40 all three refused
+    it ("method 'gpr' is not in this bundle")."""
+    _table(work / "t.csv")
+    assert main(["train", "t.csv", "--out", "b", "--methods", "median,rt", "--folds", "2",
+                 "--quiet"]) == 0  # fmt: skip
+    model = DelayModel.load(work / "b")
+    assert model.default_method in ("median", "rt")
+    argv = ["evaluate", "--robot", "ur10", "--model", "b", "--configs", "2", "--draws", "2",
+            "--quiet"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert main(["monitor", "rec.h5", "--model", "b"]) == 0, capsys.readouterr().err
+    assert main(["report", "b", "t.csv", "--out", "rep"]) == 0, capsys.readouterr().err
+    assert (work / "rep" / "report.md").exists()

@@ -16,6 +16,7 @@ import pytest
 
 from conftest import full_or_bounded
 from timedexec.cli import main
+from timedexec.errors import ConfigError
 from timedexec.extraction import extract_recording
 from timedexec.recording import RecordingReader, SweepPlan
 from timedexec.robots import get_robot
@@ -227,9 +228,11 @@ def test_ctrl_c_before_anything_is_recorded_says_interrupted(tmp_path, monkeypat
 
 def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
     """`calibrate --gyro-group-delay/--gyro-transport-latency` (ms) land in the recording's
-    gyro header in seconds, which is what extraction subtracts. The one trial starts at
-    the simulator's start pose (a ``--plan`` file): the header is what is checked here, and
-    the move to a random start configuration was about half of the run."""
+    gyro header in seconds, which is what extraction subtracts; for a ``sim://`` robot's own
+    simulated gyro only its true constants are accepted (others would shift every delay by
+    the difference: issue 40). The one trial starts at the simulator's start pose (a
+    ``--plan`` file): the header is what is checked here, and the move to a random start
+    configuration was about half of the run."""
     import h5py
 
     home = np.asarray(get_robot("ur10").home_q_rad, dtype=float)
@@ -238,15 +241,16 @@ def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
     np.savez(tmp_path / "plan.npz", **plan.to_arrays())
     out = tmp_path / "c.h5"
     argv = ["calibrate", "--robot-url", "sim://ur10", "--plan", str(tmp_path / "plan.npz"),
-            "--seed", "2", "--out", str(out), "--quiet", "--gyro-group-delay", "2.5",
-            "--gyro-transport-latency", "0.7"]  # fmt: skip
-    assert main(argv) == 0
+            "--seed", "2", "--out", str(out), "--quiet"]  # fmt: skip
+    assert main([*argv, "--gyro-group-delay", "2.5", "--gyro-transport-latency", "0.7"]) == 2
+    assert not out.exists()
+    assert main([*argv, "--gyro-group-delay", "0.98", "--gyro-transport-latency", "0.8"]) == 0
     assert h5py.is_hdf5(out)
     with RecordingReader(out) as r:
         gyro = r.header["gyro"]
         assert r.n_trials == 1
-    assert gyro["group_delay_s"] == pytest.approx(2.5e-3, rel=1e-12)
-    assert gyro["transport_latency_s"] == pytest.approx(0.7e-3, rel=1e-12)
+    assert gyro["group_delay_s"] == pytest.approx(0.98e-3, rel=1e-12)
+    assert gyro["transport_latency_s"] == pytest.approx(0.8e-3, rel=1e-12)
 
 
 class _FakeDriver:
@@ -255,6 +259,7 @@ class _FakeDriver:
     def __init__(self, robot: str, **options: object) -> None:
         self.robot = robot
         self.options = options
+        self.controller_period_s = get_robot(robot).controller_period_s
 
     def __enter__(self) -> _FakeDriver:
         return self
@@ -317,3 +322,61 @@ def test_calibrate_refuses_a_robot_that_contradicts_the_sim_url(tmp_path, capsys
     assert code == 2
     err = capsys.readouterr().err
     assert "--robot kr5 contradicts --robot-url sim://ur10" in err
+
+
+def test_sweep_protocol_defaults_come_from_the_robot_spec() -> None:
+    """SweepProtocol.for_robot: the robot's name and controller period from its spec (or one
+    the controller offers), the default trial motion and gyro header; an unknown robot, a
+    period the controller lacks or a speed above a joint's limit is refused, naming it."""
+    from timedexec.recording import GyroHeader, SweepProtocol, TrialProfile
+
+    ur10e = SweepProtocol.for_robot(get_robot("ur10e"))
+    assert (ur10e.robot, ur10e.controller_period_s) == ("ur10e", 0.002)
+    assert (ur10e.profile, ur10e.gyro) == (TrialProfile(), GyroHeader())
+    assert SweepProtocol.for_robot("kr5", period_s=0.004, still_s=2.0).still_s == 2.0
+    with pytest.raises(ConfigError, match="unknown robot 'ur5'"):
+        SweepProtocol.for_robot("ur5")
+    with pytest.raises(ConfigError, match=r"cannot run at a controller period of 0\.005"):
+        SweepProtocol.for_robot("kr5", period_s=0.005)
+    with pytest.raises(
+        ConfigError, match=r"speed_rad_s=9\.0 exceeds the ur10's speed limit of joint 1"
+    ):
+        SweepProtocol.for_robot(
+            "ur10", profile=TrialProfile(speed_rad_s=9.0, acceleration_rad_s2=90.0)
+        )
+
+
+_LIVE_CALIBRATE = """
+import contextlib, sys
+import timedexec.calibration, timedexec.drivers, timedexec.sensors
+from timedexec.cli import main
+
+class Robot:  # a connected KUKA at RSI's 4 ms (what rsi://PORT?period=0.004 opens)
+    robot, controller_period_s = "kr5", 0.004
+    def __enter__(self): return self
+    def __exit__(self, *exc): return None
+
+def run_calibration(driver, gyro, plan, out, *, protocol, **kw):
+    print(protocol.robot, protocol.controller_period_s, plan.robot)
+    raise KeyboardInterrupt
+
+timedexec.drivers.open_driver = lambda url, **options: Robot()
+timedexec.sensors.open_gyro = lambda url: contextlib.nullcontext()
+timedexec.calibration.run_calibration = run_calibration
+code = main(["calibrate", "--robot-url", "rsi://49152?period=0.004", "--imu", sys.argv[1],
+             "--trials", "2", "--out", sys.argv[2], "--quiet", "--gyro-group-delay", "1",
+             "--gyro-transport-latency", "1"])
+print(code, sorted(m for m in sys.modules if m.startswith("timedexec.sim")))
+"""
+
+
+def test_live_calibrate_needs_no_simulator(tmp_path: Path) -> None:
+    """`calibrate` through a live URL builds its sweep protocol from the robot spec at the
+    period the driver runs (RSI at 4 ms) and never imports timedexec.sim (a fresh
+    interpreter; the driver, the gyro and the runner replaced, the runner interrupted)."""
+    (tmp_path / "gyro").write_bytes(b"")
+    run = subprocess.run(
+        [sys.executable, "-c", _LIVE_CALIBRATE, str(tmp_path / "gyro"), str(tmp_path / "c.h5")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert run.stdout.split("\n")[:2] == ["kr5 0.004 kr5", "130 []"], run.stdout + run.stderr

@@ -32,6 +32,7 @@ from timedexec.errors import (
     StaleStateError,
     TimedExecError,
 )
+from timedexec.robots import ROBOT_NAMES
 
 
 class Call:
@@ -51,6 +52,8 @@ class Call:
 
 class FakeDriver:
     """A robot driver that is only opened and closed (the runner is a fake too)."""
+
+    controller_period_s = 0.008  # the simulated UR10's, which `calibrate` plans for
 
     def __enter__(self) -> FakeDriver:
         return self
@@ -98,7 +101,8 @@ EVALUATION = {"robot": "ur10", "strategies": {"none": {"timing_rms_ms": 20.0}},
               "coverage_95": 0.95}  # fmt: skip
 DISCREPANCY = {"added_effects": ["gravity_load"], "unexplained": []}
 FLEET = {"summary": {"robots": 1, "ok": 1, "failed": []}, "robots": []}
-MONITOR = {"threshold": 9.27, "arl0_moves": 10000, "warmup_moves": 100, "alerts": [],
+MONITOR = {"verdict": "ok", "threshold": 9.27, "arl0_moves": 10000, "warmup_moves": 100,
+           "alerts": [],
            "joints": [{"joint": 1, "status": "ok", "moves": 120, "gap_to_model_ms": -1.1,
                        "shift_ms": 0.05}]}  # fmt: skip
 _JOINT = {"median_ms": 20.0, "p2_5_ms": 15.0, "p97_5_ms": 25.0}
@@ -147,6 +151,13 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
         "timedexec.calibration.run_calibration": Call(SimpleNamespace(summary=lambda: CAL_SUMMARY)),
         "timedexec.extraction.extract_recording": Call(extraction),
         "timedexec.extraction.check_recording": Call([]),
+        "timedexec.sensors.check_gyro": Call(
+            SimpleNamespace(
+                ok=True,
+                to_dict=lambda: {"ok": True, "problems": []},
+                summary=lambda: "/dev/ttyACM0: meets what calibration needs",
+            )
+        ),
         "timedexec.learning.train_delay_models": Call(training),
         "timedexec.evaluation.evaluate": Call(evaluation),
         "timedexec.discrepancy.analyse_discrepancy": Call(discrepancy),
@@ -181,6 +192,9 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
     "serve": (["serve", "--robot", "ur10", "--seed", "4"], "run_ur_twin",
               {"seed": 4, "truth_path": None, "imu_link": None,
                "external_control": ("127.0.0.1", 50002)}, ""),
+    "gyro": (["gyro", "check", "/dev/ttyACM0", "--duration-s", "2", "--full-scale-dps", "1000"],
+             "check_gyro", {"duration_s": 2.0, "full_scale_dps": 1000, "sensor": "mpu6000"},
+             "/dev/ttyACM0: meets what calibration needs"),
     "calibrate": (["calibrate", "--robot-url", "sim://ur10", "--trials", "2", "--seed", "3",
                    "--out", "c.h5", "--quiet"], "run_calibration",
                   {"resume": False, "progress": False, "source": "sim://ur10"},
@@ -385,7 +399,7 @@ def test_config_error_from_a_real_command_exits_2(
     ("argv", "message"),
     [
         (["simulate", "--robot", "ur5", "--trials", "1", "--out", "x.h5"],
-         "argument --robot: unknown robot 'ur5'; choose one of ur10, ur10e, kr5"),
+         f"argument --robot: unknown robot 'ur5'; choose one of {', '.join(ROBOT_NAMES)}"),
         (["evaluate", "--robot", "ur10", "--configs", "many"], "invalid int value: 'many'"),
         (["frobnicate"], "invalid choice: 'frobnicate'"),
         ([], "usage: timedexec"),

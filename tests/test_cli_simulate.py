@@ -11,7 +11,7 @@ from timedexec.cli import main
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
 from timedexec.recording import RecordingReader, SweepPlan
-from timedexec.robots import get_robot
+from timedexec.robots import ROBOT_NAMES, get_robot
 
 
 def simulate(tmp_path, name, *extra):
@@ -49,7 +49,7 @@ def test_truth_table_follows_the_delay_table_contract(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--robot", "ur5", "--trials", "10"], "unknown robot 'ur5'; choose one of ur10, ur10e, kr5"),
+        (["--robot", "ur5", "--trials", "10"], f"unknown robot 'ur5'; choose one of {', '.join(ROBOT_NAMES)}"),
         (["--robot", "ur10", "--trials", "0"], "--trials 0: the number of trials must be >= 1"),
         (["--robot", "ur10", "--trials", "-3"], "must be >= 1"),
         (["--robot", "kr5", "--trials", "10", "--period", "0.005"], "0.012, 0.004"),

@@ -717,7 +717,7 @@ PEER_STOP_DECEL_RAD_S2 = 3.0
 def test_killed_or_paused_host_stops_the_independent_peer_arm(
     sig: int, program: str | None
 ) -> None:
-    """The same against the independently written UR peer (tests/independent_ur_peer.py,
+    """The same against the independently written UR peer (tests/independent_ur_peer/,
     real script semantics: speedj never expires, setWatchdog honoured, no stop on
     disconnect; its script uploaded, or fetched by the peer's External Control program):
     its watchdog trips 0.1 s after the last command (the signal lands at most a few periods

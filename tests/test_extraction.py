@@ -179,18 +179,17 @@ def test_newer_format_and_empty_sweep_are_refused(recordings, tmp_path):
 
 def test_empty_sweep_is_refused(tmp_path):
     """A recording whose sweep holds no trial yet cannot be extracted: ConfigError."""
-    from timedexec.recording import RecordingWriter, trial_fields
-    from timedexec.sim import default_settings
+    from timedexec.recording import RecordingWriter, SweepProtocol, trial_fields
 
-    settings = default_settings("ur10")
+    protocol = SweepProtocol.for_robot("ur10")
     path = tmp_path / "empty.h5"
     header = {
-        "robot": settings.spec.to_dict(),
-        "profile": settings.profile.to_dict(),
-        "gyro": settings.gyro.header().to_dict(),
-        "controller_period_s": settings.controller_period_s,
+        "robot": protocol.spec.to_dict(),
+        "profile": protocol.profile.to_dict(),
+        "gyro": protocol.gyro.to_dict(),
+        "controller_period_s": protocol.controller_period_s,
     }
-    with RecordingWriter(path, header=header, fields=trial_fields(settings.protocol, truth=False)) as w:
+    with RecordingWriter(path, header=header, fields=trial_fields(protocol, truth=False)) as w:
         w.write_static("still_gyro_raw", np.zeros((800, 3), np.int16))
     with pytest.raises(ConfigError, match="no trials"):
         extract_recording(path, progress=False)

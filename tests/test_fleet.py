@@ -205,7 +205,10 @@ def test_manifest_resolves_paths_and_sim_sources(tmp_path: Path) -> None:
             "simulates 'kr5' but the robot column says 'ur10'",
         ),
         ("name,robot,source\na,ur10,sim://ur10\n", "needs trials=N"),
-        ("name,robot,source\na,ur10,sim://ur10?trials=10&speed=2\n", "unknown key 'speed'"),
+        (
+            "name,robot,source\na,ur10,sim://ur10?trials=10&speed=2\n",
+            "unknown parameter 'speed' for sim:// sweep URLs (allowed: trials, seed, repeats",
+        ),
         ("name,robot,source\na,ur10,sim://ur10?trials=10&repeats=1\n", "repeats=1 must be >= 2"),
         ("name,robot,source\na,ur10,sim://ur10?trials=10&effects=wind\n", "wind"),
         ("name,robot,source\na,ur10,ur://10.0.0.7\n", "the fleet does not calibrate live robots"),
@@ -247,6 +250,46 @@ def test_unreachable_scheduler_is_a_network_fault(tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- the fleet
+
+
+def test_rerun_into_the_deployed_models_folder_checks_drift_first_and_keeps_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 40: the robot's deployed model is the previous fleet run's
+    ``OUT/robots/NAME/model`` and ``--out`` is reused. The drift check must compare the new
+    sweep with THAT bundle (before issue 40 the new model was saved first and the check
+    compared it with itself: "still fits", exit 0), and the bundle must survive, byte for
+    byte, as ``model.v1``, with the summary saying which one is in force."""
+    from timedexec.cli import main
+
+    out = tmp_path / "out"
+    (tmp_path / "first.csv").write_text(
+        "name,robot,source,deployed\n"
+        "cell,ur10,sim://ur10?trials=160&seed=11&repeats=3,ur10-sim\n",
+        encoding="utf-8",
+    )
+    assert main(["fleet", str(tmp_path / "first.csv"), "--out", str(out), *OPTIONS]) == 0
+    deployed = out / "robots" / "cell" / "model"
+    before = {p.name: p.read_bytes() for p in deployed.iterdir()}
+    # the same cell, now without its gravity effects: the deployed model no longer fits
+    (tmp_path / "second.csv").write_text(
+        "name,robot,source,deployed\n"
+        f"cell,ur10,sim://ur10?trials=160&seed=12&repeats=3&effects=base,{deployed}\n",
+        encoding="utf-8",
+    )
+    capsys.readouterr()
+    main(["fleet", str(tmp_path / "second.csv"), "--out", str(out), *OPTIONS[:-1]])
+    text = capsys.readouterr().out
+    doc = json.loads((out / "fleet.json").read_text(encoding="utf-8"))
+    robot = doc["robots"][0]
+    assert robot["drift"]["state"] == "drift", robot["drift"]
+    assert doc["summary"]["needs_recalibration"] == ["cell"]
+    kept = out / "robots" / "cell" / "model.v1"
+    assert {p.name: p.read_bytes() for p in kept.iterdir()} == before
+    assert (deployed / "arrays.npz").read_bytes() != before["arrays.npz"]  # the new model
+    assert robot["training"]["deployed_kept_as"] == "robots/cell/model.v1"
+    assert "kept as robots/cell/model.v1 (still in force" in text
+
 
 
 def test_local_run_reports_every_robot(reference: Path) -> None:

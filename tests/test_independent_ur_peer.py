@@ -1,6 +1,6 @@
 """The real ur_rtde 1.6.5 client against the independently written UR peer.
 
-The peer (tests/independent_ur_peer.py) runs in a subprocess on its own loopback address; the
+The peer (tests/independent_ur_peer/) runs in a subprocess on its own loopback address; the
 client runs in this process (tests 1-5) or in a client subprocess that is SIGKILLed or SIGSTOPped
 (test 6). Times are in seconds, joint positions in rad, velocities in rad/s, and controller time
 is the peer's ``cycles * period`` clock, read from its truth log.

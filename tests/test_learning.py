@@ -16,8 +16,8 @@ from conftest import full_or_bounded
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, ModelError
 from timedexec.learning import (
+    DEFAULT_METHODS,
     DELAYS,
-    METHODS,
     DelayGP,
     DelayModel,
     LinearLeafTree,
@@ -35,6 +35,7 @@ from timedexec.learning import (
     noise_floor,
     train_delay_models,
 )
+from timedexec.robots import ROBOT_NAMES
 
 NOISE_S = 0.002  # trial noise of the synthetic tables, s
 EPS = float(np.finfo(np.float64).eps)
@@ -413,8 +414,8 @@ def test_cv_layout_error_formula_and_noise_floor(trained: Any, table: DelayTable
     d = cv.to_dict()
     assert list(d) == list(DELAYS)
     for delay in DELAYS:
-        assert list(d[delay]) == list(METHODS)
-        for m in METHODS:
+        assert list(d[delay]) == list(DEFAULT_METHODS)
+        for m in DEFAULT_METHODS:
             assert list(d[delay][m]) == ["1", "2", "3", "5", "combined", "average"]
     json.dumps(d)  # JSON-safe
     config = np.unique(table.q, axis=0, return_inverse=True)[1].reshape(-1)
@@ -517,7 +518,7 @@ def test_bundle_round_trip_and_fast_predict(
     loaded = DelayModel.load(out, robot="ur10", period_s=0.008)
     q = table.q[:20]
     j, d = table["joint"][:20], table["direction"][:20]
-    for method in METHODS:
+    for method in DEFAULT_METHODS:
         a = model.predict_many(j, d, q, method=method)
         b = loaded.predict_many(j, d, q, method=method)
         for name, value in a._asdict().items():
@@ -667,17 +668,16 @@ def test_estimators_warn_nothing(table: DelayTable) -> None:
 MODELS = Path(__file__).resolve().parent.parent / "models"
 
 
-@pytest.mark.parametrize("name", ["ur10-sim", "ur10e-sim", "kr5-sim"])
-def test_bundled_models_load_and_meet_the_targets(name: str) -> None:
-    """The bundled models load for their robot and period, and their recorded CV (measured
-    delays of a simulated sweep) shows every learned model beating the median on every
-    actuation column, with the GP within 10 % of the noise floor."""
-    from timedexec.robots import get_robot
+@pytest.mark.parametrize("robot", ROBOT_NAMES)
+def test_bundled_models_load_and_meet_the_targets(robot: str) -> None:
+    """The bundled model of every robot of the catalog loads for its robot and period, and
+    its recorded CV (measured delays of a simulated sweep) shows every learned model beating
+    the median on every actuation column, with the GP within 10 % of the noise floor."""
+    from timedexec.robots import get_robot, get_robot_entry
 
-    path = MODELS / name
+    path = MODELS / get_robot_entry(robot).shipped_model
     # The bundles ship with the package: a missing one is a packaging error, not a skip.
     assert (path / "manifest.json").exists(), f"{path} missing (scripts/train_bundled_models.py)"
-    robot = name.removesuffix("-sim")
     model = DelayModel.load(path, robot=get_robot(robot))
     assert (path / "arrays.npz").stat().st_size < 2_000_000  # bundles stay small
     cv = model.cv_scores_ms
@@ -729,7 +729,7 @@ def test_simulated_sweep_models_beat_the_median_and_gp_reaches_the_floor() -> No
         assert act["gpr"][key] <= 1.10 * floor[key], (key, act["gpr"][key], floor[key])
     # response delay carries no pose signal in the simulator: every model sits at the floor
     resp = cv.to_dict()["response_delay"]
-    for m in METHODS:
+    for m in DEFAULT_METHODS:
         # within 3 % of the replicate scatter (CV noise on ~2,000 held-out trials per joint,
         # whatever the number of folds)
         assert resp[m]["combined"] <= 1.03 * cv.noise_floor_ms["response_delay"]["combined"]

@@ -41,9 +41,8 @@ from timedexec.calibration import run_calibration
 from timedexec.drivers import HostTimeTap, open_driver
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.extraction import extract_recording
-from timedexec.recording import SweepPlan
+from timedexec.recording import GyroHeader, SweepPlan, SweepProtocol
 from timedexec.sensors import open_gyro
-from timedexec.sim import default_settings, with_gyro_latency
 from timedexec.twins import (
     GyroClockTruth,
     TwinTruth,
@@ -63,7 +62,7 @@ TRIALS = 20
 REPEATS = 3
 CLIENT_RT_PRIORITY = 5  # below the twins' 10: the controller preempts the client
 GYRO_READ_PERIOD_S = 0.002
-PRE_S = default_settings("ur10").profile.pre_s  # the runner records from -pre_s (both robots)
+PRE_S = SweepProtocol.for_robot("ur10").profile.pre_s  # the runner records from -pre_s (both robots)
 
 
 def check_against_truth(
@@ -140,36 +139,52 @@ def check_against_truth(
 
 @pytest.mark.realtime_twin
 @pytest.mark.slow
-def test_ur_twin_through_ur_rtde_matches_ground_truth(tmp_path: Path) -> None:
-    """20 trials through the real ``ur_rtde`` client (``ur://``) against the UR10 twin,
-    gyro twin on a pty read by ``open_gyro``: every extracted actuation and response delay
-    is within 1 ms of the twin's ground truth, and at most one trial is flagged."""
+@pytest.mark.parametrize(
+    ("robot", "host", "max_response_s"),
+    [
+        # UR10 CB3: the state is one packing phase plus transport old, under one 8 ms
+        # period plus jitter.
+        ("ur10", UR_HOST, 0.02),
+        # UR5e (e-Series, 2 ms): the same, in a 2 ms period.
+        ("ur5e", "127.0.0.63", 0.01),
+    ],
+)
+def test_ur_twin_through_ur_rtde_matches_ground_truth(
+    tmp_path: Path, robot: str, host: str, max_response_s: float
+) -> None:
+    """20 trials through the real ``ur_rtde`` client (``ur://``, the robot inferred from
+    the twin's dashboard) against the UR10 and the UR5e twin, gyro twin on a pty read by
+    ``open_gyro``: every extracted actuation and response delay is within 1 ms of the twin's
+    ground truth, and at most one trial is flagged."""
     from timedexec.twins import URTwin
 
-    plan = SweepPlan.generate("ur10", TRIALS, seed=3, repeats=REPEATS)
+    plan = SweepPlan.generate(robot, TRIALS, seed=3, repeats=REPEATS)
     link, truth_path, out = str(tmp_path / "gyro"), tmp_path / "truth.jsonl", tmp_path / "cal.h5"
     twin = URTwin(
-        "ur10", UR_HOST, seed=3, q0_rad=plan.q_start_rad[0], imu_link=link, truth_path=truth_path
+        robot, host, seed=3, q0_rad=plan.q_start_rad[0], imu_link=link, truth_path=truth_path
     )
     with twin, realtime(CLIENT_RT_PRIORITY):
         with (
-            HostTimeTap(open_driver(f"ur://{UR_HOST}")) as robot,
+            HostTimeTap(open_driver(f"ur://{host}")) as robot_driver,
             open_gyro(link, read_period_s=GYRO_READ_PERIOD_S) as gyro,
         ):
+            assert robot_driver.robot == robot  # inferred from the twin's identity
             latency = measure_gyro_transport_latency(gyro, GyroClockTruth.from_truth(truth_path))
-            settings = with_gyro_latency(default_settings("ur10"), latency)
+            protocol = SweepProtocol.for_robot(robot, gyro=GyroHeader(transport_latency_s=latency))
             run_calibration(
-                robot, gyro, plan, out, protocol=settings.protocol, progress=False, source="ur://"
+                robot_driver, gyro, plan, out, protocol=protocol, progress=False, source="ur://"
             )
         stats = twin.stats()
     # A pty delivers a burst within a fraction of a millisecond (USB full speed: ~1 ms).
     assert 0.0 < latency < 2e-3
     assert stats["peek_mismatches"] == 0
-    truth = twin_truth_table(out, truth_path, twin.t0_monotonic_s, host_times=robot)
-    # UR10 CB3 actuation is a few 8 ms periods (paper: ~20 ms, 5-45 ms); the state is one
-    # packing phase plus transport old (under one period plus jitter).
+    truth = twin_truth_table(out, truth_path, twin.t0_monotonic_s, host_times=robot_driver)
+    # UR actuation: the paper's ~20 ms, 5-45 ms (UR10 CB3: a few 8 ms periods; the UR5e's
+    # e-Series: more, shorter cycles, about as long).
     assert np.all((truth.true_actuation_delay_s > 0.005) & (truth.true_actuation_delay_s < 0.06))
-    assert np.all((truth.true_response_delay_s > 0.0) & (truth.true_response_delay_s < 0.02))
+    assert np.all(
+        (truth.true_response_delay_s > 0.0) & (truth.true_response_delay_s < max_response_s)
+    )
     clock = GyroClockTruth.from_truth(truth_path)
     check_against_truth(
         out, truth, clock, twin_late_s=float(stats["max_lateness_s"]), period_s=twin.period_s
@@ -209,9 +224,9 @@ def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> Non
         ):
             clock = GyroClockTruth.from_truth(link + ".truth.jsonl")
             latency = measure_gyro_transport_latency(gyro, clock)
-            settings = with_gyro_latency(default_settings("kr5"), latency)
+            protocol = SweepProtocol.for_robot("kr5", gyro=GyroHeader(transport_latency_s=latency))
             run_calibration(
-                robot, gyro, plan, out, protocol=settings.protocol, progress=False, source="rsi://"
+                robot, gyro, plan, out, protocol=protocol, progress=False, source="rsi://"
             )
         status = twin.stop()
     assert status.reason == "stopped", status  # RSI ran to the end (no RSITimeout)
@@ -233,13 +248,13 @@ def test_rsi_twin_through_rsi_driver_matches_ground_truth(tmp_path: Path) -> Non
 
 _LAGGING_GYRO_RUN = textwrap.dedent(
     """
-    import dataclasses, sys
+    import sys
     import numpy as np
     from timedexec.calibration import run_calibration
     from timedexec.drivers import open_driver
     from timedexec.extraction import extract_recording
     from timedexec.sensors import GyroSamples
-    from timedexec.recording import SweepPlan
+    from timedexec.recording import GyroHeader, SweepPlan, SweepProtocol
 
     DELAY_S = 0.03
     FIELDS = ("counter_unwrapped", "host_time_s", "rate_rad_s", "raw", "arrival_s")
@@ -266,11 +281,9 @@ _LAGGING_GYRO_RUN = textwrap.dedent(
     plan = SweepPlan.generate("ur10", 4, seed=2, repeats=3)
     with open_driver("sim://ur10?seed=2") as robot:
         gyro = LaggingGyro(robot.gyro(seed=2), robot.clock)
-        g = robot.settings.gyro
-        settings = robot.settings.replace(
-            still_s=2.0, gyro=dataclasses.replace(g, usb_latency_s=g.usb_latency_s + DELAY_S)
-        )
-        run_calibration(robot, gyro, plan, sys.argv[1], protocol=settings.protocol, progress=False)
+        stated = GyroHeader(transport_latency_s=robot.settings.gyro.usb_latency_s + DELAY_S)
+        protocol = SweepProtocol.for_robot("ur10", still_s=2.0, gyro=stated)
+        run_calibration(robot, gyro, plan, sys.argv[1], protocol=protocol, progress=False)
     table = extract_recording(sys.argv[1], progress=False).table
     err = np.abs(table["actuation_delay"] - table["true_actuation_delay"])
     print(list(table["flag"]), err.tolist())
@@ -313,8 +326,8 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> SimRun:
     plan = SweepPlan.generate("ur10", 6, seed=4, repeats=2)
     with HostTimeTap(open_driver("sim://ur10?seed=4", q0_rad=plan.q_start_rad[0])) as robot:
         gyro = robot.gyro(seed=4)
-        settings = robot.settings.replace(still_s=2.0)  # enough for the zero-rate and PSD
-        run_calibration(robot, gyro, plan, out, protocol=settings.protocol, progress=False)
+        protocol = SweepProtocol.for_robot("ur10", still_s=2.0)  # enough for zero-rate, PSD
+        run_calibration(robot, gyro, plan, out, protocol=protocol, progress=False)
         records = robot.controller.truth_records()
     with open(truth_path, "w", encoding="utf-8") as fh:
         fh.write(json.dumps({"event": "meta", "t0_monotonic_s": 0.0}) + "\n")

@@ -99,14 +99,15 @@ def pool() -> dict:  # type: ignore[type-arg]
     simulated once (~4-6 s on the shared VM)."""
     spec = get_robot(ROBOT)
     st = default_settings(spec)
-    st = st.replace(profile=dataclasses.replace(st.profile, record_s=0.2))
+    profile = dataclasses.replace(st.protocol.profile, record_s=0.2)
+    st = st.replace(protocol=dataclasses.replace(st.protocol, profile=profile))
     base = _warm_effects()
     off = list(base.get("joint_offset").offsets_s)  # type: ignore[union-attr]
     off[1] += 0.002
     drift = base.with_effect(JointOffset(offsets_s=tuple(off)))
     kw = {
-        "acceleration_rad_s2": st.profile.acceleration_rad_s2,
-        "speed_rad_s": st.profile.speed_rad_s,
+        "acceleration_rad_s2": profile.acceleration_rad_s2,
+        "speed_rad_s": profile.speed_rad_s,
     }
     plan = SweepPlan.generate(spec, 1024, seed=11, repeats=1)
     clock = sweep_clock(plan, st, 11)
@@ -256,7 +257,8 @@ def test_few_alarms_without_drift(pool) -> None:  # type: ignore[no-untyped-def]
 def recording(tmp_path_factory):  # type: ignore[no-untyped-def]
     path = tmp_path_factory.mktemp("rec") / "sweep.h5"
     st = default_settings(ROBOT)
-    st = st.replace(profile=dataclasses.replace(st.profile, record_s=0.2))
+    profile = dataclasses.replace(st.protocol.profile, record_s=0.2)
+    st = st.replace(protocol=dataclasses.replace(st.protocol, profile=profile))
     simulate_sweep(ROBOT, 240, path, seed=3, effects=_warm_effects(), settings=st, progress=False)
     return path
 

@@ -26,12 +26,10 @@ from timedexec.calibration import PreflightReport, run_calibration
 from timedexec.cli import main
 from timedexec.drivers import open_driver
 from timedexec.errors import ConfigError, DriverError, SensorError
-from timedexec.recording import RecordingReader, SweepPlan
+from timedexec.recording import RecordingReader, SweepPlan, SweepProtocol
 from timedexec.sensors import GyroSamples
-from timedexec.sim import default_settings
 
-SETTINGS = default_settings("ur10")
-PROTOCOL = SETTINGS.protocol
+PROTOCOL = SweepProtocol.for_robot("ur10")
 
 
 def assert_nothing_written(folder: Path) -> None:
@@ -200,9 +198,9 @@ def run(tmp_path: Path, gyro_change: Any = None, *, still_robot: bool = False) -
         driver: Any = robot
         if still_robot:
             driver = StillRobot(robot)
-        settings = SETTINGS.replace(still_s=1.0)
+        protocol = SweepProtocol.for_robot("ur10", still_s=1.0)
         return run_calibration(
-            driver, gyro, plan, tmp_path / "cal.h5", protocol=settings.protocol, progress=False
+            driver, gyro, plan, tmp_path / "cal.h5", protocol=protocol, progress=False
         )
 
 
@@ -271,7 +269,7 @@ def test_gyro_that_stops_mid_sweep_is_a_sensor_error(
     from timedexec.recording import RecordingWriter
 
     plan = SweepPlan.generate("ur10", 4, seed=1)
-    settings = SETTINGS.replace(still_s=1.0)
+    protocol = SweepProtocol.for_robot("ur10", still_s=1.0)
     stop_at: list[float] = []
     with open_driver("sim://ur10?seed=1", q0_rad=plan.q_start_rad[0]) as robot:
         original_append = RecordingWriter.append
@@ -286,7 +284,7 @@ def test_gyro_that_stops_mid_sweep_is_a_sensor_error(
         )
         with pytest.raises(SensorError, match=r"gyro .* stopped delivering samples \(trial"):
             run_calibration(
-                robot, gyro, plan, tmp_path / "cal.h5", protocol=settings.protocol,
+                robot, gyro, plan, tmp_path / "cal.h5", protocol=protocol,
                 progress=False,
             )  # fmt: skip
     with RecordingReader(tmp_path / "cal.h5") as r:

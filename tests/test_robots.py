@@ -22,6 +22,7 @@ from timedexec.robots import (
     check_configuration,
     forward_kinematics,
     get_robot,
+    get_robot_entry,
     gravity_torque,
     gravity_torque_coefficients,
     joint_axis_in_tool,
@@ -29,15 +30,14 @@ from timedexec.robots import (
 )
 
 G = 9.81
-# Rated payloads from the data sheets (kg): used to load the arms in the tests.
-RATED_PAYLOAD_KG = {"ur10": 10.0, "ur10e": 12.5, "kr5": 5.0}
 # Deterministic Hypothesis runs: the same examples every time (seeded randomness).
 HYPOTHESIS = settings(max_examples=40, deadline=None, derandomize=True)
 
 
 def loaded(name: str) -> RobotSpec:
-    """The built-in spec carrying its rated payload at the flange."""
-    return dataclasses.replace(get_robot(name), payload_kg=RATED_PAYLOAD_KG[name])
+    """The built-in spec carrying its rated payload (the data sheet's, from the catalog) at
+    the flange."""
+    return dataclasses.replace(get_robot(name), payload_kg=get_robot_entry(name).rated_payload_kg)
 
 
 def random_configurations(spec: RobotSpec, n: int, seed: int, margin: float = 0.0) -> np.ndarray:
@@ -70,10 +70,11 @@ def rot_x(angle: float) -> np.ndarray:
 
 
 def test_builtin_specs_have_the_documented_periods_and_vendors() -> None:
-    """The three robots exist with the paper's controller periods and their vendors."""
-    assert ROBOT_NAMES == ("ur10", "ur10e", "kr5")
+    """The four robots exist with their controller periods (the paper's for the UR10 and
+    KR 5) and their vendors."""
+    assert ROBOT_NAMES == ("ur10", "ur10e", "kr5", "ur5e")
     periods = {name: get_robot(name).controller_period_s for name in ROBOT_NAMES}
-    assert periods == {"ur10": 0.008, "ur10e": 0.002, "kr5": 0.012}
+    assert periods == {"ur10": 0.008, "ur10e": 0.002, "kr5": 0.012, "ur5e": 0.002}
     assert get_robot("kr5").period_options_s == (0.012, 0.004)
     assert {get_robot(n).vendor for n in ROBOT_NAMES} == {"universal_robots", "kuka"}
     for name in ROBOT_NAMES:
@@ -86,7 +87,7 @@ def test_builtin_specs_have_the_documented_periods_and_vendors() -> None:
 def test_get_robot_unknown_name_lists_the_choices() -> None:
     """An unknown robot name fails with a message listing every valid name."""
     with pytest.raises(
-        ConfigError, match=re.escape("unknown robot 'x'; choose one of ur10, ur10e, kr5")
+        ConfigError, match=re.escape(f"unknown robot 'x'; choose one of {', '.join(ROBOT_NAMES)}")
     ):
         get_robot("x")
     assert get_robot(" KR5 ").name == "kr5"  # names are case- and space-insensitive

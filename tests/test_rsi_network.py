@@ -37,6 +37,7 @@ from independent_rsi_peer import IndependentRSIPeer
 from timedexec._rsi_xml import build_sen, parse_rob
 from timedexec.drivers import KukaRSIDriver, open_driver
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
+from timedexec.recording import SweepProtocol
 from timedexec.robots import get_robot
 from timedexec.sim import default_settings
 from timedexec.twins import RSITwin, free_udp_port, read_rsi_truth
@@ -408,7 +409,7 @@ def test_calibration_through_rsi_with_a_slow_robot_and_a_spoofer(
                 gyro,
                 plan,
                 out,
-                protocol=default_settings("kr5").protocol,
+                protocol=SweepProtocol.for_robot("kr5"),
                 progress=False,
                 source="rsi://",
                 preflight=False,

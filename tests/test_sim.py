@@ -473,3 +473,34 @@ def test_ctrl_c_inside_the_compiled_bank_step_is_a_keyboard_interrupt(monkeypatc
     monkeypatch.setitem(JointBank.step.__globals__, "_bank_step", lambda: kernel_broken)
     with pytest.raises(SystemError, match="something else"):
         bank.step(np.zeros(6), 0.0)
+
+
+def test_settings_hold_a_protocol_and_store_the_layout_recordings_hold() -> None:
+    """SimSettings holds a SweepProtocol (the robot's defaults, from its spec alone) instead
+    of repeating its fields; ``to_dict`` keeps the flat layout every recording's header
+    stored, and ``from_dict`` reads it back equal (through JSON, as a header holds it); a
+    protocol stating another gyro than the simulated sensor is refused."""
+    import dataclasses
+    import json
+
+    from timedexec.recording import SweepProtocol
+    from timedexec.sim import SimSettings
+
+    settings = default_settings("kr5", period_s=0.004)
+    assert settings.protocol == SweepProtocol.for_robot("kr5", period_s=0.004)
+    assert settings.protocol.gyro == settings.gyro.header()
+    stored = settings.to_dict()
+    assert list(stored) == [
+        "robot", "controller_period_s", "timing", "servo", "gyro", "profile", "still_s",
+        "config_move_s", "trial_gap_s",
+    ]  # fmt: skip
+    assert (stored["robot"], stored["controller_period_s"]) == ("kr5", 0.004)
+    assert stored["gyro"] == settings.gyro.to_dict()  # the sensor model, not its header
+    assert SimSettings.from_dict(json.loads(json.dumps(stored))) == settings
+    louder = dataclasses.replace(settings.gyro, usb_latency_s=0.002)
+    with pytest.raises(ConfigError, match=r"the protocol states the gyro .* but the simulated"):
+        settings.replace(gyro=louder)
+    moved = settings.replace(
+        gyro=louder, protocol=dataclasses.replace(settings.protocol, gyro=louder.header())
+    )
+    assert moved.protocol.gyro.transport_latency_s == 0.002

@@ -1,4 +1,4 @@
-"""The independently written UR peer (tests/independent_ur_peer.py) as a cell where remote control
+"""The independently written UR peer (tests/independent_ur_peer/) as a cell where remote control
 is forbidden: the pendant program holding Universal Robots' External Control URCap node.
 
 What is checked, and against what:

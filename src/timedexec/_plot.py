@@ -8,9 +8,32 @@ so this works headless and inside a user's interactive session alike.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
-__all__ = ["subplots"]
+from timedexec.errors import ConfigError
+
+__all__ = ["check_figure_format", "subplots"]
+
+
+def check_figure_format(path: str | os.PathLike[str], label: str = "figure") -> None:
+    """Refuse a figure path whose suffix matplotlib cannot write, before any work.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``label``, the path, the suffix and the formats matplotlib writes.
+    """
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    suffix = os.path.splitext(os.fspath(path))[1].lstrip(".").lower()
+    if suffix not in formats:
+        raise ConfigError(
+            f"{label} {os.fspath(path)}: {('.' + suffix) if suffix else 'no suffix'} is not a "
+            f"figure format matplotlib writes; end the name with one of "
+            f"{', '.join('.' + f for f in sorted(formats))} (e.g. .png)"
+        )
 
 
 def subplots(*args: Any, **kwargs: Any) -> tuple[Any, Any]:

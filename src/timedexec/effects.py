@@ -40,6 +40,7 @@ from typing import Any, ClassVar
 
 from timedexec._validation import check_joint_tuple
 from timedexec.errors import ConfigError
+from timedexec.robots import get_robot_entry
 
 __all__ = [
     "EFFECT_NAMES",
@@ -374,20 +375,17 @@ class EffectSet:
 def default_effects(robot: str) -> EffectSet:
     """The robot's default effect set: what the simulated robot has unless told otherwise.
 
-    UR robots: every effect but ``response_extra_cycle`` (RTDE samples and sends in one
-    cycle). KUKA KR 5: all effects; the paper found its response delay above one period.
+    The names come from the robot's catalog entry (``RobotEntry.default_effects``), each
+    effect with its default parameters. UR robots: every effect but
+    ``response_extra_cycle`` (RTDE samples and sends in one cycle). KUKA KR 5: all effects;
+    the paper found its response delay above one period.
+
+    Raises
+    ------
+    ConfigError
+        For a robot the catalog does not hold, or an effect name outside the vocabulary.
     """
-    effects: list[Effect] = [
-        GravityLoad(),
-        GravityDirection(),
-        Direction(),
-        Inertia(),
-        ThermalDrift(),
-        JointOffset(),
-    ]
-    if robot.startswith("kr"):
-        effects.append(ResponseExtraCycle())
-    return EffectSet(tuple(effects))
+    return EffectSet(tuple(make_effect(name) for name in get_robot_entry(robot).default_effects))
 
 
 def parse_effects(spec: str, robot: str) -> EffectSet:

@@ -306,8 +306,8 @@ def run_calibration(
     out : path
         Recording to write; refused if it exists unless ``resume``.
     protocol : SweepProtocol
-        The calibration motion, controller period and the gyro's constants (a simulated
-        robot's: ``default_settings(robot).protocol``).
+        The calibration motion, controller period and the gyro's constants
+        (``SweepProtocol.for_robot(robot)`` with the sensor's measured constants).
     resume : bool
         Continue a run of the same plan.
     progress : bool
@@ -336,16 +336,15 @@ def run_calibration(
     RecordingError
         The recording cannot be written (disk full: resume when there is room) or resumed.
     """
-    settings = protocol
-    if plan.robot != settings.robot:
-        raise ConfigError(f"plan is for {plan.robot}, the settings for {settings.robot}")
+    if plan.robot != protocol.robot:
+        raise ConfigError(f"plan is for {plan.robot}, the protocol for {protocol.robot}")
     truth = hasattr(driver, "true_onset_s")
     header = {
         "source": source or "live",
-        "robot": settings.spec.to_dict(),
-        "profile": settings.profile.to_dict(),
-        "controller_period_s": settings.controller_period_s,
-        "gyro": settings.gyro.to_dict(),
+        "robot": protocol.spec.to_dict(),
+        "profile": protocol.profile.to_dict(),
+        "controller_period_s": protocol.controller_period_s,
+        "gyro": protocol.gyro.to_dict(),
         "plan": plan.meta(),
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }
@@ -354,7 +353,7 @@ def run_calibration(
     todo = np.setdiff1d(np.arange(len(plan)), before.done)
     now = float(getattr(driver, "clock", time.monotonic)())
     origin = now if not math.isfinite(before.last_t0_s) else now - (before.last_t0_s + 10.0)
-    sess = Session(driver, gyro, settings, origin)
+    sess = Session(driver, gyro, protocol, origin)
     if len(todo) or not before.has_still:
         sess.catch_up()  # no motion planned on packages that waited in a queue
     report = None
@@ -368,7 +367,7 @@ def run_calibration(
                 sess, report, int(plan.joint[first]), float(plan.direction[first])
             )
     with RecordingWriter(
-        out, header=header, fields=_live_fields(settings, truth), resume=resume
+        out, header=header, fields=_live_fields(protocol, truth), resume=resume
     ) as w:
         if resume and w.header.get("plan") != plan.meta():
             raise RecordingError(
@@ -383,16 +382,16 @@ def run_calibration(
             if len(todo):
                 sess.move_to(plan.q_start_rad[todo[0]])
             sess.wait_still(min_s=0.2)
-            for name, arr in _stillrecording(sess, settings.still_s).items():
+            for name, arr in _stillrecording(sess, protocol.still_s).items():
                 w.write_static(name, arr)
-        bar = Progress(len(todo), f"calibrate {settings.robot}", enabled=progress)
+        bar = Progress(len(todo), f"calibrate {protocol.robot}", enabled=progress)
         try:
             current = None
             for i in todo:
                 if current is None or not np.allclose(plan.q_start_rad[i], current):
                     sess.move_to(plan.q_start_rad[i])
                     current = plan.q_start_rad[i]
-                sess.wait_still(min_s=settings.trial_gap_s)
+                sess.wait_still(min_s=protocol.trial_gap_s)
                 w.append(_trial(sess, plan, int(i), before.session, truth))
                 bar.update()
         finally:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-from typing import Any
+import dataclasses
+import os
+from typing import TYPE_CHECKING, Any
 
 from timedexec.cli._common import (
     add_command,
@@ -19,6 +21,9 @@ from timedexec.cli._common import (
     sweep_stopped,
 )
 from timedexec.errors import ConfigError
+
+if TYPE_CHECKING:
+    from timedexec.drivers import RobotURL
 
 __all__ = ["add_parser", "resume_command", "run"]
 
@@ -87,20 +92,18 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; return the exit code."""
-    from urllib.parse import urlsplit
-
     from timedexec.calibration import run_calibration
-    from timedexec.drivers import open_driver
-    from timedexec.recording import SweepPlan
-    from timedexec.sim import default_settings
+    from timedexec.drivers import RobotURL, open_driver
+    from timedexec.recording import SweepPlan, SweepProtocol
 
-    scheme = urlsplit(args.robot_url).scheme
-    robot = _robot(args, scheme)
+    url = RobotURL.parse(args.robot_url)
+    simulated = url.scheme == "sim"
+    robot = _robot(args, url)
     if (args.trials is None) == (args.plan is None):
         raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
     if args.trials is not None and args.trials < 1:
         raise ConfigError(f"--trials {args.trials}: the number of trials must be >= 1")
-    if scheme != "sim" and not args.imu:
+    if not simulated and not args.imu:
         raise ConfigError("--imu is required for real robots: give the gyro's serial port")
     imu = args.imu if args.imu and "://" not in args.imu else None
     check_files(
@@ -109,25 +112,41 @@ def run(args: argparse.Namespace) -> int:
         # the recording refuses an existing file itself unless --resume continues it
         inputs={"--plan": args.plan, "--imu": imu},
         outputs={"--out": args.out},
+        devices=("--imu",),
     )
-    _check_gyro_constants(args, real=scheme != "sim")
+    _check_gyro_constants(args, real=not simulated)
+    # Everything the user gave is checked before anything connects: the first error
+    # reported is the real one (a broken profile was found only after the robot answered).
+    if imu is not None and not os.path.exists(imu):
+        raise ConfigError(
+            f"--imu {imu}: no such port; check that the sensor is plugged in and the path is "
+            "right (ls /dev/ttyUSB* /dev/ttyACM* /dev/serial/by-id/)"
+        )
+    gyro_constants = _gyro_constants(args)
+    if simulated and not args.imu and gyro_constants is not None:
+        _check_simulated_gyro(gyro_constants, SweepProtocol.for_robot(robot).gyro, url.text)
     # The driver gets the robot model the user named (a UR controller reporting another
     # model, or a KUKA that says nothing, is then driven as that model); without --robot a
     # UR driver asks the controller's dashboard, and the sweep is planned for its answer.
-    options: dict[str, Any] = {"seed": args.seed} if scheme == "sim" else {}
-    if scheme != "sim" and robot is not None:
+    options: dict[str, Any] = {"seed": args.seed} if simulated else {}
+    if not simulated and robot is not None:
         options["robot"] = robot
     try:
         with contextlib.ExitStack() as stack:
-            driver = stack.enter_context(open_driver(args.robot_url, **options))
-            settings = default_settings(robot or driver.robot)
+            driver = stack.enter_context(open_driver(url, **options))
+            # The robot's default protocol at the period the controller runs (RSI: 12 or
+            # 4 ms, as the URL's period= says), from its spec: no simulator involved.
+            protocol = SweepProtocol.for_robot(
+                robot or driver.robot, period_s=driver.controller_period_s
+            )
+            if gyro_constants is not None:
+                protocol = dataclasses.replace(protocol, gyro=gyro_constants)
             if args.plan:
-                plan = _read_plan(args.plan, settings.robot)
+                plan = _read_plan(args.plan, protocol.robot)
             else:
-                plan = SweepPlan.generate(settings.robot, args.trials, seed=args.seed)
-            protocol = _protocol(args, settings.protocol)
+                plan = SweepPlan.generate(protocol.robot, args.trials, seed=args.seed)
             gyro: Any
-            if scheme == "sim" and not args.imu:
+            if simulated and not args.imu:
                 gyro = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
             else:
                 from timedexec.sensors import open_gyro
@@ -176,7 +195,7 @@ def resume_command(args: argparse.Namespace) -> str:
     )
 
 
-def _robot(args: argparse.Namespace, scheme: str) -> str | None:
+def _robot(args: argparse.Namespace, url: RobotURL) -> str | None:
     """The robot model the sweep is for: ``--robot``, the simulator's name, ``kr5`` for
     RSI, or None for ``ur://`` (ask the controller).
 
@@ -185,17 +204,17 @@ def _robot(args: argparse.Namespace, scheme: str) -> str | None:
     ConfigError
         ``--robot`` contradicts the ``sim://`` URL's robot.
     """
-    from urllib.parse import urlsplit
+    from timedexec.drivers import DEFAULT_SIM_ROBOT
 
-    if scheme == "sim":
-        named = (urlsplit(args.robot_url).netloc or "ur10").lower()
+    if url.scheme == "sim":
+        named = url.robot or DEFAULT_SIM_ROBOT
         if args.robot is not None and args.robot != named:
             raise ConfigError(
                 f"--robot {args.robot} contradicts --robot-url {args.robot_url} (a simulated "
                 f"{named}); drop --robot or use sim://{args.robot}"
             )
         return str(named)
-    if scheme == "rsi":
+    if url.scheme == "rsi":
         return str(args.robot or "kr5")
     return None if args.robot is None else str(args.robot)
 
@@ -213,24 +232,63 @@ def _check_gyro_constants(args: argparse.Namespace, *, real: bool) -> None:
         )
 
 
-def _protocol(args: argparse.Namespace, default: Any) -> Any:
-    """The sweep protocol with the gyro's constants as the user measured them (a simulated
-    robot keeps the simulator's constants unless told otherwise)."""
-    import dataclasses
+def _gyro_constants(args: argparse.Namespace) -> Any:
+    """The gyro's constants as the user gave them (``--sensor-profile``, then the options
+    on top of it, or of the default sensor's), or None when none were given (the robot's
+    default protocol then keeps its sensor's: a simulated robot's simulated gyro).
 
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid profile, or implausible values (e.g. milliseconds where
+        seconds belong), before anything connects.
+    """
     from timedexec.recording import GyroHeader
 
-    gyro = default.gyro
-    if args.sensor_profile is not None:
-        gyro = GyroHeader.from_json(args.sensor_profile)
+    if args.sensor_profile is None and (
+        args.gyro_group_delay is None and args.gyro_transport_latency is None
+    ):
+        return None
+    gyro = GyroHeader.from_json(args.sensor_profile) if args.sensor_profile else GyroHeader()
     changes: dict[str, float] = {}
     if args.gyro_group_delay is not None:
         changes["group_delay_s"] = args.gyro_group_delay * 1e-3
     if args.gyro_transport_latency is not None:
         changes["transport_latency_s"] = args.gyro_transport_latency * 1e-3
-    if changes:
-        gyro = dataclasses.replace(gyro, **changes)
-    return dataclasses.replace(default, gyro=gyro)
+    return dataclasses.replace(gyro, **changes)
+
+
+#: How far a constant given for a simulated gyro may be from the simulated sensor's, s.
+_SIM_GYRO_TOLERANCE_S = 1e-6
+
+
+def _check_simulated_gyro(given: Any, simulated: Any, url: str) -> None:
+    """Refuse constants for the simulated gyro of a ``sim://`` robot that are not its own:
+    every gyro sample would be dated by their difference, and every delay with it.
+
+    Raises
+    ------
+    ConfigError
+        Naming each contradicting constant, the simulated sensor's value and the fix.
+    """
+    wrong = [
+        f"{key} {getattr(given, key) * 1e3:g} ms (the simulated gyro's: "
+        f"{getattr(simulated, key) * 1e3:g} ms)"
+        for key in ("group_delay_s", "transport_latency_s")
+        if abs(getattr(given, key) - getattr(simulated, key)) > _SIM_GYRO_TOLERANCE_S
+    ]
+    if given.full_scale_dps != simulated.full_scale_dps:
+        wrong.append(
+            f"full_scale_dps {given.full_scale_dps} (the simulated gyro's: "
+            f"{simulated.full_scale_dps})"
+        )
+    if wrong:
+        raise ConfigError(
+            f"{url} records its own simulated gyro, whose constants are known; the given "
+            f"{'; '.join(wrong)} would shift every extracted delay by the difference: drop "
+            "--sensor-profile / --gyro-group-delay / --gyro-transport-latency, or give --imu "
+            "with a real gyro"
+        )
 
 
 def _read_plan(path: str, robot: Any) -> Any:

@@ -297,6 +297,7 @@ def check_files(
     outputs: Mapping[str, Any] | None = None,
     folders: Mapping[str, Any] | None = None,
     what: Mapping[str, str] | None = None,
+    devices: Sequence[str] = (),
 ) -> None:
     """The output-path policy (:func:`timedexec._files.check_paths`) for a command, before
     any work: ``--json PATH`` is added to the outputs; the notes (existing outputs that will
@@ -316,7 +317,9 @@ def check_files(
     if dest is not None and dest != "-":
         outs["--json"] = dest
         describe.setdefault("--json", "the JSON result")
-    notes = check_paths(inputs=inputs, outputs=outs, folders=folders, what=describe)
+    notes = check_paths(
+        inputs=inputs, outputs=outs, folders=folders, what=describe, devices=devices
+    )
     if not getattr(args, "quiet", False):
         for text in notes:
             note(command, text)

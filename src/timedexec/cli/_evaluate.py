@@ -62,17 +62,17 @@ def add_parser(sub: Any) -> None:
     add_json(p, "the result ({robot, strategies, coverage_95, ...})")
     p.add_argument(
         "--configs",
-        type=int_arg(1),
-        default=300,
-        help="held-out configurations (>= 1; at most the configurations of a sweep the size "
+        type=int_arg(1, 100_000),
+        default=None,
+        help="held-out configurations (1 .. 100000; default 300; at most the configurations of a sweep the size "
         "of the model's training sweep: the count used is printed, with a warning when fewer)",
     )
     add_seed(p, default=20261, help="plan seed of the held-out set")
     p.add_argument(
         "--draws",
-        type=int_arg(2),
-        default=20,
-        help="simulated trials behind the oracle (>= 2)",
+        type=int_arg(2, 1000),
+        default=None,
+        help="simulated trials behind the oracle (2 .. 1000; default 20)",
     )
     p.add_argument(
         "--speed",
@@ -82,8 +82,8 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument(
         "--physics",
-        type=int_arg(0, fix=" (0 skips the physics check)"),
-        default=0,
+        type=int_arg(0, 10_000, fix=" (0 skips the physics check)"),
+        default=None,
         metavar="N",
         help="verify the seam error by running the physics on N configurations (0: skip)",
     )
@@ -97,25 +97,27 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--seam",
         choices=("straight", "curved"),
-        default="straight",
+        default=None,
         help="--task conveyor: the seam's shape (across the belt)",
     )
     p.add_argument(
         "--runs",
-        type=int_arg(1),
-        default=4,
-        help="--task conveyor: publisher phases per work point (stratified), per strategy",
+        type=int_arg(1, 50),
+        default=None,
+        help="--task conveyor: publisher phases per work point (stratified), per strategy "
+        "(1 .. 50; default 4)",
     )
     p.add_argument(
         "--cells",
-        type=int_arg(1),
-        default=2,
-        help="--task conveyor: work points (the built-in one, then moved by up to 5 cm)",
+        type=int_arg(1, 20),
+        default=None,
+        help="--task conveyor: work points (the built-in one, then moved by up to 5 cm; "
+        "1 .. 20; default 2)",
     )
     p.add_argument(
         "--previous-welds",
-        type=int_arg(0),
-        default=0,
+        type=int_arg(0, 20),
+        default=None,
         help="--task conveyor: parts welded the same way before each measured weld (0: every "
         'weld from a fresh start; > 0: experimental, docs/welding.md "Weld after weld")',
     )
@@ -124,10 +126,44 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+#: Options of one task only, with their defaults: given for the other task they are
+#: refused (they would be ignored without a word).
+_TASK_OPTIONS: dict[str, dict[str, Any]] = {
+    "onset": {"configs": 300, "draws": 20, "physics": 0},
+    "conveyor": {"seam": "straight", "runs": 4, "cells": 2, "previous_welds": 0},
+}
+
+
+def _task_options(args: argparse.Namespace) -> None:
+    """Refuse the options of the other task; fill in this task's defaults.
+
+    Raises
+    ------
+    ConfigError
+        Naming the options given that the chosen ``--task`` does not use.
+    """
+    from timedexec.errors import ConfigError
+
+    for task, options in _TASK_OPTIONS.items():
+        given = [name for name in options if getattr(args, name) is not None]
+        if task != args.task and given:
+            shown = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ConfigError(
+                f"{shown} appl{'ies' if len(given) == 1 else 'y'} to --task {task}, not to "
+                f"--task {args.task}: drop {'it' if len(given) == 1 else 'them'} or use "
+                f"--task {task}"
+            )
+        if task == args.task:
+            for name, default in options.items():
+                if getattr(args, name) is None:
+                    setattr(args, name, default)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``evaluate``; return the exit code."""
     from timedexec.evaluation import evaluate
 
+    _task_options(args)
     check_files(args, "evaluate", inputs={"--model": args.model})
     with cluster(args, "evaluate") as client:
         model = worker_model(args.model, client)

@@ -20,6 +20,7 @@ from timedexec.cli._common import (
     warn,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
+from timedexec.robots import ROBOT_NAMES
 
 __all__ = ["add_parser", "run"]
 
@@ -40,7 +41,7 @@ def add_parser(sub: Any) -> None:
             "spreads, the model's error against the noise floor, the monitor state, and which "
             "robots need a new calibration, with a figure comparing robots.\n\n"
             "MANIFEST is a CSV file with a header `name,robot,source,deployed` and one line "
-            "per robot: name (its output folder), robot (ur10, ur10e, kr5), source (a "
+            f"per robot: name (its output folder), robot ({', '.join(ROBOT_NAMES)}), source (a "
             "recording path relative to the manifest, an fsspec URL such as s3://..., or "
             "sim://ROBOT?trials=N&seed=S), deployed (optional: its model bundle today, or a "
             "shipped model's name). docs/fleet.md has the details.\n\n"
@@ -63,8 +64,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     add_scheduler(p, what="every robot")
     add_jobs(p, help="robots processed at once on this machine (without --scheduler)")
+    from timedexec.learning import DEFAULT_METHODS, METHODS
+
     p.add_argument(
-        "--methods", default="median,nn,rt,gpr", help="comma list of median, nn, rt, gpr"
+        "--methods",
+        default=",".join(DEFAULT_METHODS),
+        help=f"comma list of {', '.join(METHODS)} (`timedexec train --help` describes them)",
     )
     p.add_argument("--folds", type=int_arg(2), default=10, help="cross-validation folds (>= 2)")
     add_seed(p, help="seed of the folds and the estimators")

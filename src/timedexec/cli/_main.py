@@ -24,6 +24,7 @@ from timedexec.cli import (
     _evaluate,
     _extract,
     _fleet,
+    _gyro,
     _monitor,
     _report,
     _serve,
@@ -52,6 +53,7 @@ __all__ = ["COMMANDS", "EXIT_CODES_HELP", "build_parser", "main"]
 COMMANDS = (
     _simulate,
     _serve,
+    _gyro,
     _calibrate,
     _check,
     _extract,

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from timedexec._plot import check_figure_format
 from timedexec.cli._common import (
     add_command,
     add_json,
@@ -22,6 +23,7 @@ from timedexec.cli._scheduler import (
     worker_model,
     worker_path,
 )
+from timedexec.robots import get_robot_entry
 
 __all__ = ["EXIT_ALARM", "add_parser", "run"]
 
@@ -47,7 +49,9 @@ def add_parser(sub: Any) -> None:
             "Output: per joint ok/alarm/warm-up, moves, shift estimate, and each alarm with "
             "its shift (95 % CI), evidence and the calibration sweep that re-fits it. Exit 0 "
             f"whether or not an alarm fired (printed); with --fail-on-alarm exit {EXIT_ALARM} "
-            "on an alarm. Bad input: exit 2.\n\n"
+            "on an alarm, and also when nothing could be monitored (no measurable move, or no "
+            "joint past its warm-up): only a verdict of ok is an all-clear. Bad input: "
+            "exit 2.\n\n"
             "example:\n  timedexec monitor ur10.h5 --model ur10-sim --figure monitor.png"
         ),
     )
@@ -55,8 +59,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--model",
         metavar="NAME_OR_DIR",
-        help="deployed model: bundle directory or bundled name (default: the recording's "
-        "robot + '-sim', e.g. ur10-sim)",
+        help="deployed model: bundle directory or bundled name (default: the model shipped "
+        "for the recording's robot, e.g. ur10-sim)",
     )
     p.add_argument(
         "--warmup",
@@ -94,7 +98,10 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--figure", metavar="PATH", help="write the monitor figure (PNG, PDF, SVG)")
     p.add_argument(
-        "--fail-on-alarm", action="store_true", help=f"exit {EXIT_ALARM} when an alarm fired"
+        "--fail-on-alarm",
+        action="store_true",
+        help=f"exit {EXIT_ALARM} unless the verdict is ok (an alarm fired, or nothing could be "
+        "monitored)",
     )
     add_scheduler(p, what="the monitor (as one task)")
     add_json(p, "the monitor state {settings, joints, alerts}")
@@ -117,9 +124,21 @@ def _text(summary: dict[str, Any], source: str) -> str:
             f"{'-' if gap is None else f'{gap:+.2f} ms':>12}  "
             f"{'-' if shift is None else f'{shift:+.2f} ms':>12}"
         )
+    verdict = summary["verdict"]
     if summary["alerts"]:
         lines.append("alarms:")
         lines += [f"  {describe_alert(a)}" for a in summary["alerts"]]
+    elif verdict == "nothing measured":
+        lines.append(
+            "nothing measured: the input holds no move from rest whose lag could be "
+            "measured, so no change could have been seen (this is not an all-clear)"
+        )
+    elif verdict == "warming up":
+        lines.append(
+            f"not yet monitoring: no joint has finished its warm-up of "
+            f"{summary['warmup_moves']} moves, so no change could have been seen (this is not "
+            "an all-clear; feed more moves or lower --warmup)"
+        )
     else:
         lines.append("no alarm")
     return "\n".join(lines)
@@ -138,14 +157,20 @@ def watch(
     """Read INPUT and run the monitor over every move in it: one task on a cluster.
 
     Returns the fed ``DelayMonitor``, the model it compared with, and whether that model
-    was chosen from the input's robot (no ``--model``).
+    was chosen from the input's robot (no ``--model``). A model for another robot (or
+    controller period) than the input's is refused.
     """
     from timedexec.errors import ConfigError
     from timedexec.monitoring import DelayMonitor, load_cycle_log, moves_from_recording
 
     if Path(path).suffix.lower() == ".npz":
+        if every_trial:
+            raise ConfigError(
+                "--every-trial applies to recordings (one move per trial); a cycle log has "
+                "no trials: drop --every-trial"
+            )
         arrays, meta = load_cycle_log(path)
-        robot, period, moves = str(meta.get("robot", "")), float(meta["period_s"]), None
+        robot, period, moves = meta["robot"], meta["period_s"], None
     else:
         moves, meta = moves_from_recording(path, collapse_repeats=not every_trial)
         robot, period = meta["robot"], meta["period_s"]
@@ -153,9 +178,14 @@ def watch(
     if model is None:
         if not robot:
             raise ConfigError(f"{path} does not name its robot; give --model NAME_OR_DIR")
-        model = f"{robot}-sim"
+        model = get_robot_entry(robot).shipped_model
+    from timedexec.execution import check_model_robot, load_delay_model
+
+    loaded = load_delay_model(model)
+    if robot:  # a model for another robot would report a "gap" of tens of ms as ok
+        check_model_robot(loaded, robot, against=f"{path} comes from")
     mon = DelayMonitor(
-        model,
+        loaded,
         warmup_moves=warmup,
         arl0_moves=arl0,
         reference_k=k,
@@ -174,7 +204,11 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.monitoring import monitor_figure
 
     outputs = {"--figure": args.figure} if args.figure else {}
-    check_files(args, "monitor", inputs={"INPUT": args.input}, outputs=outputs)
+    check_files(
+        args, "monitor", inputs={"INPUT": args.input, "--model": args.model}, outputs=outputs
+    )
+    if args.figure:
+        check_figure_format(args.figure, "--figure")
     path = Path(args.input)
     if not path.is_file():
         raise FileNotFoundError(
@@ -202,4 +236,4 @@ def run(args: argparse.Namespace) -> int:
     if args.figure:
         text += f"\nwrote the figure to {args.figure}"
     emit(args, summary, text)
-    return EXIT_ALARM if (args.fail_on_alarm and summary["alerts"]) else 0
+    return EXIT_ALARM if (args.fail_on_alarm and summary["verdict"] != "ok") else 0

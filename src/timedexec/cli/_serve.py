@@ -7,6 +7,7 @@ import contextlib
 import sys
 from typing import Any
 
+from timedexec._files import check_folder_takes_files
 from timedexec.cli._common import (
     add_command,
     add_period,
@@ -17,8 +18,14 @@ from timedexec.cli._common import (
     note,
 )
 from timedexec.errors import ConfigError
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = ["add_parser", "run"]
+
+
+def _speaks(interface: str) -> list[str]:
+    """The catalog's robots whose controller speaks ``interface``."""
+    return [n for n in ROBOT_NAMES if get_robot_entry(n).twin.interface == interface]
 
 
 def add_parser(sub: Any) -> None:
@@ -28,12 +35,13 @@ def add_parser(sub: Any) -> None:
         "serve",
         help="run a protocol twin: a simulated UR or KUKA controller on the network",
         description=(
-            "Serve a simulated robot controller that real clients talk to: for ur10/ur10e a "
-            "UR controller (RTDE on 30004, dashboard on 29999, script port 30003) for the "
-            "ur_rtde client; for kr5 a KUKA controller sending RSI XML over UDP to the PC's "
-            "port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro on the "
-            "flange streams over a pseudo-terminal linked at that path. Runs until Ctrl-C or "
-            "SIGTERM, then exits 0. Binds 127.0.0.1 unless told otherwise.\n\n"
+            "Serve a simulated robot controller that real clients talk to: for "
+            f"{'/'.join(_speaks('ur_rtde'))} a UR controller (RTDE on 30004, dashboard on "
+            "29999, script port 30003) for the ur_rtde client; for "
+            f"{'/'.join(_speaks('kuka_rsi'))} a KUKA controller sending RSI XML over UDP to "
+            "the PC's port every 12 ms (or --period 0.004). With --imu-link, a simulated gyro "
+            "on the flange streams over a pseudo-terminal linked at that path. Runs until "
+            "Ctrl-C or SIGTERM, then exits 0. Binds 127.0.0.1 unless told otherwise.\n\n"
             "examples:\n  timedexec serve --robot ur10 --imu-link /tmp/gyro\n"
             "  timedexec calibrate --robot-url ur://127.0.0.1 --imu /tmp/gyro --trials 20 "
             "--out ur.h5\n  timedexec serve --robot kr5 --rsi-port 49152"
@@ -46,7 +54,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--urcap",
         type=_host_port,
-        default=("127.0.0.1", 50002),
+        default=None,
         metavar="HOST:PORT",
         help="UR: where the pendant program /programs/external_control.urp (an External "
         "Control URCap node) asks for its script when played (default 127.0.0.1:50002: "
@@ -56,11 +64,14 @@ def add_parser(sub: Any) -> None:
         "--rsi-port",
         type=int_arg(1, 65535),
         default=49152,
-        help="the PC's RSI UDP port (kr5; 1 .. 65535)",
+        help="the PC's RSI UDP port (KUKA; 1 .. 65535)",
     )
-    add_period(p, help="RSI period, s (kr5: 0.012 or 0.004)")
+    add_period(p, help="RSI period, s (KUKA kr5: 0.012 or 0.004)")
     add_seed(p)
     p.set_defaults(func=run)
+
+
+_URCAP_DEFAULT = ("127.0.0.1", 50002)
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -78,10 +89,22 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    if not _is_ur(args.robot):  # options of the UR twin only, before any path
+        if args.urcap is not None:
+            raise ConfigError(
+                f"--urcap applies to the UR twins (External Control URCap); {args.robot} "
+                "speaks RSI: drop --urcap"
+            )
+        if args.imu_link:
+            raise ConfigError(
+                "--imu-link is available for the UR twin; the RSI twin has no gyro yet"
+            )
     _check_serve_paths(args)
+    if args.urcap is None:
+        args.urcap = _URCAP_DEFAULT
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.robot.startswith("ur"):
+    if _is_ur(args.robot):
         from timedexec.twins import run_ur_twin
 
         print(
@@ -106,21 +129,42 @@ def run(args: argparse.Namespace) -> int:
     # Wait for the PC's first answer before counting late answers (else RSI stops with
     # RSITimeout 1.2 s after start when no PC listens yet, as a real KSS would).
     options: dict[str, Any] = {
-        "host": args.host, "seed": args.seed, "truth_path": args.truth, "wait_for_pc": True,
+        "robot": args.robot, "host": args.host, "seed": args.seed, "truth_path": args.truth,
+        "wait_for_pc": True,
     }  # fmt: skip
     if args.period:
         options["period_s"] = args.period
-    if args.imu_link:
-        raise ConfigError("--imu-link is available for the UR twin; the RSI twin has no gyro yet")
     with RSITwin(args.rsi_port, **options):
         print(
-            f"sending RSI frames of a simulated kr5 to {args.host}:{args.rsi_port} (Ctrl-C stops)",
+            f"sending RSI frames of a simulated {args.robot} to {args.host}:{args.rsi_port} "
+            "(Ctrl-C stops)",
             file=sys.stderr,
         )
         with contextlib.suppress(KeyboardInterrupt):
             while not stop.wait(0.5):
                 pass
     return 0
+
+
+def _is_truth_file(path: str) -> bool:
+    """Whether ``path`` starts like a twin's ground truth (a JSON ``meta`` event line).
+
+    Only the first line is read (at most 64 KiB), so a large foreign file costs nothing.
+    """
+    import json
+
+    try:
+        with open(path, "rb") as fh:
+            first = fh.readline(65536)
+        record = json.loads(first.decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(record, dict) and record.get("event") == "meta"
+
+
+def _is_ur(robot: str) -> bool:
+    """Whether ``robot``'s controller is a UR (RTDE); else it speaks KUKA RSI."""
+    return get_robot_entry(robot).twin.interface == "ur_rtde"
 
 
 def _check_serve_paths(args: argparse.Namespace) -> None:
@@ -138,10 +182,9 @@ def _check_serve_paths(args: argparse.Namespace) -> None:
         Naming the option, the path and the reason.
     """
     import os
-    import tempfile
     from pathlib import Path
 
-    ur = args.robot.startswith("ur")
+    ur = _is_ur(args.robot)
     check_files(
         args,
         "serve",
@@ -149,8 +192,18 @@ def _check_serve_paths(args: argparse.Namespace) -> None:
         # the UR twin appends to an existing file; the RSI twin replaces it when it stops
         what={} if ur else {"--truth": "this session's ground truth when the twin stops"},
     )
-    if ur and args.truth and os.path.isfile(args.truth):
-        note("serve", f"--truth {args.truth} exists; this session's ground truth is appended to it")
+    if args.truth and os.path.isfile(args.truth):
+        if not _is_truth_file(args.truth):
+            raise ConfigError(
+                f"--truth {args.truth} exists and is not a twin's ground-truth file (JSON "
+                "lines starting with an \"event\": \"meta\" line); serve never writes into a "
+                "file it did not make: give a new path (or a truth file of an earlier session)"
+            )
+        if ur:
+            note(
+                "serve",
+                f"--truth {args.truth} exists; this session's ground truth is appended to it",
+            )
     if args.imu_link and os.path.lexists(args.imu_link) and not os.path.islink(args.imu_link):
         raise ConfigError(
             f"--imu-link {args.imu_link} exists and is not a symbolic link; the twin makes a "
@@ -172,12 +225,4 @@ def _check_serve_paths(args: argparse.Namespace) -> None:
             raise ConfigError(
                 f"{option} {path}: the folder {folder} does not exist; create it first"
             )
-        try:  # the one reliable test (root ignores mode bits, a read-only mount does not)
-            fd, probe = tempfile.mkstemp(prefix=".timedexec-probe.", dir=folder)
-        except OSError as exc:
-            raise ConfigError(
-                f"{option} {path}: cannot create files in the folder {folder} "
-                f"({exc.strerror or exc}); choose a writable folder"
-            ) from None
-        os.close(fd)
-        os.unlink(probe)
+        check_folder_takes_files(folder, option, path)

@@ -1,7 +1,8 @@
 """``timedexec train``: delay models with cross-validation, saved as a model bundle.
 
 ``timedexec train DELAYS.csv --out DIR [--folds 10] [--methods median,nn,rt,gpr]
-[--json [CV.json]] [--jobs N]``: cross-validates every method per joint and combined for
+[--json [CV.json]] [--jobs N]``: cross-validates every method (any registered one,
+:data:`timedexec.learning.METHODS`; default the paper's four) per joint and combined for
 both delays, prints Tables I/II beside the paper's numbers, and writes the model bundle
 trained on all data to DIR (``manifest.json``, ``arrays.npz``) with ``cv.json`` and
 ``cv-table.txt``. The JSON result (``--json``) is the CV scores, the same document as
@@ -36,15 +37,17 @@ __all__ = ["add_parser", "run"]
 
 def add_parser(sub: Any) -> None:
     """Add ``train`` to the subparsers ``sub``."""
+    from timedexec.learning import DEFAULT_METHODS, METHODS, describe_methods
+
     p = add_command(
         sub,
         "train",
-        help="train delay models (median, LM neural net, regression tree, GP) with 10-fold CV",
+        help=f"train delay models ({', '.join(METHODS)}) with 10-fold CV",
         description=(
-            "Train the paper's delay models on a delay table (from `timedexec extract`): the "
-            "median baseline, a Levenberg-Marquardt neural net (30 tanh units), a regression "
-            "tree with linear leaves and a Gaussian process (mean and standard deviation); one "
-            "model per joint and one combined, actuation and response delay separately.\n\n"
+            "Train delay models on a delay table (from `timedexec extract`): one model per "
+            "joint and one combined, actuation and response delay separately. The methods "
+            f"(--methods; default {','.join(DEFAULT_METHODS)}, the paper's):\n"
+            f"{describe_methods()}\n\n"
             "Cross-validation as published: --folds folds (split by start configuration, so "
             "repeats of a test condition never train), error = sqrt(mean of fold MSEs) in ms, "
             "printed as Tables I/II beside the paper's numbers with the noise floor (replicate "
@@ -63,7 +66,9 @@ def add_parser(sub: Any) -> None:
         "--folds", type=int, default=10, help="cross-validation folds (0: train without CV)"
     )
     p.add_argument(
-        "--methods", default="median,nn,rt,gpr", help="comma list of median, nn, rt, gpr"
+        "--methods",
+        default=",".join(DEFAULT_METHODS),
+        help=f"comma list of {', '.join(METHODS)} (see above)",
     )
     add_json(p, "the CV scores ({delay: {method: {column: ms}}}; needs --folds >= 2)")
     add_jobs(p, help="worker processes (joblib; -1: all)")

@@ -81,7 +81,7 @@ def deterministic_settings(settings: SimSettings) -> tuple[SimSettings, float]:
     Returns the settings and the fixed packing phase, s.
     """
     tm = settings.timing
-    period = settings.controller_period_s
+    period = settings.protocol.controller_period_s
     # Time from the trigger package's sampling boundary to the command's arrival at the
     # controller, minus the phase: host processing (+ its 20 µs mean excess) and the two
     # wire latencies. Put the arrival half a period before the next boundary.
@@ -95,10 +95,12 @@ def deterministic_settings(settings: SimSettings) -> tuple[SimSettings, float]:
         to_controller_jitter_s=0.0,
     )
     # Only the onset matters here: a shorter recording window integrates 2.5x less.
+    protocol = settings.protocol
     profile = dataclasses.replace(
-        settings.profile, record_s=min(settings.profile.record_s, RECORD_S)
+        protocol.profile, record_s=min(protocol.profile.record_s, RECORD_S)
     )
-    return settings.replace(timing=timing, profile=profile), phase
+    protocol = dataclasses.replace(protocol, profile=profile)
+    return settings.replace(timing=timing, protocol=protocol), phase
 
 
 class SimModel:
@@ -128,7 +130,7 @@ class SimModel:
         self.cond = cond
         self.settings = settings or default_settings(spec)
         self.det_settings, self.phase_s = deterministic_settings(self.settings)
-        self.period_s = self.settings.controller_period_s
+        self.period_s = self.settings.protocol.controller_period_s
         self.seed = seed
         self.n_simulations = 0
         self.simulated_conditions = 0
@@ -176,7 +178,7 @@ class SimModel:
         for name in (*DELAY_COLUMNS, "gravity_torque_nm"):
             full = np.full(len(c), np.nan)
             # A joint that never breaks away in the window: its onset is the window's end.
-            full[idx] = np.nan_to_num(table[name], nan=self.det_settings.profile.record_s)
+            full[idx] = np.nan_to_num(table[name], nan=self.det_settings.protocol.profile.record_s)
             out[name] = full
         if len(idx) == len(c):
             if len(self._cache) > 256:

@@ -72,7 +72,7 @@ class RobotState:
 class RobotDriver(abc.ABC):
     """Common interface of the UR, KUKA RSI and simulator drivers."""
 
-    #: Robot spec name this driver talks to ("ur10", "ur10e", "kr5").
+    #: Robot spec name this driver talks to (one of ``timedexec.robots.ROBOT_NAMES``).
     robot: str
     #: Whether ``speedj``'s duration paces the controller's updates rather than holding the
     #: command as a dead-man: URScript ``speedj(qd, a, t)`` returns after ``t``, and the

@@ -54,7 +54,7 @@ class SimDriver(RobotDriver):
     Parameters
     ----------
     robot : str
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     virtual : bool
         Virtual time (default) or real time.
     effects, settings, seed, q0_rad, physics_rate_hz
@@ -81,7 +81,7 @@ class SimDriver(RobotDriver):
         if physics_rate_hz is None and not virtual:
             physics_rate_hz = REALTIME_PHYSICS_RATE_HZ
         self._physics_rate_hz = physics_rate_hz
-        self.robot = self.settings.robot
+        self.robot = self.settings.protocol.robot
         self.virtual = virtual
         self._effects = effects
         self._seed = seed
@@ -106,7 +106,7 @@ class SimDriver(RobotDriver):
     # ------------------------------------------------------------------ interface
     @property
     def controller_period_s(self) -> float:
-        return self.settings.controller_period_s
+        return self.settings.protocol.controller_period_s
 
     @property
     def controller(self) -> ControllerSim:

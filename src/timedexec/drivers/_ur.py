@@ -63,9 +63,9 @@ from numpy.typing import ArrayLike
 
 from timedexec.drivers._base import FloatArray, RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
-from timedexec.robots import RobotSpec, get_robot
+from timedexec.robots import ROBOT_NAMES, RobotSpec, get_robot, get_robot_entry
 
-__all__ = ["URDriver"]
+__all__ = ["URDriver", "ur_robot_named"]
 
 #: The controller accepts joint accelerations up to this multiple of the spec's planning
 #: limit (as the simulated controller does), capped by ur_rtde's own range check.
@@ -146,6 +146,25 @@ def _hint(host: str) -> str:
     )
 
 
+def ur_robot_named(model: str, major: int) -> str | None:
+    """The catalog's UR robot whose controller reports ``model`` (the dashboard's robot
+    model, case-insensitive) with software major version ``major``, or None.
+
+    The e-Series reports the same model name as its CB3 namesake ("UR10" on a UR10e);
+    PolyScope 5 and later (major >= 5) tells them apart. Matched against each robot's
+    catalog identity (``RobotEntry.twin``), which the UR twin reports.
+    """
+    for name in ROBOT_NAMES:
+        twin = get_robot_entry(name).twin
+        if (
+            twin.interface == "ur_rtde"
+            and twin.model_name.lower() == model.strip().lower()
+            and (twin.controller_version[0] >= 5) == (major >= 5)
+        ):
+            return name
+    return None
+
+
 class URDriver(RobotDriver):
     """A Universal Robots arm (CB3 or e-Series) through ``ur_rtde``.
 
@@ -156,9 +175,9 @@ class URDriver(RobotDriver):
     frequency_hz : float, optional
         RTDE stream frequency; default: what ``ur_rtde`` picks (125 Hz for a CB3, 500 Hz
         for an e-Series).
-    robot : {"ur10", "ur10e"}, optional
-        Robot spec used for limits and the controller period; default: inferred from the
-        dashboard server (PolyScope major version >= 5 means e-Series, plus the model).
+    robot : str, optional
+        A UR robot of the catalog, for its limits and controller period; default: inferred
+        from the dashboard server's model and PolyScope version (:func:`ur_robot_named`).
     control : bool
         Also open the control interface (commands); False gives a read-only driver.
     variables : sequence of str, optional
@@ -306,15 +325,12 @@ class URDriver(RobotDriver):
             ) from exc
         parts = [int(p) for p in version.replace("-", ".").split(".") if p.isdigit()]
         self.controller_version = tuple(parts)
-        major = parts[0] if parts else 0
-        name = model + ("e" if major >= 5 else "")
-        try:
-            get_robot(name)
-        except (ConfigError, KeyError) as exc:
+        name = ur_robot_named(model, parts[0] if parts else 0)
+        if name is None:
             raise ConfigError(
                 f"robot model {model!r} with PolyScope {version!r} at {self.host} has no spec "
-                f"({exc}); pass robot= explicitly, e.g. URDriver(host, robot='ur10e')"
-            ) from exc
+                f"in the catalog; pass robot= explicitly, e.g. URDriver(host, robot='ur10e')"
+            )
         return name
 
     def connect(self) -> None:

@@ -47,7 +47,7 @@ from timedexec.execution import (
     predict_delays,
 )
 from timedexec.recording import FULL_SWEEP_TRIALS, SweepPlan
-from timedexec.robots import get_robot
+from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import default_settings, simulate_delays, sweep_clock
 
 __all__ = [
@@ -306,9 +306,10 @@ def evaluate(
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e", "kr5"}
+    robot : str
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     model : delay model, bundle path or None
-        Default: the bundled model ``<robot>-sim``.
+        Default: the model shipped for the robot (its catalog entry's ``shipped_model``).
     n_configs : int
         Held-out configurations (each with every joint and both directions).
     seed : int
@@ -349,7 +350,7 @@ def evaluate(
     if not (math.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
     if model is None:
-        model = f"{spec.name}-sim"  # the bundled model
+        model = get_robot_entry(spec.name).shipped_model  # the bundled model
     predictor = load_delay_model(model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)
     t_begin = time.monotonic()

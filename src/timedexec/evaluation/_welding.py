@@ -64,7 +64,7 @@ from timedexec.execution import (
     load_delay_model,
 )
 from timedexec.recording import SweepPlan
-from timedexec.robots import get_robot
+from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import simulate_delays
 from timedexec.tasks import (
     SEAM_KINDS,
@@ -398,9 +398,10 @@ def evaluate_conveyor(
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e", "kr5"}
+    robot : str
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     model : delay model, bundle path or None
-        Default: the bundled ``<robot>-sim``.
+        Default: the model shipped for the robot (its catalog entry's ``shipped_model``).
     seam : {"straight", "curved"}
     speed_m_s : float
         Belt speed, m/s.
@@ -440,7 +441,8 @@ def evaluate_conveyor(
             raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
     if not (math.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
-    predictor = load_delay_model(f"{spec.name}-sim" if model is None else model)
+    entry = get_robot_entry(spec.name)
+    predictor = load_delay_model(entry.shipped_model if model is None else model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)
     effects = warm(spec.name)
     the_seam = Seam(kind=seam)  # type: ignore[arg-type]
@@ -579,8 +581,10 @@ def weld_on_twin(
 ) -> dict[str, ConveyorRun]:
     """The same welds through a real client against a protocol twin, with its ground truth.
 
-    UR robots: a :class:`~timedexec.twins.URTwin` (own process, real time) on ``host`` and
-    the real ``ur_rtde`` client (:class:`~timedexec.drivers.URDriver`); the KR 5: an
+    By the robot's interface (its catalog entry's ``twin.interface``): UR robots
+    (``ur_rtde``), a :class:`~timedexec.twins.URTwin` (own process, real time) on ``host``
+    and the real ``ur_rtde`` client (:class:`~timedexec.drivers.URDriver`); KUKA
+    (``kuka_rsi``, the KR 5): an
     :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
     weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s; a delay model that
@@ -609,7 +613,7 @@ def weld_on_twin(
         staleness=StalenessLimits.from_stale_periods(stale_periods),
         stop_deceleration_rad_s2=float(min(spec.qdd_max_rad_s2)),
     )
-    if spec.vendor == "universal_robots":
+    if get_robot_entry(spec.name).twin.interface == "ur_rtde":
         from timedexec.drivers import URDriver
         from timedexec.twins import URTwin
 
@@ -631,7 +635,7 @@ def weld_on_twin(
         truth = None if truth_dir is None else os.path.join(truth_dir, f"rsi-truth-{i}.jsonl")
         by, shift = _strategy(model, value)
         with KukaRSIDriver(rsi_port or 0, robot=spec.name) as drv, RSITwin(
-            drv.port, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
+            drv.port, robot=spec.name, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
             timeout_packets=2000,
         ) as twin:  # fmt: skip
             ex = TimedExecutor(drv, by, settings.replace(compensate=value is not None))

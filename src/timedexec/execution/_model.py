@@ -187,7 +187,7 @@ def model_period_s(model: Any) -> float:
 
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:
     """A delay model object: a bundle folder is loaded with ``DelayModel.load``, a bundled
-    model's name (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``) from the package, and a
+    model's name (one of :data:`BUNDLED_MODELS`, e.g. ``"ur10-sim"``) from the package, and a
     model object is checked for the delay-model interface.
 
     Raises
@@ -219,18 +219,26 @@ def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPre
     return model
 
 
-def check_model_robot(model: DelayPredictor, robot: str, period_s: float | None = None) -> None:
+def check_model_robot(
+    model: DelayPredictor,
+    robot: str,
+    period_s: float | None = None,
+    *,
+    against: str = "the driver talks to",
+) -> None:
     """Refuse a model trained for another robot (or controller period).
+
+    ``against`` names where ``robot`` came from in the message (default: the driver).
 
     Raises
     ------
     ModelError
-        Naming the model's robot and the driver's, and how to fix it.
+        Naming the model's robot and the other robot, and how to fix it.
     """
     mine = str(model.robot).lower()
     if mine != robot.lower():
         raise ModelError(
-            f"the delay model is for robot {model.robot!r} but the driver talks to {robot!r}; "
+            f"the delay model is for robot {model.robot!r} but {against} {robot!r}; "
             f"load a model for {robot} (e.g. the bundled '{robot}-sim') or train one on {robot} data"
         )
     trained = model_period_s(model)

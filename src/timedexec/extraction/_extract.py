@@ -5,8 +5,10 @@ Definitions (shared with the simulator's ground truth, :mod:`timedexec._signal`)
 * **actuation delay** = the instant the physical joint speed reaches ``ONSET_FRACTION`` of the
   commanded speed, minus the instant the commanded ramp reaches the same speed after the
   command was sent;
-* **response delay** = the time shift that best aligns the reported joint position with the
-  physical one (the age of the reported state on arrival).
+* **response delay** = the age of the reported state on arrival: the time shift that best
+  aligns the reported joint position with the physical one, and on a joint whose reported
+  angle is a motor-side encoder's, the age of the motor's sample, the gear's deflection
+  separated (``docs/architecture.md``).
 
 Steps, vectorised across the trials of a chunk (``docs/recording-format.md`` states what
 each step assumes of the recording):
@@ -37,7 +39,10 @@ each step assumes of the recording):
    time between the commanded and the measured speed maxima.
 6. **Response** (method ``fit``): the shift of the integrated gyro angle onto the reported
    positions, fitted on increments between packages (the generalised least squares of a
-   random-walk angle error), with a standard error. ``extrema``: the time between the
+   random-walk angle error), with a standard error; where a joint's trials show a gear's
+   deflection (a motor-side encoder leads the link), the deflection is fitted with it as
+   a function of the link acceleration, and the standard error counts what is left and
+   the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
    measured and the reported speed maxima.
 7. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
    delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
@@ -70,13 +75,12 @@ from timedexec.extraction._context import (
 )
 from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
-    RESPONSE_SMOOTH_S,
     _parabolic_peak,
     _robust_sigma,
     _row_nanmedian,
     onset_adaptive,
-    response_increments,
 )
+from timedexec.extraction._response import RESPONSE_SMOOTH_S, response_delay
 from timedexec.extraction._stationary import StillAnalysis
 from timedexec.recording import DamagedChunkError, RecordingReader
 from timedexec.sensors import (
@@ -434,10 +438,12 @@ def _extract_chunk_inner(
     n_cols = {}
     if method == "fit":
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
-        resp, resp_se = response_increments(
+        sound = ~clipped & ~package_gap & np.isfinite(gain)
+        resp, resp_se, resp_deflection = response_delay(
             t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
             np.full(n, 0.6 * ctx.period_s),
             smooth_samples=2 * round(RESPONSE_SMOOTH_S * ctx.fs_hz / 2) + 1,  # odd
+            joint=joint, sound=sound, noise_rad_s=sigma,
         )  # fmt: skip
         # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
         # displacement is the position *sampled* then, reported one response delay later.
@@ -478,6 +484,7 @@ def _extract_chunk_inner(
             "actuation_delay_se": act_se,
             "actuation_delay_crb": on["crb"],
             "response_delay_se": resp_se,
+            "response_deflection_s": resp_deflection,
             "onset_window_s": np.array([sum(w) for w in _windows()])[on["window"].astype(int)],
         }
     else:
@@ -655,7 +662,9 @@ def extract_recording(
     ExtractionResult
         The delay table (columns of ``timedexec.delays`` plus ``flag``,
         ``actuation_delay_se``, ``actuation_delay_crb``, ``response_delay_se`` (s),
-        ``onset_window_s``, ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
+        ``response_deflection_s`` (how far separating a gear's deflection moved the
+        response delay, s; NaN where the trial's joint showed none), ``onset_window_s``,
+        ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
         and what was learnt of the sensor (clock offset and drift, filter, noise).
 
     Raises
@@ -790,7 +799,8 @@ def _extract(
         cols[f"true_{k}"] = v
     cols["flag"] = res["flag"]
     for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
-              "onset_window_s", "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
+              "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s",
+              "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
     if damaged is not None and lost.size:

@@ -1,4 +1,4 @@
-"""Noise-adaptive onset timing and the response shift, each with a standard error.
+"""Noise-adaptive onset timing with a standard error.
 
 **Onset.** Near the level crossing the physical speed is modelled as a cubic polynomial
 ``p(t)`` plus white Gaussian noise of standard deviation σ (estimated per trial from the
@@ -23,46 +23,20 @@ residuals exceed the noise (reduced chi-square above 1: a resonance or the break
 cubic does not follow) the bound is scaled by the excess (independent recordings, 95 %
 coverage: UR10 88.7 -> 91.0 %, KR 5 90.3 -> 91.3 %, 10x noise 91.9 -> 94.0 %).
 
-**Response.** The reported positions are aligned with the integrated gyro angle. The angle
-of a white-noise rate is a random walk, so a least-squares fit of positions weights the
-late, noisy part of the walk as if it were exact; the generalised least-squares fit of a
-random-walk error is the fit of *increments* between consecutive packages (independent
-errors, variance ∝ their time span). Model per increment j:
-``Δq_j = k·(A(h_j - τ) - A(h_{j-1} - τ)) + c·(h_j - h_{j-1})`` (c absorbs a rate offset,
-k a gain error), solved by Gauss-Newton for (τ, c, k) with the exact derivative of the
-(linearly interpolated) angle and a backtracking line search, which converges to the
-least-squares minimum (a fixed number of plain Gauss-Newton steps with the interpolated
-speed as the derivative stopped up to 50 µs short of it, and could cycle). The standard
-error of τ is the sandwich of the two errors the increments carry — the angle's random
-walk, measured where the joint rests, and each package's latency jitter times the speed,
-which enters neighbouring increments with opposite signs — with the sensor's and the
-network's variances pooled over the chunk's trials (see the code's notes).
-
-The gyro rate is averaged over ``RESPONSE_SMOOTH_S`` (a centred, odd-length moving
-average: zero phase) before it is integrated. The raw angle's noise is a random walk, rough
-at the sample scale; shifting it by τ resamples that roughness, so the cost is rough in τ
-and its minimum wanders further than the residuals' curvature says (the error grew faster
-than the noise, and the standard error did not follow). The average makes the angle smooth
-at the scale of τ's uncertainty; over a ramp it offsets the angle by a constant, which the
-increments cancel. See ``RESPONSE_SMOOTH_S`` for the measurements.
+The response delay's fit is in :mod:`._response`.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import uniform_filter1d
 
 __all__ = [
     "LEPSKI_KAPPA",
     "LEPSKI_NOISE_SCALE_S",
     "ONSET_WINDOWS_S",
-    "RESPONSE_SMOOTH_S",
     "ladder_cap",
     "onset_adaptive",
-    "response_increments",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -95,19 +69,6 @@ LEPSKI_KAPPA = 1.0
 #: simulator within ±0.002 ms. s0 = 0.3 ms gained the same at 10x and lost 0.003-0.006 ms
 #: clean; a fixed κ = 2 gained more at 10x (0.87 / 0.78) but cost up to 0.04 ms clean.
 LEPSKI_NOISE_SCALE_S = 0.5e-3
-#: Step halvings of the response fit's line search before a row is taken as converged.
-_LINE_SEARCH_HALVINGS = 6
-#: Half the baseline of the angle's slope in the response's standard error, s.
-_SE_SLOPE_S = 0.002
-#: Width of the moving average of the gyro rate in the response fit, s (97 samples at
-#: 8 kHz). Measured on the independent recordings (benchmarks/bench_extract_robustness.py,
-#: 300 trials each; response RMSE and 95 % coverage of its standard error, without -> with):
-#: UR10 clean 0.051 -> 0.047 ms, 10x noise 0.298 -> 0.149 ms (coverage 78 -> 98 %), 20x
-#: 0.966 -> 0.265 ms (35 -> 94 %); clean UR10e 0.145 -> 0.042 ms. The width: on the UR10e
-#: (2 ms packages) at 10x noise one period (2 ms) gave 0.436 ms, 4 ms 0.254 ms, 12 ms
-#: 0.171 ms (68 / 93 / 99.7 % coverage); 20 ms gained little more and excludes more of each
-#: trial's ends. An even length shifted the estimate by half a sample (63 µs).
-RESPONSE_SMOOTH_S = 0.012
 _SCALE = 0.005  # s: the polynomial's abscissa unit (keeps the normal equations well scaled)
 
 
@@ -322,243 +283,6 @@ def onset_adaptive(
         "slope": sl_all[chosen, r],
         "missing": missing,
     }
-
-
-def response_increments(
-    t_g: FloatArray,
-    y: FloatArray,
-    host: FloatArray,
-    q_rel: FloatArray,
-    dt: FloatArray,
-    tau0: FloatArray,
-    *,
-    smooth_samples: int = 1,
-    iterations: int = 15,
-    max_step_s: float = 0.004,
-) -> tuple[FloatArray, FloatArray]:
-    """Shift τ of the reported positions behind the gyro angle, fitted on increments.
-
-    Parameters
-    ----------
-    t_g : ndarray, shape (n, g)
-        Gyro sample times, s (uniform per row).
-    y : ndarray, shape (n, g)
-        Physical speed along the commanded direction, rad/s.
-    host : ndarray, shape (n, p)
-        Package arrival times, s (NaN: lost or excluded).
-    q_rel : ndarray, shape (n, p)
-        Reported position change along the commanded direction, rad (NaN: lost).
-    dt : ndarray, shape (n,)
-        Each row's sample spacing, s.
-    tau0 : ndarray, shape (n,)
-        Starting shifts, s.
-    smooth_samples : int, default 1
-        Width of the centred moving average applied to ``y`` before it is integrated
-        (odd: zero phase); 1 leaves it as it is. See the module notes.
-
-    Returns
-    -------
-    tau, se : ndarray, shape (n,)
-        Age of the reported state (s) and its standard error (s).
-    """
-    n, g = y.shape
-    d = dt[:, None]
-    if smooth_samples % 2 == 0 or smooth_samples < 1:
-        raise ValueError(f"smooth_samples={smooth_samples} must be odd and >= 1 (zero phase)")
-    if smooth_samples > 1:
-        y = uniform_filter1d(y, smooth_samples, axis=1, mode="nearest")
-    edge = (smooth_samples // 2) * d  # the ends, where the average is padded
-    angle = (
-        np.concatenate([np.zeros((n, 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1)
-        * d
-    )
-    first = t_g[:, :1]
-    ok = np.isfinite(host) & np.isfinite(q_rel)
-    # Pair each valid package with the previous valid one.
-    idx = np.where(ok, np.arange(host.shape[1]), -1)
-    prev = np.maximum.accumulate(np.concatenate([np.full((n, 1), -1), idx[:, :-1]], axis=1), axis=1)
-    use = ok & (prev >= 0)
-    pj = np.clip(prev, 0, None)
-    h = np.where(ok, host, 0.0)
-    h1 = np.where(use, host, 0.0)
-    h0 = np.where(use, np.take_along_axis(host, pj, axis=1), 0.0)
-    dq = np.where(use, q_rel - np.take_along_axis(q_rel, pj, axis=1), 0.0)
-    use &= (h0 > first + 0.03 + edge) & (h1 < t_g[:, -1:] - 0.005 - edge)
-    span = np.where(use, h1 - h0, 1.0)
-    typical = np.nanmedian(np.where(use, span, np.nan), axis=1, keepdims=True)
-    wgt = np.where(use, typical / span, 0.0)
-    wgt = np.nan_to_num(wgt)
-    j_c = h1 - h0
-    tau = np.asarray(tau0, dtype=np.float64).copy()
-    c = np.zeros(n)
-    k = np.ones(n)
-    flat_angle = angle.ravel()
-
-    def at(rows: NDArray[np.intp], x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """The gyro angle at times x of ``rows`` (linear interpolation, the ends held) and
-        its derivative with respect to x (the interpolant's slope; 0 past the ends)."""
-        pos = (x - first[rows]) / d[rows]
-        i0 = np.clip(np.floor(pos).astype(np.int64), 0, g - 2)
-        frac = np.clip(pos - i0, 0.0, 1.0)
-        flat = i0 + (rows * g)[:, None]
-        lo = flat_angle[flat]
-        hi = flat_angle[flat + 1]
-        inside = (pos >= 0.0) & (pos <= g - 1)
-        return lo + frac * (hi - lo), np.where(inside, (hi - lo) / d[rows], 0.0)
-
-    def incr(rows: NDArray[np.intp], x: FloatArray) -> FloatArray:
-        """Increments x_j - x_prev(j) of per-package values of ``rows``."""
-        out: FloatArray = x - np.take_along_axis(x, pj[rows], axis=1)
-        return out
-
-    def residual(
-        rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray
-    ) -> FloatArray:
-        out: FloatArray = dq[rows] - k_r[:, None] * incr(rows, a_all) - c_r[:, None] * j_c[rows]
-        return out
-
-    def cost(
-        rows: NDArray[np.intp], a_all: FloatArray, c_r: FloatArray, k_r: FloatArray
-    ) -> FloatArray:
-        res = residual(rows, a_all, c_r, k_r)
-        out: FloatArray = np.sum(wgt[rows] * res * res, axis=1)
-        return out
-
-    def normal(w_: FloatArray, cols: list[FloatArray]) -> FloatArray:
-        """Σ w·Jᵢ·Jⱼ per row, (rows, p, p), with a relative ridge against round-off."""
-        a = np.stack([np.stack([np.sum(w_ * ci * cj, axis=1) for cj in cols], -1)
-                      for ci in cols], -2)  # fmt: skip
-        diag = np.einsum("nii->ni", a)
-        ridged: FloatArray = a + np.eye(len(cols)) * (1e-12 * diag[:, None, :] + 1e-30)
-        return ridged
-
-    # Gauss-Newton on (τ, c, k) with the exact derivative of the interpolated angle and a
-    # backtracking line search (the interpolant's slope jumps where a package crosses a
-    # sample, so full steps can cycle); the angle at each package's time serves as the
-    # end of one increment and the start of the next. c absorbs a rate offset, k a gain
-    # error of the gyro (the out pulse's gain calibration is ~1 % off where the joint
-    # still creeps in the pause: on the independent KR 5 the residuals were 7x the gyro's
-    # noise, correlated over 2-4 packages). A row stops when its accepted step falls
-    # below 1 ns or no step along its direction lowers the cost.
-    rows = np.arange(n)
-    a_cur, s_cur = at(rows, h - tau[:, None])
-    f_cur = cost(rows, a_cur, c, k)
-    active = rows
-    for _ in range(iterations):
-        if active.size == 0:
-            break
-        r_ = active
-        w_ = wgt[r_]
-        res = residual(r_, a_cur[r_], c[r_], k[r_])
-        cols = [-k[r_, None] * incr(r_, s_cur[r_]), j_c[r_], incr(r_, a_cur[r_])]
-        a = normal(w_, cols)
-        b = np.stack([np.sum(w_ * ci * res, axis=1) for ci in cols], -1)
-        ok_a = np.all(np.isfinite(a), axis=(1, 2)) & (np.abs(np.linalg.det(a)) > 0)
-        delta = np.zeros_like(b)
-        delta[ok_a] = np.linalg.solve(a[ok_a], b[ok_a][..., None])[..., 0]
-        delta[:, 0] = np.clip(delta[:, 0], -max_step_s, max_step_s)
-        step = np.ones(r_.size)
-        pending = np.arange(r_.size)
-        moved = np.zeros(r_.size)
-        for _ in range(_LINE_SEARCH_HALVINGS):
-            rr = r_[pending]
-            tau_try = tau[rr] + step[pending] * delta[pending, 0]
-            c_try = c[rr] + step[pending] * delta[pending, 1]
-            k_try = k[rr] + step[pending] * delta[pending, 2]
-            a_try, s_try = at(rr, h[rr] - tau_try[:, None])
-            f_try = cost(rr, a_try, c_try, k_try)
-            better = f_try <= f_cur[rr]
-            acc = pending[better]
-            ra = rr[better]
-            tau[ra], c[ra], k[ra] = tau_try[better], c_try[better], k_try[better]
-            a_cur[ra], s_cur[ra], f_cur[ra] = a_try[better], s_try[better], f_try[better]
-            moved[acc] = np.abs(step[acc] * delta[acc, 0])
-            pending = pending[~better]
-            if pending.size == 0:
-                break
-            step[pending] *= 0.5
-        active = r_[moved >= 1e-9]
-    res = np.where(use, residual(rows, a_cur, c, k), 0.0)
-    # The standard error with the slope of the angle over ±2 ms as the derivative: the
-    # one-sample slope carries the gyro's white noise, which inflates Σ w·J² (and so
-    # shrinks the error) as the noise grows (95 % coverage at 10x noise: 55 % -> 78 %).
-    ap, _ = at(rows, h - tau[:, None] + _SE_SLOPE_S)
-    am, _ = at(rows, h - tau[:, None] - _SE_SLOPE_S)
-    speed = k[:, None] * (ap - am) / (2 * _SE_SLOPE_S)  # at each package's sample time
-    cols = [np.where(use, -incr(rows, speed), 0.0), np.where(use, j_c, 0.0),
-            np.where(use, incr(rows, a_cur), 0.0)]  # fmt: skip
-    # Two errors reach the increments. The gyro angle's random walk: increments of
-    # variance ∝ their span (the weights), correlated over the moving average's width.
-    # And each package's *timing*: its latency jitter ε shifts its level by v·ε, which
-    # enters two neighbouring increments with opposite signs (E[e_j e_j+1] = -v_j²·σ_ε²).
-    # Counted as independent noise, the second made the standard error 2-9x the error
-    # (clean: 99-100 % coverage on the independent recordings and our simulator). The
-    # first is measured where the joint rests (no level error there: its lag-0..L
-    # covariances γ_l), σ_ε² from the lag-1 covariance in motion beyond γ_1, and the error
-    # of τ is the sandwich A⁻¹ Q A⁻¹ (A = JᵀWJ) of the covariance they give, positive by
-    # construction. (σ_r² as the residual variance beyond the level part took up the
-    # level estimate's error: a 10 % low σ_ε made it 7x the rest increments' variance.)
-    n_use = np.maximum(np.sum(use, axis=1), 1)
-    dof = n_use / np.maximum(n_use - len(cols), 1)
-    v2 = np.where(use, speed, 0.0) ** 2
-    v2_prev = np.where(use, np.take_along_axis(v2, pj, axis=1), 0.0)
-    rest = use & (v2 + v2_prev <= (0.05 * np.max(np.abs(speed), axis=1, keepdims=True)) ** 2)
-    has_rest = np.sum(rest, axis=1) >= 8
-    typical_s = float(np.nanmedian(typical)) if np.isfinite(typical).any() else 1.0
-    lags = int(min(max(math.ceil(smooth_samples * float(np.median(dt)) / typical_s), 1), 16))
-    gamma = np.zeros((n, lags + 1))
-    for lag in range(lags + 1):
-        pair = rest[:, lag:] & rest[:, : rest.shape[1] - lag]
-        prod = np.where(pair, res[:, lag:] * res[:, : res.shape[1] - lag], 0.0)
-        gamma[:, lag] = np.sum(prod, axis=1) / np.maximum(np.sum(pair, axis=1), 1) * dof
-    both = use[:, 1:] & use[:, :-1]
-    lag1 = np.sum(np.where(both, res[:, 1:] * res[:, :-1], 0.0), axis=1)
-    lag1 -= np.where(has_rest, gamma[:, 1], 0.0) * np.sum(both, axis=1)
-    s_e2 = np.maximum(
-        -lag1 / np.maximum(np.sum(np.where(both, v2[:, :-1], 0.0), axis=1), 1e-30), 0.0
-    )
-    # Without 8 increments at rest: σ_r² as the variance beyond the level part, no lags.
-    gamma[~has_rest] = 0.0
-    gamma[~has_rest, 0] = np.maximum(
-        np.sum(wgt * (res * res * dof[:, None] - s_e2[:, None] * (v2 + v2_prev)), axis=1) / n_use,
-        0.0,
-    )[~has_rest]
-    # Both are properties of the sensor and of the network, not of a trial: estimated per
-    # trial from ~35 increments each, they scattered the standard error enough to give
-    # the errors heavy tails (99th percentile of |error / se| 3.0-4.4 instead of 2.6:
-    # 88-93 % coverage); the chunk's median is used, and a trial's own estimate where it
-    # exceeds three times that (a disturbance of that trial: the ratio of two variance
-    # estimates from ~35 increments stays below 2 on 99.9 % of trials).
-    own_g, own_e = gamma[:, 0].copy(), s_e2.copy()
-    if has_rest.any():
-        pooled = np.median(gamma[has_rest], axis=0)
-        gamma = np.where((has_rest & (own_g <= 3.0 * pooled[0]))[:, None], pooled, gamma)
-    s_e2 = np.where(own_e > 3.0 * np.median(own_e), own_e, np.median(own_e))
-    span_rel = np.where(use, 1.0 / np.where(wgt > 0, wgt, 1.0), 0.0)  # span / typical
-    wcols = [wgt * ci for ci in cols]
-    # Level k is the end of increment k and the start of the next: its error enters the
-    # weighted scores as v_k·ε_k·(g_k - g_k+1), g = w·J.
-    dcols = [np.diff(np.pad(x, ((0, 0), (0, 1))), axis=1) for x in wcols]
-
-    def cov(i: int, j: int) -> FloatArray:
-        out: FloatArray = gamma[:, 0] * np.sum(wcols[i] * wcols[j] * span_rel, axis=1)
-        for lag in range(1, lags + 1):
-            a_, b_ = wcols[i], wcols[j]
-            out = out + gamma[:, lag] * np.sum(
-                a_[:, lag:] * b_[:, :-lag] + a_[:, :-lag] * b_[:, lag:], axis=1
-            )
-        out = out + s_e2 * np.sum(v2 * dcols[i] * dcols[j], axis=1)
-        return out
-
-    q = np.stack([np.stack([cov(i, j) for j in range(len(cols))], -1)
-                  for i in range(len(cols))], -2)  # fmt: skip
-    a = normal(wgt, cols)
-    ok_a = np.all(np.isfinite(a), axis=(1, 2)) & (np.abs(np.linalg.det(a)) > 0)
-    se = np.full(n, np.nan)
-    if ok_a.any():
-        a_inv = np.linalg.inv(a[ok_a])
-        se[ok_a] = np.sqrt(np.einsum("ni,nij,nj->n", a_inv[:, 0], q[ok_a], a_inv[:, 0]))
-    return tau, se
 
 
 def _row_nanmedian(x: FloatArray) -> FloatArray:

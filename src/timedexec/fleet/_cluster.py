@@ -17,7 +17,14 @@ from typing import Any
 from timedexec._version import __version__
 from timedexec.errors import ConfigError
 
-__all__ = ["INSTALL_HINT", "SCHEDULER_ENV", "connect", "on_cluster", "require_dask"]
+__all__ = [
+    "INSTALL_HINT",
+    "SCHEDULER_ENV",
+    "connect",
+    "on_cluster",
+    "parse_scheduler_address",
+    "require_dask",
+]
 
 #: Environment variable holding the scheduler address when ``--scheduler`` is not given.
 SCHEDULER_ENV = "TIMEDEXEC_SCHEDULER"
@@ -60,6 +67,122 @@ def _worker_versions() -> dict[str, str]:
     }
 
 
+#: Address schemes a Dask scheduler listens on that this machine can reach.
+_SCHEMES = ("tcp", "tls")
+_ADDRESS_HELP = "give HOST:PORT or tcp://HOST:PORT (e.g. tcp://10.0.0.5:8786)"
+
+
+def parse_scheduler_address(address: str) -> tuple[str, int]:
+    """``(host, port)`` of a scheduler address ``[tcp://|tls://]HOST:PORT``.
+
+    Raises
+    ------
+    ConfigError
+        An empty or malformed address, another scheme, or a port outside 1 .. 65535; the
+        message names the address and the form expected.
+    """
+    from urllib.parse import urlsplit
+
+    text = address.strip()
+    if not text:
+        raise ConfigError(f"the scheduler address is empty; {_ADDRESS_HELP}")
+    scheme = text.split("://", 1)[0].lower() if "://" in text else "tcp"
+    if scheme not in _SCHEMES:
+        raise ConfigError(
+            f"scheduler address {address!r}: scheme {scheme!r} is not one of "
+            f"{', '.join(_SCHEMES)}; {_ADDRESS_HELP}"
+        )
+    try:
+        parts = urlsplit(text if "://" in text else f"tcp://{text}")
+        host, port = parts.hostname, parts.port
+    except ValueError as exc:
+        raise ConfigError(
+            f"scheduler address {address!r} is malformed ({exc}); {_ADDRESS_HELP}"
+        ) from None
+    if not host or port is None or parts.path not in ("", "/") or parts.query:
+        raise ConfigError(f"scheduler address {address!r} is malformed; {_ADDRESS_HELP}")
+    if not 1 <= port <= 65535:
+        raise ConfigError(
+            f"scheduler address {address!r}: port {port} is out of range; use 1 .. 65535"
+        )
+    return host, port
+
+
+def _reach(address: str, host: str, port: int, timeout_s: float) -> None:
+    """A TCP connection to the scheduler's port within ``timeout_s`` (no Dask yet), so a
+    host that is down or a closed port is said plainly and at once."""
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise ConnectionError(
+            f"cannot reach the Dask scheduler at {address} within {timeout_s:g} s "
+            f"({exc.strerror or exc}); start one (`dask scheduler`, then `dask worker "
+            "ADDRESS` on each machine) or run without --scheduler on this machine"
+        ) from None
+
+
+def _is_scheduler(distributed: Any, address: str, timeout_s: float) -> None:
+    """Ask the peer at ``address`` who it is (Dask's ``identity`` call), all of it bounded
+    by ``timeout_s``, before a ``distributed.Client`` is made.
+
+    A ``Client`` made against a peer that accepts and never speaks waited far past its own
+    timeout, and one made against a peer that speaks another protocol failed after 20 s
+    and left a client whose clean-up took 20 s more at exit. The question runs in a helper
+    thread with its own event loop, so the main thread stays interruptible (Ctrl-C exits
+    130 at once).
+
+    Raises
+    ------
+    ConnectionError
+        No answer within ``timeout_s``, an answer that is not Dask's, or not a scheduler's.
+    """
+    import asyncio
+    import threading
+
+    box: dict[str, Any] = {}
+
+    async def ask() -> Any:
+        comm = await asyncio.wait_for(
+            distributed.comm.connect(address, timeout=timeout_s), timeout_s
+        )
+        try:
+            await asyncio.wait_for(comm.write({"op": "identity", "reply": True}), timeout_s)
+            return await asyncio.wait_for(comm.read(), timeout_s)
+        finally:
+            comm.abort()
+
+    def run() -> None:
+        try:
+            box["reply"] = asyncio.run(asyncio.wait_for(ask(), timeout_s))
+        except BaseException as exc:  # reported by the waiting thread
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="timedexec-dask-identity", daemon=True)
+    thread.start()
+    thread.join(timeout_s + 1.0)
+    error = box.get("error")
+    if thread.is_alive() or isinstance(error, asyncio.TimeoutError | TimeoutError):
+        raise ConnectionError(
+            f"the peer at {address} accepted the connection but did not answer as a Dask "
+            f"scheduler within {timeout_s:g} s; check the address and port (a Dask "
+            "scheduler listens on 8786 by default) or run without --scheduler"
+        )
+    reply = box.get("reply")
+    if error is not None or not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        what = (
+            f"{type(error).__name__}: {str(error)[:120]}"
+            if error is not None
+            else f"it answered {str(reply)[:120]!r}"
+        )
+        raise ConnectionError(
+            f"the peer at {address} is not a Dask scheduler ({what}); check the address "
+            "and port, or run without --scheduler"
+        )
+
+
 def connect(
     address: str,
     *,
@@ -85,24 +208,25 @@ def connect(
     Raises
     ------
     ConfigError
-        dask.distributed missing, an empty address, or workers whose timedexec is missing
-        or of another version (results would not be the local run's).
+        dask.distributed missing, an empty or malformed address
+        (:func:`parse_scheduler_address`), or workers whose timedexec is missing or of
+        another version (results would not be the local run's).
     ConnectionError
-        The scheduler does not answer, or has no worker within ``worker_timeout_s``.
+        The scheduler's port cannot be reached, the peer does not answer as a Dask
+        scheduler, within ``timeout_s`` (whatever it does: silent, garbage), or it has no
+        worker within ``worker_timeout_s``.
     """
     distributed = require_dask()
     address = address.strip()
-    if not address:
-        raise ConfigError(
-            "the scheduler address is empty; give HOST:PORT (e.g. tcp://10.0.0.5:8786)"
-        )
+    host, port = parse_scheduler_address(address)
+    _reach(address, host, port, timeout_s)
+    _is_scheduler(distributed, address, timeout_s)
     try:
         client = distributed.Client(address, timeout=f"{timeout_s}s", set_as_default=False)
     except (OSError, TimeoutError) as exc:
         raise ConnectionError(
-            f"cannot reach the Dask scheduler at {address} within {timeout_s:g} s ({exc}); "
-            "start one (`dask scheduler`, then `dask worker ADDRESS` on each machine) or "
-            "run without --scheduler on this machine"
+            f"cannot connect to the Dask scheduler at {address} within {timeout_s:g} s "
+            f"({exc}); run without --scheduler on this machine"
         ) from exc
     try:
         try:
@@ -149,7 +273,7 @@ def on_cluster(address: str | None) -> Iterator[Any]:
     if address is None:
         yield None
         return
-    client = connect(address)
+    client = connect(address, timeout_s=CONNECT_TIMEOUT_S, worker_timeout_s=WORKER_TIMEOUT_S)
     try:
         import joblib
 

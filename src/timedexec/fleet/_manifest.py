@@ -29,8 +29,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import urlsplit
 
+from timedexec.drivers import SCHEMES, RobotURL
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.robots import ROBOT_NAMES
 
@@ -39,10 +40,6 @@ __all__ = ["MANIFEST_COLUMNS", "FleetManifest", "RobotEntry", "SimSource", "read
 #: The manifest's columns, in order; ``deployed`` may be left out.
 MANIFEST_COLUMNS = ("name", "robot", "source", "deployed")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
-#: Query keys of a ``sim://`` source and their defaults.
-_SIM_KEYS = {"trials": None, "seed": "0", "repeats": "10", "effects": "default"}
-#: Schemes of live robots: a cluster worker is not on the robot's network.
-_LIVE_SCHEMES = ("ur", "rsi")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -147,18 +144,9 @@ class FleetManifest:
         return tuple(e.name for e in self.entries)
 
 
-def _int_value(text: str, key: str, low: int, where: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise ConfigError(f"{where}: {key}={text!r} is not an integer") from None
-    if value < low:
-        raise ConfigError(f"{where}: {key}={value} must be >= {low}")
-    return value
-
-
 def parse_sim_source(url: str, robot: str, where: str = "sim source") -> SimSource:
-    """Parse ``sim://ROBOT?trials=N[&seed=S][&repeats=R][&effects=E]``.
+    """Parse ``sim://ROBOT?trials=N[&seed=S][&repeats=R][&effects=E]`` (the sweep form of
+    the robot URL grammar, :meth:`timedexec.drivers.RobotURL.parse`).
 
     Raises
     ------
@@ -168,36 +156,23 @@ def parse_sim_source(url: str, robot: str, where: str = "sim source") -> SimSour
     """
     from timedexec.effects import parse_effects
 
-    parts = urlsplit(url)
-    host = parts.netloc.lower()
-    if host and host != robot:
+    try:
+        parsed = RobotURL.parse(url, sweep=True)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    if parsed.robot is not None and parsed.robot != robot:
         raise ConfigError(
-            f"{where}: {url!r} simulates {host!r} but the robot column says {robot!r}; "
+            f"{where}: {url!r} simulates {parsed.robot!r} but the robot column says {robot!r}; "
             "make them agree"
         )
-    if parts.path not in ("", "/") or parts.fragment:
-        raise ConfigError(f"{where}: {url!r} has a path or fragment; write sim://{robot}?trials=N")
-    pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False)
-    seen: dict[str, str] = {}
-    for key, value in pairs:
-        if key not in _SIM_KEYS:
-            raise ConfigError(
-                f"{where}: unknown key {key!r} in {url!r}; a sim source takes "
-                f"{', '.join(_SIM_KEYS)} (e.g. sim://{robot}?trials=2000&seed=1)"
-            )
-        if key in seen:
-            raise ConfigError(f"{where}: {key!r} is given twice in {url!r}")
-        seen[key] = value
-    if "trials" not in seen:
-        raise ConfigError(f"{where}: {url!r} needs trials=N (e.g. sim://{robot}?trials=2000)")
-    values = {**{k: v for k, v in _SIM_KEYS.items() if v is not None}, **seen}
-    effects = values["effects"].strip() or "default"
+    options = parsed.options
+    effects = options.get("effects") or "default"
     parse_effects(effects, robot)  # unknown names: ConfigError listing the vocabulary
     return SimSource(
         robot=robot,
-        trials=_int_value(values["trials"], "trials", 1, where),
-        seed=_int_value(values["seed"], "seed", 0, where),
-        repeats=_int_value(values["repeats"], "repeats", 2, where),
+        trials=options["trials"],
+        seed=options.get("seed", 0),
+        repeats=options.get("repeats", 10),
         effects=effects,
     )
 
@@ -206,7 +181,7 @@ def _resolve_recording(source: str, base: Path, where: str) -> str:
     """An absolute path (a local file, or a ``file://`` URL) or the fsspec URL as written."""
     parts = urlsplit(source)
     scheme = parts.scheme.lower()
-    if scheme in _LIVE_SCHEMES:
+    if scheme in SCHEMES:  # a live robot (sim:// sources never come here)
         raise ConfigError(
             f"{where}: {source!r} is a live robot; the fleet does not calibrate live robots "
             "(a cluster worker is not on the robot's network): record the sweep at the cell "

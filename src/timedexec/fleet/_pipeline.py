@@ -36,6 +36,7 @@ from timedexec._files import make_dir, write_atomic
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
 from timedexec.fleet._drift import drift_check
 from timedexec.fleet._manifest import RobotEntry
+from timedexec.learning import DEFAULT_METHODS
 
 __all__ = ["STAGES", "FleetSettings", "RobotResult", "run_robot"]
 
@@ -51,7 +52,8 @@ class FleetSettings:
     Attributes
     ----------
     methods : tuple of str
-        Delay models to cross-validate and train (any of median, nn, rt, gpr).
+        Delay models to cross-validate and train: registered methods
+        (:data:`timedexec.learning.METHODS`); default the paper's four.
     folds : int
         Cross-validation folds (>= 2), split by start configuration.
     seed : int
@@ -70,7 +72,7 @@ class FleetSettings:
         False-alarm probability of the drift check per robot.
     """
 
-    methods: tuple[str, ...] = ("median", "nn", "rt", "gpr")
+    methods: tuple[str, ...] = DEFAULT_METHODS
     folds: int = 10
     seed: int = 0
     extract_method: str = "fit"
@@ -471,6 +473,11 @@ def run_robot(
                 table, period_s, summary["extraction"] = _extract(
                     recording, entry, settings, folder
                 )
+            # The drift check comes before anything is trained or saved: the deployed
+            # bundle may be the one this run would replace (`--out` reused).
+            stage = "drift"
+            with _meter(costs, "drift"):
+                drift = _drift(table, entry, settings, folder)
             stage = "train"
             with _meter(costs, "train"):
                 model, summary["training"] = _train(table, period_s, entry, settings, folder)
@@ -478,9 +485,6 @@ def run_robot(
                 stage = "evaluate"
                 with _meter(costs, "evaluate"):
                     summary["evaluation"] = _evaluate(model, entry, settings, folder)
-            stage = "drift"
-            with _meter(costs, "drift"):
-                drift = _drift(table, entry, settings, folder)
         except Exception as exc:  # a robot's failure is reported, never raised
             failed = (stage, _error_line(exc))
             if not isinstance(exc, TimedExecError | OSError):
@@ -550,10 +554,33 @@ def _train(
         source_sha256=digest,
     )
     model = result.model
+    kept = _keep_deployed(entry, folder / "model")
     model.save(folder / "model")
     assert result.cv is not None
     write_atomic(folder / "model" / "cv.json", json.dumps(result.cv.to_dict(), indent=2) + "\n")
-    return model, _training_summary(result.cv)
+    training = _training_summary(result.cv)
+    training["bundle"] = f"robots/{entry.name}/model"
+    if kept is not None:
+        training["deployed_kept_as"] = f"robots/{entry.name}/{kept.name}"
+    return model, training
+
+
+def _keep_deployed(entry: RobotEntry, target: Path) -> Path | None:
+    """Move the deployed bundle out of the way when it is the folder a new model would be
+    saved into (a fleet run whose ``--out`` holds the bundle the robot runs): it becomes
+    ``model.vN`` (the next free N) and is returned. Anything else at ``target`` is this
+    run's own earlier output and is replaced, as before.
+    """
+    if entry.deployed is None or not target.exists() or not os.path.isdir(entry.deployed):
+        return None
+    if not os.path.samefile(entry.deployed, target):
+        return None
+    n = 1
+    while (target.parent / f"{target.name}.v{n}").exists():
+        n += 1
+    kept = target.parent / f"{target.name}.v{n}"
+    os.rename(target, kept)
+    return kept
 
 
 def _evaluate(

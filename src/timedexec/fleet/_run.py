@@ -99,6 +99,13 @@ class FleetResult:
                 lines.append(
                     f"  {r.name:<14} {r.entry.robot:<6} FAILED ({r.failed_stage}): {r.error}"
                 )
+            kept = r.summary.get("training", {}).get("deployed_kept_as")
+            if kept:
+                lines.append(
+                    f"  {'':<14} the deployed model was this run's --out folder: kept as "
+                    f"{kept} (still in force until you deploy the new "
+                    f"{r.summary['training']['bundle']})"
+                )
         for name in self.needs_recalibration:
             reason = next(r for r in self.robots if r.name == name).summary["decision"]["reason"]
             lines.append(f"needs a new calibration: {name}: {reason}")

@@ -25,7 +25,7 @@ import math
 import os
 import zipfile
 import zlib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -35,10 +35,11 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec._files import make_dir, write_atomic
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError
-from timedexec.learning._calibrate import STD_SCALE_RULE
+from timedexec.learning._calibrate import CALIBRATED_METHOD, STD_SCALE_RULE
 from timedexec.learning._features import encode_inputs, feature_names
-from timedexec.learning._forward import nn_forward, tree_predict
-from timedexec.learning._gpcore import GPPairPredictor, GPPredictor, predictor_from_arrays
+from timedexec.learning._gpcore import GPPredictor
+from timedexec.learning._method import DelayMethod, ModelInputs, Predictor
+from timedexec.learning._registry import METHODS, get_method
 from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
 from timedexec.learning._threads import BLAS_PIN, BlasPin
 
@@ -51,7 +52,6 @@ BUNDLE_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 ARRAYS_NAME = "arrays.npz"
 _DELAYS = ("actuation_delay", "response_delay")
-_METHODS = ("median", "nn", "rt", "gpr")
 
 
 class DelayPrediction(NamedTuple):
@@ -90,55 +90,6 @@ class DelayPrediction(NamedTuple):
             k: (v.tolist() if isinstance(v, np.ndarray) else float(v))
             for k, v in self._asdict().items()
         }
-
-
-# ------------------------------------------------------------- predictors
-
-
-class _MeanModel:
-    """A non-GP model: mean from its arrays, a constant trial std."""
-
-    def __init__(self, mean: Callable[[FloatArray], FloatArray], std_s: float) -> None:
-        self.mean = mean
-        self.std_s = std_s
-
-
-def _nn_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
-    active = a["active"].astype(bool)
-    x_mean, x_scale = a["x_mean"], a["x_scale"]
-    W1, b1, W2 = a["W1"], a["b1"], a["W2"]
-    b2, y_mean, y_std = (float(v) for v in a["scalars"])
-
-    def mean(X: FloatArray) -> FloatArray:
-        Xs = ((X - x_mean) / x_scale)[:, active]
-        return y_mean + y_std * nn_forward(Xs, W1, b1, W2, b2)
-
-    return mean
-
-
-def _rt_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
-    active = a["active"].astype(bool)
-    x_mean, x_scale = a["x_mean"], a["x_scale"]
-    y_mean, y_std = (float(v) for v in a["scalars"])
-    parts = (a["feature"], a["threshold"], a["left"], a["right"], a["coef"])
-
-    def mean(X: FloatArray) -> FloatArray:
-        Xs = ((X - x_mean) / x_scale)[:, active]
-        return y_mean + y_std * tree_predict(Xs, *parts)
-
-    return mean
-
-
-def _median_mean(a: Mapping[str, NDArray[Any]]) -> Callable[[FloatArray], FloatArray]:
-    value = float(a["scalars"][0])
-
-    def mean(X: FloatArray) -> FloatArray:
-        return np.full(len(X), value)
-
-    return mean
-
-
-_MEAN_BUILDERS = {"nn": _nn_mean, "rt": _rt_mean, "median": _median_mean}
 
 
 # ------------------------------------------------------------------ files
@@ -188,106 +139,30 @@ def _inside_bundle(manifest_path: Path, name: Any) -> Path:
     return path
 
 
-#: Per method: (array, expected shape) with "f" the input features, "a" the active ones,
-#: "n" the GP's conditions, "h" the hidden units, "m" the tree's nodes; "*" any length.
-_SHAPES: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
-    "gpr": (
-        ("X_train", ("n", "f")),
-        ("y_train", ("n",)),
-        ("counts", ("n",)),
-        ("x_mean", ("f",)),
-        ("x_scale", ("f",)),
-        ("length_scale", ("f",)),
-        ("scalars", ("4",)),
-    ),
-    "nn": (
-        ("active", ("f",)),
-        ("x_mean", ("f",)),
-        ("x_scale", ("f",)),
-        ("W1", ("h", "a")),
-        ("b1", ("h",)),
-        ("W2", ("h",)),
-        ("scalars", ("3",)),
-    ),
-    "rt": (
-        ("active", ("f",)),
-        ("x_mean", ("f",)),
-        ("x_scale", ("f",)),
-        ("feature", ("m",)),
-        ("threshold", ("m",)),
-        ("left", ("m",)),
-        ("right", ("m",)),
-        ("coef", ("m", "a+1")),
-        ("scalars", ("2",)),
-    ),
-    "median": (("scalars", ("1",)),),
-}
-
-
-def _check_group(group: Mapping[str, NDArray[Any]], method: str, features: int | None) -> str:
-    """'' if the arrays of one model are consistent, else what is wrong."""
-    sizes: dict[str, int] = {}
-    if features is not None:
-        sizes["f"] = features
-    if "active" in group and group["active"].ndim == 1:
-        sizes["a"] = int(np.count_nonzero(group["active"]))
-    for name, dims in _SHAPES[method]:
-        arr = group.get(name)
-        if arr is None:
-            return f"array {name!r} is missing"
-        if arr.dtype.kind not in "biuf":
-            return f"array {name!r} holds {arr.dtype} values, not numbers"
-        if arr.ndim != len(dims):
-            return f"array {name!r} has shape {arr.shape}, expected {len(dims)} dimension(s)"
-        for axis, dim in enumerate(dims):
-            if dim.isdigit():
-                want: int | None = int(dim)
-            elif dim == "a+1":
-                want = sizes["a"] + 1 if "a" in sizes else None
-            else:
-                want = sizes.setdefault(dim, arr.shape[axis])
-            if want is not None and arr.shape[axis] != want:
-                return f"array {name!r} has shape {arr.shape}; axis {axis} should be {want}"
-        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-            return f"array {name!r} holds NaN or infinite values"
-    if sizes.get("n", 1) < 1 or sizes.get("m", 1) < 1 or sizes.get("h", 1) < 1:
-        return "a model array is empty"
-    if method == "rt":
-        m = sizes["m"]
-        inner = group["feature"] >= 0
-        children = np.concatenate([group["left"][inner], group["right"][inner]])
-        if np.any(group["feature"][inner] >= sizes.get("a", 0)) or np.any(
-            (children < 0) | (children >= m)
-        ):
-            return "the tree's node indices point outside its arrays"
-    return ""
-
-
 def _check_arrays(model: DelayModel, arrays_path: Path) -> None:
     """Refuse a bundle whose arrays do not fit together (truncated or tampered arrays that
-    kept a matching hash), before any prediction could fail or mislead.
+    kept a matching hash), before any prediction could fail or mislead: each model's arrays
+    against what its method declares (:meth:`DelayMethod.check_arrays`).
 
     Raises
     ------
     ModelError
-        Naming the model (method, delay, model key), the array and what is wrong.
+        Naming the model (method, delay, model key), the array and what is wrong; or a
+        method this timedexec does not know.
     """
-    order = model.manifest.get("feature_order") or {}
-    for method in model.methods:
-        if method not in _SHAPES:
+    for name in model.methods:
+        if name not in METHODS:
             raise ModelError(
-                f"{arrays_path}: unknown method {method!r} in the manifest; this timedexec "
-                f"knows {', '.join(_SHAPES)}"
+                f"{arrays_path}: unknown method {name!r} in the manifest; this timedexec "
+                f"knows {', '.join(METHODS)}"
             )
+        method = get_method(name)
         for delay in _DELAYS:
             for key in model.keys:
-                names = order.get("combined" if key == "combined" else "per_joint")
-                features = len(names) if isinstance(names, list) else None
-                group = model._group(method, delay, key)
-                problem = _check_group(group, method, features)
+                problem = method.check_arrays(model._group(name, delay, key), model._inputs(key))
                 if problem:
                     raise ModelError(
-                        f"{arrays_path}: the {method} model of the {delay} ({key}) is corrupt: "
+                        f"{arrays_path}: the {name} model of the {delay} ({key}) is corrupt: "
                         f"{problem}; the arrays are truncated or were altered — retrain or "
                         "restore the bundle"
                     )
@@ -303,6 +178,25 @@ def _robot_of(robot: Any) -> tuple[str | None, float | None]:
     if not isinstance(name, str):
         raise ConfigError(f"robot must be a name or a RobotSpec, got {robot!r}")
     return name, float(period) if period is not None else None
+
+
+def _default_method(methods: Sequence[str], cv: Mapping[str, Any] | None) -> str:
+    """The method a bundle answers with when none is named: the GP where it has one (its
+    variance is what timing bounds are made of), else the method with the least CV error
+    of the actuation delay (averaged over the columns), else the first it holds."""
+    if CALIBRATED_METHOD in methods:
+        return CALIBRATED_METHOD
+    if cv is not None:
+        scores = cv.get("actuation_delay", {})
+
+        def error(method: str) -> float:
+            value = scores.get(method, {}).get("average", math.inf)
+            return float(value) if math.isfinite(float(value)) else math.inf
+
+        best = min(methods, key=error)
+        if math.isfinite(error(best)):
+            return best
+    return methods[0]
 
 
 def _read_std_scale(raw: Any, keys: Sequence[str]) -> dict[str, dict[str, float]]:
@@ -368,15 +262,14 @@ class DelayModel:
         self.time_input: bool = bool(manifest.get("time_input", False))
         default = manifest.get("time_default_s")
         self.time_default_s: float | None = None if default is None else float(default)
-        self._gp: dict[tuple[str, str], GPPredictor] = {}
-        self._other: dict[tuple[str, str, str], _MeanModel] = {}
-        self._fast: dict[
-            tuple[int, bool],
-            tuple[GPPredictor, GPPredictor, GPPairPredictor | None, float, float],
-        ] = {}
+        self._predictors: dict[tuple[str, str, str], Any] = {}  # (method, delay, key)
+        self._mean_std: dict[tuple[str, str, str], float] = {}
+        # (method, joint, combined) -> (act, resp, fused pair or None, c_act², c_resp²)
+        self._fast: dict[tuple[str, int, bool], tuple[Any, Any, Any, float, float]] = {}
         self.std_scale: dict[str, dict[str, float]] = _read_std_scale(
             manifest.get("std_scale"), self.keys
         )
+        self.default_method: str = _default_method(self.methods, self.cv_scores_ms)
 
     # ---------------------------------------------------------- building
     @classmethod
@@ -449,12 +342,12 @@ class DelayModel:
             "package_version": __version__,
         }
         scale = getattr(cv, "std_scale", None) if cv is not None else None
-        if scale and "gpr" in methods:
+        if scale and CALIBRATED_METHOD in methods:
             manifest["std_scale"] = {
                 d: {k: float(v) for k, v in by_key.items()} for d, by_key in scale.items()
             }
             manifest["std_calibration"] = {
-                "method": "gpr",
+                "method": CALIBRATED_METHOD,
                 "applies_to": "actuation_std, response_std (latent std: sqrt(std^2 - noise^2))",
                 "rule": STD_SCALE_RULE,
                 "folds": cv.folds,
@@ -493,7 +386,7 @@ class DelayModel:
         ----------
         path : path or str
             Bundle directory, or its ``manifest.json``, or the name of a shipped model
-            (``"ur10-sim"``, ``"ur10e-sim"``, ``"kr5-sim"``; see ``models/README.md``).
+            (:data:`~timedexec.learning.BUNDLED_MODELS`; see ``models/README.md``).
         robot : str or RobotSpec, optional
             Refuse a bundle trained for another robot. A RobotSpec also fixes the period.
         period_s : float, optional
@@ -618,31 +511,36 @@ class DelayModel:
             raise ModelError(f"the bundle holds no {method} model of {delay} for model {key!r}")
         return out
 
-    def _gp_predictor(self, delay: str, key: str) -> GPPredictor:
-        pred = self._gp.get((delay, key))
+    def _inputs(self, key: str) -> ModelInputs:
+        return ModelInputs.of(self.robot, key, self.joints, self.time_input)
+
+    def _predictor(self, method: str, delay: str, key: str) -> Predictor:
+        """The deployed predictor of one model, built from its arrays on first use."""
+        pred = self._predictors.get((method, delay, key))
         if pred is None:
-            pred = predictor_from_arrays(self._group("gpr", delay, key))
-            self._gp[(delay, key)] = pred
+            group = self._group(method, delay, key)
+            pred = get_method(method).predictor(group, self._inputs(key))
+            self._predictors[(method, delay, key)] = pred
         return pred
 
-    def _mean_model(self, method: str, delay: str, key: str) -> _MeanModel:
-        mm = self._other.get((method, delay, key))
-        if mm is None:
-            mean = _MEAN_BUILDERS[method](self._group(method, delay, key))
+    def _trial_std(self, method: str, delay: str, key: str) -> float:
+        """A method without a variance: its CV RMS error (else its training RMS error), s."""
+        std_s = self._mean_std.get((method, delay, key))
+        if std_s is None:
             cv = self.cv_scores_ms
             if cv is not None and not math.isnan(cv[delay][method][key]):
                 std_s = cv[delay][method][key] * 1e-3
             else:
                 std_s = self.manifest["model_info"][method][delay][key]["train_rmse_ms"] * 1e-3
-            mm = _MeanModel(mean, std_s)
-            self._other[(method, delay, key)] = mm
-        return mm
+            self._mean_std[(method, delay, key)] = std_s
+        return std_s
 
-    def _check_method(self, method: str) -> None:
+    def _method(self, method: str) -> DelayMethod:
         if method not in self.methods:
             raise ModelError(
                 f"method {method!r} is not in this bundle; it holds {', '.join(self.methods)}"
             )
+        return get_method(method)
 
     def predict(
         self,
@@ -651,7 +549,7 @@ class DelayModel:
         direction: int,
         q: ArrayLike,
         t_s: float | None = None,
-        method: str = "gpr",
+        method: str | None = None,
         combined: bool = False,
     ) -> DelayPrediction:
         """Delays of one single-joint command: means and standard deviations, s.
@@ -668,8 +566,10 @@ class DelayModel:
             Bundles with a time input (``time_input`` in the manifest): time since the robot
             started working, s, on the calibration sweep's clock; default the end of the
             sweep (warm). Refused for bundles without a time input.
-        method : str
-            "gpr" (default), "nn", "rt" or "median".
+        method : str, optional
+            One of the bundle's methods (``methods``): "gpr", "nn", "rt", "median", ...
+            (:data:`~timedexec.learning.METHODS`); default :attr:`default_method` (the GP
+            where the bundle has one).
         combined : bool
             Use the combined model instead of the joint's own.
 
@@ -678,18 +578,20 @@ class DelayModel:
         DelayPrediction
             Floats in s.
         """
-        if method == "gpr":
-            fast = self._fast.get((joint, combined))
-            if fast is None:
-                self._check_method("gpr")
-                key = self._key(joint, combined)
-                act = self._gp_predictor("actuation_delay", key)
-                resp = self._gp_predictor("response_delay", key)
-                pair = GPPairPredictor.from_pair(act, resp)
-                ca = self._scale("actuation_delay", key)
-                cr = self._scale("response_delay", key)
-                fast = (act, resp, pair, ca * ca, cr * cr)
-                self._fast[(joint, combined)] = fast
+        if method is None:
+            method = self.default_method
+        fast = self._fast.get((method, joint, combined))
+        if fast is None and (spec := self._method(method)).variance:
+            # a method with a variance: its predictors (fused where it can), cached
+            key = self._key(joint, combined)
+            act = self._predictor(method, "actuation_delay", key)
+            resp = self._predictor(method, "response_delay", key)
+            pair = spec.pair(act, resp) if spec.pair is not None else None
+            ca = self._scale(method, "actuation_delay", key)
+            cr = self._scale(method, "response_delay", key)
+            fast = (act, resp, pair, ca * ca, cr * cr)
+            self._fast[(method, joint, combined)] = fast
+        if fast is not None:
             x = self._encode_one(joint, direction, q, combined, t_s)
             act, resp, pair, ca2, cr2 = fast
             BLAS_PIN.enter()
@@ -784,7 +686,7 @@ class DelayModel:
         q: ArrayLike,
         *,
         t_s: ArrayLike | None = None,
-        method: str = "gpr",
+        method: str | None = None,
         combined: bool = False,
     ) -> DelayPrediction:
         """Vectorised :meth:`predict`: joints, directions (and times) scalars or (n,), q (n, 6).
@@ -794,7 +696,9 @@ class DelayModel:
         DelayPrediction
             Arrays of shape (n,), s.
         """
-        self._check_method(method)
+        if method is None:
+            method = self.default_method
+        self._method(method)
         qa = np.asarray(q, dtype=float)
         if qa.ndim != 2 or qa.shape[1] != 6:
             raise ConfigError(f"q must have shape (n, 6) (rad), got {qa.shape}")
@@ -828,18 +732,16 @@ class DelayModel:
                 X = encode_inputs(qa[rows], dirs[rows], t_h=t_rows)
             for delay in _DELAYS:
                 short = delay.split("_")[0]
-                if method == "gpr":
-                    pred = self._gp_predictor(delay, key)
-                    mean, var = pred.predict(X)
-                    c2 = self._scale(delay, key) ** 2
-                    noise = pred.noise_var_s2
-                    out[f"{short}_mean"][rows] = mean
+                pred = self._predictor(method, delay, key)
+                mean, var = pred.predict(X)
+                out[f"{short}_mean"][rows] = mean
+                if var is not None:
+                    c2 = self._scale(method, delay, key) ** 2
+                    noise = pred.noise_var_s2  # type: ignore[attr-defined]
                     out[f"{short}_std"][rows] = np.sqrt(c2 * (var + noise))
                     out[f"{short}_latent_std"][rows] = np.sqrt(c2 * var + (c2 - 1.0) * noise)
                 else:
-                    mm = self._mean_model(method, delay, key)
-                    out[f"{short}_mean"][rows] = mm.mean(X)
-                    out[f"{short}_std"][rows] = mm.std_s
+                    out[f"{short}_std"][rows] = self._trial_std(method, delay, key)
         return DelayPrediction(**out)
 
     def gp_predictor(self, delay: str, joint: int | None = None) -> GPPredictor:
@@ -850,7 +752,7 @@ class DelayModel:
         :meth:`gp_std_scale` of the same delay and model.
         """
         key = "combined" if joint is None else self._key(joint, False)
-        return self._gp_predictor(delay, key)
+        return self._predictor("gpr", delay, key)  # type: ignore[return-value]
 
     def gp_std_scale(self, delay: str, joint: int | None = None) -> float:
         """Calibration factor (>= 1) of the GP's trial std for ``delay`` and ``joint``.
@@ -861,9 +763,13 @@ class DelayModel:
         if delay not in _DELAYS:
             raise ConfigError(f"delay {delay!r} must be one of {', '.join(_DELAYS)}")
         key = "combined" if joint is None else self._key(joint, False)
-        return self._scale(delay, key)
+        return self._scale(CALIBRATED_METHOD, delay, key)
 
-    def _scale(self, delay: str, key: str) -> float:
+    def _scale(self, method: str, delay: str, key: str) -> float:
+        """The calibration factor of ``method``'s std (1.0: none; only the GP has one)."""
+        calibration = self.manifest.get("std_calibration") or {}
+        if method != calibration.get("method", CALIBRATED_METHOD):
+            return 1.0
         return self.std_scale.get(delay, {}).get(key, 1.0)
 
     def __repr__(self) -> str:

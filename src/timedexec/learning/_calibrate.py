@@ -39,8 +39,12 @@ from statistics import NormalDist
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["gaussian_coverage", "std_scale_factor"]
+__all__ = ["CALIBRATED_METHOD", "gaussian_coverage", "std_scale_factor"]
 
+#: The method whose std training calibrates: the GP, whose std the executor's timing bounds
+#: use. A bundle's ``std_scale`` holds its factors (``std_calibration.method`` names it);
+#: other methods with a variance report their own predictive std.
+CALIBRATED_METHOD = "gpr"
 #: The rule's name, stored in bundle manifests beside the factors.
 STD_SCALE_RULE = "max(1, sqrt(mean(z^2))), z = held-out (y - mean) / std over the CV folds"
 

@@ -1,25 +1,32 @@
-"""DelayGP: a Gaussian process on replicate-collapsed delays, exact or FITC, with mean and std."""
+"""The "gpr" method: a Gaussian process on replicate-collapsed delays, exact or FITC, mean and std."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import minimize
-from sklearn.base import BaseEstimator, RegressorMixin
 
 from timedexec.errors import ConfigError
+from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates, standardise
-from timedexec.learning._gpcore import GPPredictor, build_predictor, neg_log_likelihood
+from timedexec.learning._gpcore import (
+    GPPairPredictor,
+    GPPredictor,
+    build_predictor,
+    neg_log_likelihood,
+    predictor_from_arrays,
+)
+from timedexec.learning._method import DelayMethod, ModelInputs
 from timedexec.learning._threads import single_threaded_blas
 
-__all__ = ["DelayGP"]
+__all__ = ["METHOD", "DelayGP"]
 
 FloatArray = NDArray[np.float64]
 
 
-class DelayGP(RegressorMixin, BaseEstimator):  # type: ignore[misc]
+class DelayGP(DelayEstimator):
     """Gaussian-process regression of a delay, trained on condition means.
 
     Kernel ``σ_f² exp(-½ Σ_l (x_l - x'_l)² / ℓ_l²)`` (one length scale per input) plus
@@ -186,6 +193,8 @@ class DelayGP(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         theta0 = self._initial_theta(d, wss, col.n, m)
         bounds = self._bounds(d)
         if self.optimize:
+            from scipy.optimize import minimize  # here: loading a bundle needs no optimiser
+
             if m > self.max_hyper_conditions:
                 sub = np.sort(rng.choice(m, size=self.max_hyper_conditions, replace=False))
             else:
@@ -322,9 +331,7 @@ class DelayGP(RegressorMixin, BaseEstimator):  # type: ignore[misc]
     def _fitted(self) -> GPPredictor:
         pred = getattr(self, "predictor_", None)
         if pred is None:
-            from sklearn.exceptions import NotFittedError
-
-            raise NotFittedError("DelayGP is not fitted yet; call fit(X, y) first")
+            raise not_fitted("DelayGP")
         return pred  # type: ignore[no-any-return]
 
     def log_marginal_likelihood(self, X: ArrayLike, y: ArrayLike) -> float:
@@ -412,3 +419,43 @@ class DelayGP(RegressorMixin, BaseEstimator):  # type: ignore[misc]
         mvc = st["max_variance_conditions"]
         out["max_variance_conditions"] = np.array(0 if mvc is None else int(mvc), dtype=np.int64)
         return out
+
+
+def _info(est: DelayGP) -> dict[str, Any]:
+    return {
+        "length_scale": [float(v) for v in est.length_scale_],
+        "signal_variance": float(est.signal_variance_),
+        "noise_variance": float(est.noise_variance_),
+        "noise_std_s": float(est.noise_std_),
+        "sparse": bool(est.sparse_),
+        "conditions": len(est.y_train_),
+    }
+
+
+def _predictor(arrays: Mapping[str, NDArray[Any]], inputs: ModelInputs) -> GPPredictor:
+    return predictor_from_arrays(arrays)
+
+
+#: "f" input columns, "n" the conditions. Optional beyond these: "inducing" (FITC's inducing
+#: inputs) and "max_variance_conditions" (the variance subset's size).
+METHOD = DelayMethod(
+    name="gpr",
+    label="Gaussian process",
+    description="squared-exponential kernel with one length scale per input; mean and "
+    "standard deviation, which the executor's timing bounds use (as published)",
+    estimator=lambda inputs, random_state: DelayGP(random_state=random_state),
+    fit_cost=5.0,
+    arrays=(
+        ("X_train", ("n", "f")),
+        ("y_train", ("n",)),
+        ("counts", ("n",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("length_scale", ("f",)),
+        ("scalars", ("4",)),
+    ),
+    predictor=_predictor,
+    info=_info,
+    variance=True,
+    pair=GPPairPredictor.from_pair,
+)

@@ -29,10 +29,12 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from timedexec.errors import ModelError
+
+# scipy.linalg is imported in the functions that factorise (fits, conditioning), so that
+# importing timedexec.learning (the CLI does, for --methods) stays light.
 
 __all__ = [
     "GPPairPredictor",
@@ -82,6 +84,8 @@ def _cholesky(K: FloatArray, what: str) -> FloatArray:
 
 def _inverse_from_cholesky(L: FloatArray) -> FloatArray:
     """(L Lᵀ)⁻¹ from the lower factor L (LAPACK potri), full symmetric."""
+    import scipy.linalg as sla
+
     inv, info = sla.lapack.dpotri(L, lower=1)
     if info != 0:
         raise ModelError(f"GP: inverting the kernel matrix failed (LAPACK potri info={info})")
@@ -113,6 +117,8 @@ def neg_log_likelihood(
     n_trials : int
         Number of trials, ``Σ count``.
     """
+    import scipy.linalg as sla
+
     d = Xs.shape[1]
     ell = np.exp(theta[:d])
     sf2 = float(np.exp(theta[d]))
@@ -331,6 +337,8 @@ def condition_exact(
     Returns the centres (inputs divided by the length scales), ``α = (K + D)⁻¹ ȳ`` and
     the lower Cholesky factor ``L`` of ``K + D`` (``B = (K + D)⁻¹ = L⁻ᵀ L⁻¹``).
     """
+    import scipy.linalg as sla
+
     Xl = Xs / ell
     K = _kernel(Xl, Xl, signal_var)
     K[np.diag_indices_from(K)] += noise_var / count
@@ -354,6 +362,8 @@ def condition_fitc(
     mean weights ``α = Σ K_mn Λ⁻¹ ȳ``, variance matrix ``B = K_mm⁻¹ - Σ``.
     Computed through ``V = L_m⁻¹ K_mn`` and ``C = I + V Λ⁻¹ Vᵀ`` for stability.
     """
+    import scipy.linalg as sla
+
     Xl = Xs / ell
     Zl = Zs / ell
     m = len(Zl)

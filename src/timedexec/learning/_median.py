@@ -1,19 +1,21 @@
-"""MedianDelay: the published baseline, the median delay of the training trials."""
+"""The "median" method: the published baseline, the median delay of the training trials."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from sklearn.base import BaseEstimator, RegressorMixin
 
+from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy
+from timedexec.learning._method import DelayMethod, MeanPredictor, ModelInputs
 
-__all__ = ["MedianDelay"]
+__all__ = ["METHOD", "MedianDelay"]
 
 
-class MedianDelay(RegressorMixin, BaseEstimator):  # type: ignore[misc]
+class MedianDelay(DelayEstimator):
     """Predict the median training delay for every input (the paper's baseline).
 
     Attributes
@@ -34,12 +36,28 @@ class MedianDelay(RegressorMixin, BaseEstimator):  # type: ignore[misc]
     def predict(self, X: ArrayLike) -> NDArray[np.float64]:
         """The training median for each row of X (n, d)."""
         if not hasattr(self, "median_"):
-            from sklearn.exceptions import NotFittedError
-
-            raise NotFittedError("MedianDelay is not fitted yet; call fit(X, y) first")
+            raise not_fitted("MedianDelay")
         Xa = check_x(X, self.n_features_in_, "MedianDelay.predict")
         return np.full(len(Xa), self.median_)
 
     def to_arrays(self) -> dict[str, NDArray[Any]]:
         """The fitted model as named numeric arrays (for a model bundle)."""
         return {"scalars": np.array([self.median_])}
+
+
+def _predictor(arrays: Mapping[str, NDArray[Any]], inputs: ModelInputs) -> MeanPredictor:
+    value = float(arrays["scalars"][0])
+    return MeanPredictor(lambda X: np.full(len(X), value))
+
+
+METHOD = DelayMethod(
+    name="median",
+    label="median baseline",
+    description="one delay for every pose, the median of the training trials (the paper's "
+    "baseline)",
+    estimator=lambda inputs, random_state: MedianDelay(),
+    fit_cost=1e-3,
+    arrays=(("scalars", ("1",)),),
+    predictor=_predictor,
+    info=lambda est: {"median_s": float(est.median_)},
+)

@@ -1,24 +1,37 @@
-"""LMNeuralNet: one hidden layer of tanh units trained with Levenberg-Marquardt (as published)."""
+"""The "nn" method: one hidden layer of tanh units trained with Levenberg-Marquardt (as published)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import scipy.linalg as sla
 from numpy.typing import ArrayLike, NDArray
-from sklearn.base import BaseEstimator, RegressorMixin
 
 from timedexec.errors import ConfigError
+from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates, standardise
-from timedexec.learning._forward import nn_forward
+from timedexec.learning._method import DelayMethod, MeanPredictor, ModelInputs
 from timedexec.learning._threads import single_threaded_blas
 
-__all__ = ["LMNeuralNet"]
+# scipy.linalg: imported where the fit factorises (see _gpcore).
+
+__all__ = ["METHOD", "LMNeuralNet"]
 
 FloatArray = NDArray[np.float64]
 
 SOLVERS = ("marquardt", "scipy-lm")
+
+
+def nn_forward(
+    X: FloatArray,
+    W1: FloatArray,
+    b1: FloatArray,
+    W2: FloatArray,
+    b2: float,
+) -> FloatArray:
+    """Network output for standardised inputs X (n, d): ``W2 · tanh(W1 x + b1) + b2``."""
+    return np.tanh(X @ W1.T + b1) @ W2 + b2  # type: ignore[no-any-return]
 
 
 class _Net:
@@ -97,6 +110,8 @@ def _evidence(
     counts every trial, ``S_within + Σ n_i r_i²``, so the replicates pin ``β`` down; ``γ``
     is the number of well-determined weights, ``P_w - λ tr((JᵀJ + λM)⁻¹ M)``.
     """
+    import scipy.linalg as sla
+
     sse = net.within_ss + float(r @ r)
     w2 = float(net.mask @ (t * t))
     H = JtJ.copy()
@@ -155,6 +170,8 @@ def _marquardt(
     (lower is better: the validation error, else minus the log evidence with ``auto``,
     else the cost) and the iterations.
     """
+    import scipy.linalg as sla
+
     r, A = net.residuals(t)
     cost = net.cost(r, t)
     mu = 1e-3
@@ -240,7 +257,7 @@ def _scipy_lm(
     return np.asarray(res.x, dtype=float), net.cost(r, res.x), int(res.nfev)
 
 
-class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
+class LMNeuralNet(DelayEstimator):
     """One hidden layer of tanh units, trained with Levenberg-Marquardt.
 
     As in the paper: a feed-forward net with one hidden layer (30 units by default) and a
@@ -451,9 +468,7 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
     def predict(self, X: ArrayLike) -> FloatArray:
         """Predicted delays (n,), s, for encoded inputs X (n, d)."""
         if not hasattr(self, "W1_"):
-            from sklearn.exceptions import NotFittedError
-
-            raise NotFittedError("LMNeuralNet is not fitted yet; call fit(X, y) first")
+            raise not_fitted("LMNeuralNet")
         Xa = check_x(X, self.n_features_in_, "LMNeuralNet.predict")
         Xs = ((Xa - self.x_mean_) / self.x_scale_)[:, self.active_]
         return self.y_mean_ + self.y_std_ * nn_forward(Xs, self.W1_, self.b1_, self.W2_, self.b2_)
@@ -469,3 +484,38 @@ class LMNeuralNet(RegressorMixin, BaseEstimator):  # type: ignore[misc]
             "x_scale": self.x_scale_,
             "scalars": np.array([self.b2_, self.y_mean_, self.y_std_]),
         }
+
+
+def _predictor(arrays: Mapping[str, NDArray[Any]], inputs: ModelInputs) -> MeanPredictor:
+    active = arrays["active"].astype(bool)
+    x_mean, x_scale = arrays["x_mean"], arrays["x_scale"]
+    W1, b1, W2 = arrays["W1"], arrays["b1"], arrays["W2"]
+    b2, y_mean, y_std = (float(v) for v in arrays["scalars"])
+
+    def mean(X: FloatArray) -> FloatArray:
+        Xs = ((X - x_mean) / x_scale)[:, active]
+        return y_mean + y_std * nn_forward(Xs, W1, b1, W2, b2)
+
+    return MeanPredictor(mean)
+
+
+#: "f" input columns, "a" the active ones, "h" hidden units.
+METHOD = DelayMethod(
+    name="nn",
+    label="LM neural net",
+    description="one hidden layer of 30 tanh units trained by Levenberg-Marquardt, early "
+    "stopping, a committee of two (as published)",
+    estimator=lambda inputs, random_state: LMNeuralNet(random_state=random_state),
+    fit_cost=6.0,
+    arrays=(
+        ("active", ("f",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("W1", ("h", "a")),
+        ("b1", ("h",)),
+        ("W2", ("h",)),
+        ("scalars", ("3",)),
+    ),
+    predictor=_predictor,
+    info=lambda est: {"iterations": int(est.n_iter_), "decay": float(est.decay_)},
+)

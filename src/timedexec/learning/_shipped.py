@@ -7,13 +7,14 @@ import importlib.resources
 from pathlib import Path
 
 from timedexec.errors import ModelError
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = ["BUNDLED_MODELS", "bundled_model_dir"]
 
-#: Model bundles shipped with the package (trained on the simulated robots by
-#: scripts/train_bundled_models.py; see models/README.md); load them by name:
-#: ``DelayModel.load("kr5-sim")``.
-BUNDLED_MODELS: tuple[str, ...] = ("ur10-sim", "ur10e-sim", "kr5-sim")
+#: Model bundles shipped with the package, one per robot of the catalog (its entry's
+#: ``shipped_model``; trained on the simulated robots by scripts/train_bundled_models.py,
+#: see models/README.md); load them by name: ``DelayModel.load("kr5-sim")``.
+BUNDLED_MODELS: tuple[str, ...] = tuple(get_robot_entry(n).shipped_model for n in ROBOT_NAMES)
 
 
 def bundled_model_dir(name: str) -> Path:

@@ -33,25 +33,25 @@ from numpy.typing import NDArray
 
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
-from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
+from timedexec.learning._calibrate import CALIBRATED_METHOD, gaussian_coverage, std_scale_factor
 from timedexec.learning._features import encode_inputs
+from timedexec.learning._method import ModelInputs
+from timedexec.learning._registry import DEFAULT_METHODS, check_methods, get_method
+from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = [
     "DELAYS",
-    "METHODS",
     "PAPER_TABLES",
     "CVResult",
     "TrainResult",
     "cross_validate",
-    "make_estimator",
     "noise_floor",
+    "paper_family",
     "train_delay_models",
 ]
 
 FloatArray = NDArray[np.float64]
 
-#: Model families, in the published order.
-METHODS: tuple[str, ...] = ("median", "nn", "rt", "gpr")
 #: The two delays, each modelled separately (delay-table column names).
 DELAYS: tuple[str, ...] = ("actuation_delay", "response_delay")
 
@@ -88,37 +88,13 @@ PAPER_TABLES: dict[str, dict[str, dict[str, tuple[float, ...]]]] = {
     },
 }
 _PAPER_COLUMNS = ("1", "2", "3", "5", "combined", "average")
+_PAPER_ROBOTS = {"kuka": "KUKA KR 5", "ur": "UR10"}
 
 
-def make_estimator(method: str, *, random_state: int | None = None) -> Any:
-    """A fresh estimator of ``method`` ("median", "nn", "rt", "gpr") with the defaults used here."""
-    from timedexec.learning._gp import DelayGP
-    from timedexec.learning._median import MedianDelay
-    from timedexec.learning._nn import LMNeuralNet
-    from timedexec.learning._tree import LinearLeafTree
-
-    if method == "median":
-        return MedianDelay()
-    if method == "nn":
-        return LMNeuralNet(random_state=random_state)
-    if method == "rt":
-        return LinearLeafTree()
-    if method == "gpr":
-        return DelayGP(random_state=random_state)
-    raise ConfigError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-
-
-def check_methods(methods: Sequence[str] | str) -> tuple[str, ...]:
-    """Normalise a method list ("median,nn" or a sequence); unknown names raise ConfigError."""
-    if isinstance(methods, str):
-        methods = [m.strip() for m in methods.split(",") if m.strip()]
-    out = tuple(dict.fromkeys(methods))
-    bad = [m for m in out if m not in METHODS]
-    if bad or not out:
-        raise ConfigError(
-            f"unknown or no method(s) {', '.join(bad) or '(none)'}; choose from {', '.join(METHODS)}"
-        )
-    return out
+def paper_family(robot: str) -> str | None:
+    """The key of :data:`PAPER_TABLES` a robot's figures sit beside (its catalog entry's
+    ``paper_family``: ``"ur"`` or ``"kuka"``), or None for a robot outside the catalog."""
+    return get_robot_entry(robot).paper_family if robot in ROBOT_NAMES else None
 
 
 # ---------------------------------------------------------------------- data
@@ -154,6 +130,16 @@ class _Data:
         return encode_inputs(self.q[rows], self.direction[rows], t_h=t)
 
 
+#: What a measured delay can be, s: a joint cannot move before its command arrives, and a
+#: state cannot be older than... a second is ten times the slowest controller's delay; the
+#: response fit's noise can put a near-zero age slightly below 0.
+DELAY_RANGE_S = {"actuation_delay": (0.0, 1.0), "response_delay": (-0.005, 1.0)}
+DELAY_RANGE_WHY = {
+    "actuation_delay": "no arm moves before its command arrives, none waits a second",
+    "response_delay": "a state's age: at least 0 (less 5 ms of fit noise), at most a second",
+}
+
+
 def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     if not isinstance(table, DelayTable):
         raise ConfigError(f"expected a DelayTable, got {type(table).__name__}")
@@ -168,6 +154,16 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
             raise ConfigError(
                 f"{table.source}: column {name!r} row {row} is {values[row]}; delays must be "
                 "finite seconds to train (mark unmeasurable trials in the 'flag' column)"
+            )
+        low, high = DELAY_RANGE_S[name]
+        out = keep & ((values < low) | (values > high))
+        if out.any():
+            row = int(np.flatnonzero(out)[0])
+            raise ConfigError(
+                f"{table.source}: column {name!r} row {row} is {float(values[row])!r} s "
+                f"({out.sum()} such row(s)); a measured {name.replace('_', ' ')} lies in "
+                f"{low:g} .. {high:g} s ({DELAY_RANGE_WHY[name]}): fix the row, or mark the "
+                "trial in the 'flag' column"
             )
     t = table.validated_for_training()
     if len(t) == 0:
@@ -274,12 +270,6 @@ class _Task:
     cost: float
 
 
-def _task_cost(method: str, n_rows: int) -> float:
-    """Rough relative cost, to schedule the big fits first."""
-    m = n_rows / 10.0
-    return float({"median": 1e-3, "rt": 1.0, "nn": 6.0, "gpr": 5.0}[method] * (m / 100.0) ** 1.5)
-
-
 def _run_task(
     task: _Task,
     data: _Data,
@@ -289,10 +279,12 @@ def _run_task(
     from timedexec.learning._threads import single_threaded_blas
 
     start = time.perf_counter()
+    method = get_method(task.method)
     rows = data.rows(task.key)
     y = data.y[task.delay][rows]
     X = data.X(task.key, rows)
-    est = make_estimator(task.method, random_state=seed)
+    inputs = ModelInputs.of(data.robot, task.key, data.joints, data.time_input)
+    est = method.estimator(inputs, seed)
     with single_threaded_blas():
         if task.fold < 0:
             est.fit(X, y)
@@ -300,7 +292,7 @@ def _run_task(
             out: Any = {
                 "arrays": est.to_arrays(),
                 "train_rmse_s": float(np.sqrt(np.mean(resid**2))),
-                "info": _model_info(task.method, est),
+                "info": method.info(est),
             }
         else:
             assert fold_idx is not None
@@ -310,31 +302,14 @@ def _run_task(
                 out = None
             else:
                 est.fit(X[~test], y[~test])
-                if task.method == "gpr":
+                if method.variance:
                     # the single-trial std (latent + noise), what DelayModel reports as
-                    # *_std before calibration: its held-out residuals calibrate it
+                    # *_std before calibration: the GP's held-out residuals calibrate it
                     mean, std = est.predict(X[test], return_std=True)
                     out = {"mean": mean, "std": std}
                 else:
                     out = {"mean": est.predict(X[test]), "std": None}
     return task, out, time.perf_counter() - start
-
-
-def _model_info(method: str, est: Any) -> dict[str, Any]:
-    if method == "gpr":
-        return {
-            "length_scale": [float(v) for v in est.length_scale_],
-            "signal_variance": float(est.signal_variance_),
-            "noise_variance": float(est.noise_variance_),
-            "noise_std_s": float(est.noise_std_),
-            "sparse": bool(est.sparse_),
-            "conditions": len(est.y_train_),
-        }
-    if method == "nn":
-        return {"iterations": int(est.n_iter_), "decay": float(est.decay_)}
-    if method == "rt":
-        return {"leaves": int(est.n_leaves_)}
-    return {"median_s": float(est.median_)}
 
 
 # ------------------------------------------------------------------- results
@@ -395,8 +370,8 @@ class CVResult:
 
     def table_text(self) -> str:
         """Tables I/II: ours beside the paper's (same robot family), plus the noise floor."""
-        family = "kuka" if self.robot.startswith("kr") else "ur"
-        paper = PAPER_TABLES[family]
+        family = paper_family(self.robot)
+        paper = PAPER_TABLES.get(family or "", {})
         lines: list[str] = []
         for n_tab, delay in zip(("I", "II"), DELAYS, strict=True):
             if delay not in self.scores_ms:
@@ -406,14 +381,14 @@ class CVResult:
             heads = [f"J{c}" if c.isdigit() else c for c in cols]
             lines.append(
                 f"Table {n_tab}: {delay.replace('_', ' ')}, {self.folds}-fold CV error (ms), "
-                f"{self.robot}: ours / paper ({'KUKA KR 5' if family == 'kuka' else 'UR10'})"
+                f"{self.robot}: ours / paper ({_PAPER_ROBOTS.get(family or '', 'none')})"
             )
             lines.append(f"{'':8}" + "".join(f"{h:>16}" for h in heads))
             for m, scores in methods.items():
                 cells = []
                 for c in cols:
                     ours = scores[c]
-                    ref = _paper_value(paper[delay].get(m), c)
+                    ref = _paper_value(paper.get(delay, {}).get(m), c)
                     ref_text = f"{ref:5.2f}" if ref is not None else "    -"
                     cells.append(f"{ours:8.2f} / {ref_text}")
                 lines.append(f"{m:8}" + "".join(f"{c:>16}" for c in cells))
@@ -488,7 +463,7 @@ def _run(
                 for f in fold_list:
                     share = 1.0 if f < 0 else (folds - 1) / folds
                     tasks.append(
-                        _Task(delay, key, method, f, _task_cost(method, int(n_rows * share)))
+                        _Task(delay, key, method, f, get_method(method).cost(int(n_rows * share)))
                     )
     tasks.sort(key=lambda t: -t.cost)
     bar = Progress(len(tasks), "training", enabled=progress)
@@ -562,7 +537,9 @@ def _std_calibration(
     held-out residuals of every fold) and ``held_out[delay][key]`` (see
     :attr:`CVResult.std_held_out`).
     """
-    by_id = {(t.delay, t.key, t.fold): out for t, out in results.items() if t.method == "gpr"}
+    by_id = {
+        (t.delay, t.key, t.fold): out for t, out in results.items() if t.method == CALIBRATED_METHOD
+    }
     scale: dict[str, dict[str, float]] = {}
     held_out: dict[str, dict[str, dict[str, float]]] = {}
     for delay in DELAYS:
@@ -595,7 +572,7 @@ def _std_calibration(
 def cross_validate(
     table: DelayTable,
     *,
-    methods: Sequence[str] | str = METHODS,
+    methods: Sequence[str] | str = DEFAULT_METHODS,
     folds: int = 10,
     jobs: int = 1,
     random_state: int = 0,
@@ -609,7 +586,8 @@ def cross_validate(
     table : DelayTable
         One robot's delay table; flagged trials are dropped, NaN/inf delays refused.
     methods : sequence of str or comma list
-        Any of "median", "nn", "rt", "gpr".
+        Registered methods (:data:`~timedexec.learning.METHODS`); default the paper's four
+        (:data:`~timedexec.learning.DEFAULT_METHODS`).
     folds : int
         Number of folds (>= 2), split by start configuration.
     jobs : int
@@ -636,7 +614,7 @@ def cross_validate(
 def train_delay_models(
     table: DelayTable,
     *,
-    methods: Sequence[str] | str = METHODS,
+    methods: Sequence[str] | str = DEFAULT_METHODS,
     folds: int = 10,
     jobs: int = 1,
     random_state: int = 0,
@@ -691,7 +669,7 @@ def train_delay_models(
         scores, floors = _scores(data, methods, folds, results, fold_idx)
         std_scale: dict[str, dict[str, float]] = {}
         std_held: dict[str, dict[str, dict[str, float]]] = {}
-        if "gpr" in methods:
+        if CALIBRATED_METHOD in methods:
             std_scale, std_held = _std_calibration(data, folds, results, fold_idx)
         cv = CVResult(
             scores_ms=scores,

@@ -1,22 +1,50 @@
-"""LinearLeafTree: a regression tree with linear models in the leaves (M5-like)."""
+"""The "rt" method: a regression tree with linear models in the leaves (M5-like)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from sklearn.base import BaseEstimator, RegressorMixin
 
 from timedexec.errors import ConfigError
+from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates, standardise
-from timedexec.learning._forward import tree_predict
+from timedexec.learning._method import DelayMethod, MeanPredictor, ModelInputs
 from timedexec.learning._threads import single_threaded_blas
 
-__all__ = ["LinearLeafTree"]
+__all__ = ["METHOD", "LinearLeafTree"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+
+def tree_predict(
+    Xs: FloatArray,
+    feature: IntArray,
+    threshold: FloatArray,
+    left: IntArray,
+    right: IntArray,
+    coef: FloatArray,
+) -> FloatArray:
+    """Evaluate a linear-leaf tree on standardised inputs Xs (n, d).
+
+    ``feature[k] < 0`` marks leaf ``k``; ``coef[k]`` holds ``[intercept, slopes (d)]``.
+    Rows descend level by level (vectorised), then each takes its leaf's linear model.
+    """
+    node = np.zeros(len(Xs), dtype=np.int64)
+    rows = np.arange(len(Xs))
+    while True:
+        f = feature[node]
+        inner = f >= 0
+        if not inner.any():
+            break
+        idx = rows[inner]
+        go_left = Xs[idx, f[inner]] <= threshold[node[inner]]
+        node[idx] = np.where(go_left, left[node[inner]], right[node[inner]])
+    c = coef[node]
+    return c[:, 0] + np.einsum("ij,ij->i", c[:, 1:], Xs)  # type: ignore[no-any-return]
 
 
 class _Builder:
@@ -206,7 +234,7 @@ class _Builder:
         }
 
 
-class LinearLeafTree(RegressorMixin, BaseEstimator):  # type: ignore[misc]
+class LinearLeafTree(DelayEstimator):
     """Regression tree with ridge linear models in its leaves (M5-like, Quinlan 1992).
 
     Grown by weighted variance reduction (the CART criterion; M5's standard-deviation
@@ -302,9 +330,7 @@ class LinearLeafTree(RegressorMixin, BaseEstimator):  # type: ignore[misc]
     def predict(self, X: ArrayLike) -> FloatArray:
         """Predicted delays (n,), s, for encoded inputs X (n, d)."""
         if not hasattr(self, "coef_"):
-            from sklearn.exceptions import NotFittedError
-
-            raise NotFittedError("LinearLeafTree is not fitted yet; call fit(X, y) first")
+            raise not_fitted("LinearLeafTree")
         Xa = check_x(X, self.n_features_in_, "LinearLeafTree.predict")
         Xs = ((Xa - self.x_mean_) / self.x_scale_)[:, self.active_]
         out = tree_predict(Xs, self.feature_, self.threshold_, self.left_, self.right_, self.coef_)
@@ -323,3 +349,57 @@ class LinearLeafTree(RegressorMixin, BaseEstimator):  # type: ignore[misc]
             "x_scale": self.x_scale_,
             "scalars": np.array([self.y_mean_, self.y_std_]),
         }
+
+
+def _predictor(arrays: Mapping[str, NDArray[Any]], inputs: ModelInputs) -> MeanPredictor:
+    active = arrays["active"].astype(bool)
+    x_mean, x_scale = arrays["x_mean"], arrays["x_scale"]
+    y_mean, y_std = (float(v) for v in arrays["scalars"])
+    parts = (
+        arrays["feature"],
+        arrays["threshold"],
+        arrays["left"],
+        arrays["right"],
+        arrays["coef"],
+    )
+
+    def mean(X: FloatArray) -> FloatArray:
+        Xs = ((X - x_mean) / x_scale)[:, active]
+        return y_mean + y_std * tree_predict(Xs, *parts)
+
+    return MeanPredictor(mean)
+
+
+def _check(arrays: Mapping[str, NDArray[Any]], inputs: ModelInputs) -> str:
+    feature = arrays["feature"]
+    inner = feature >= 0
+    children = np.concatenate([arrays["left"][inner], arrays["right"][inner]])
+    n_active = int(np.count_nonzero(arrays["active"]))
+    if np.any(feature[inner] >= n_active) or np.any((children < 0) | (children >= len(feature))):
+        return "the tree's node indices point outside its arrays"
+    return ""
+
+
+#: "f" input columns, "a" the active ones, "m" the tree's nodes.
+METHOD = DelayMethod(
+    name="rt",
+    label="regression tree",
+    description="partitions of the inputs with a linear model in each leaf, M5-like: ridge "
+    "leaves, pruning, smoothing (as published)",
+    estimator=lambda inputs, random_state: LinearLeafTree(),
+    fit_cost=1.0,
+    arrays=(
+        ("active", ("f",)),
+        ("x_mean", ("f",)),
+        ("x_scale", ("f",)),
+        ("feature", ("m",)),
+        ("threshold", ("m",)),
+        ("left", ("m",)),
+        ("right", ("m",)),
+        ("coef", ("m", "a+1")),
+        ("scalars", ("2",)),
+    ),
+    predictor=_predictor,
+    info=lambda est: {"leaves": int(est.n_leaves_)},
+    check=_check,
+)

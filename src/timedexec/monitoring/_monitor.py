@@ -778,8 +778,24 @@ class DelayMonitor:
             "contrast_move": np.array(st.contrast_move),
         }
 
+    def verdict(self) -> str:
+        """What the monitor can say now: ``"alarm"`` (an alert fired), ``"ok"`` (at least
+        one joint past its warm-up and no alert), ``"warming up"`` (moves measured, but no
+        joint has its reference yet: no change could have been detected) or ``"nothing
+        measured"`` (no move from rest with a measurable lag). Only ``"ok"`` is an all-clear.
+        """
+        if self.alerts:
+            return "alarm"
+        states = self.states()
+        if not any(st.moves for st in states):
+            return "nothing measured"
+        if all(st.warm is None for st in states):
+            return "warming up"
+        return "ok"
+
     def summary(self) -> dict[str, Any]:
-        """JSON-safe state: settings, per joint status, and the alerts."""
+        """JSON-safe state: the verdict (:meth:`verdict`), settings, per joint status, and
+        the alerts."""
         joints = []
         for st in self.states():
             row: dict[str, Any] = {
@@ -809,6 +825,7 @@ class DelayMonitor:
             }
             joints.append(row)
         return {
+            "verdict": self.verdict(),
             "warmup_moves": self.warmup_moves,
             "reference_k": self.reference_k,
             "score_clip": SCORE_CLIP,

@@ -399,11 +399,7 @@ def load_cycle_log(path: str | os.PathLike[str]) -> tuple[dict[str, NDArray[Any]
         meta = json.loads(str(data.pop("meta")))
     except ValueError as exc:
         raise RecordingError(f"{path}: unreadable 'meta' ({exc})") from exc
-    if meta.get("format") != LOG_FORMAT or int(meta.get("format_version", 0)) > 1:
-        raise RecordingError(
-            f"{path}: format {meta.get('format')!r} version {meta.get('format_version')!r}; "
-            f"this timedexec reads {LOG_FORMAT!r} version 1"
-        )
+    meta = _check_log_meta(path, meta)
     n = None
     for k in _LOG_COLUMNS:
         if k not in data:
@@ -412,7 +408,71 @@ def load_cycle_log(path: str | os.PathLike[str]) -> tuple[dict[str, NDArray[Any]
         want = (n, 6) if k in ("qd_cmd", "q") else (n,)
         if data[k].shape != want:
             raise RecordingError(f"{path}: column {k!r} has shape {data[k].shape}, expected {want}")
+        if data[k].dtype.kind not in "fiub":
+            raise RecordingError(
+                f"{path}: column {k!r} holds {data[k].dtype} values, not numbers; see "
+                "docs/monitor.md"
+            )
+    _check_log_times(path, data)
     return data, meta
+
+
+def _check_log_meta(path: str | os.PathLike[str], meta: Any) -> dict[str, Any]:
+    """The cycle log's ``meta`` checked: an object of the right format, a finite positive
+    period, a robot name (may be empty)."""
+    where = f"{os.fspath(path)}: 'meta'"
+    if not isinstance(meta, dict):
+        raise RecordingError(f"{where} is a {type(meta).__name__}, not an object; see docs/monitor.md")
+    version = meta.get("format_version", 0)
+    if meta.get("format") != LOG_FORMAT or not isinstance(version, int) or version > 1:
+        raise RecordingError(
+            f"{where}: format {meta.get('format')!r} version {version!r}; "
+            f"this timedexec reads {LOG_FORMAT!r} version 1"
+        )
+    period = meta.get("period_s")
+    if (
+        isinstance(period, bool)
+        or not isinstance(period, int | float)
+        or not math.isfinite(period)
+        or not 1e-4 <= period <= 1.0
+    ):
+        raise RecordingError(
+            f"{where}: period_s={period!r} is not a controller period; it must be a number "
+            "of seconds in 0.0001 .. 1 (e.g. 0.008 for a UR10); rewrite the log with "
+            "save_cycle_log(path, arrays, period_s=...)"
+        )
+    robot = meta.get("robot", "")
+    if not isinstance(robot, str):
+        raise RecordingError(f"{where}: robot={robot!r} is not a robot name (a string)")
+    return {**meta, "period_s": float(period), "robot": robot}
+
+
+def _check_log_times(path: str | os.PathLike[str], data: dict[str, NDArray[Any]]) -> None:
+    """Refuse a cycle log whose clocks cannot be a log: arrival and controller times
+    non-finite or running backwards, reported positions not finite (a command of NaN is
+    allowed: no command was sent that cycle)."""
+    for key in ("arrival_s", "controller_s"):
+        t = np.asarray(data[key], dtype=float)
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise RecordingError(
+                f"{os.fspath(path)}: {key} is {float(t[bad[0]])} at row {bad[0]} ({bad.size} such "
+                "row(s)); every row of a cycle log is a state package with a finite time, s"
+            )
+        back = np.flatnonzero(np.diff(t) < 0)
+        if back.size:
+            i = int(back[0]) + 1
+            raise RecordingError(
+                f"{os.fspath(path)}: {key} runs backwards at row {i} ({float(t[i - 1])!r} -> "
+                f"{float(t[i])!r} s; {back.size} such step(s)); a cycle log is in arrival order"
+            )
+    q = np.asarray(data["q"], dtype=float)
+    bad_rows = np.flatnonzero(~np.isfinite(q).all(axis=1))
+    if bad_rows.size:
+        raise RecordingError(
+            f"{os.fspath(path)}: q is not finite at row {bad_rows[0]} ({bad_rows.size} "
+            "row(s)); the reported joint positions of every package must be numbers, rad"
+        )
 
 
 class MoveExtractor:

@@ -15,18 +15,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
-from timedexec.recording._schema import GyroHeader
-from timedexec.robots import RobotSpec, check_configuration, get_robot
+from timedexec.robots import RobotSpec, check_configuration, get_robot, get_robot_entry
 
-__all__ = [
-    "FULL_SWEEP_TRIALS",
-    "SweepPlan",
-    "SweepProtocol",
-    "TrialProfile",
-    "calibration_ranges",
-]
+__all__ = ["FULL_SWEEP_TRIALS", "SweepPlan", "calibration_ranges"]
 
 #: The paper's full sweep size.
 FULL_SWEEP_TRIALS = 33_500
@@ -37,18 +29,16 @@ def calibration_ranges(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Joint ranges the plan samples from, rad, shapes (6,) and (6,).
 
-    The joint limits shrunk by ``margin_rad`` (room for the trial motion) and, for the
-    shoulder and elbow, restricted to poses that keep the arm above its base plane (a
-    calibration sweep must not drive into the table).
+    The joint limits shrunk by ``margin_rad`` (room for the trial motion), within the
+    robot's sweep ranges (its catalog entry's ``sweep_q_min_rad`` / ``sweep_q_max_rad``:
+    poses that keep the arm above its base plane; a calibration sweep must not drive into
+    the table).
     """
+    entry = get_robot_entry(spec.name)
     lo = np.array(spec.q_min_rad, dtype=float) + margin_rad
     hi = np.array(spec.q_max_rad, dtype=float) - margin_rad
-    if spec.vendor == "universal_robots":
-        lo[:] = np.maximum(lo, [-np.pi, -np.pi, -2.6, -np.pi, -np.pi, -np.pi])
-        hi[:] = np.minimum(hi, [np.pi, 0.0, 2.6, np.pi, np.pi, np.pi])
-    else:
-        lo[:] = np.maximum(lo, np.deg2rad([-150, -170, -100, -170, -110, -170]))
-        hi[:] = np.minimum(hi, np.deg2rad([150, 10, 145, 170, 110, 170]))
+    lo[:] = np.maximum(lo, entry.sweep_q_min_rad)
+    hi[:] = np.minimum(hi, entry.sweep_q_max_rad)
     if np.any(hi <= lo):
         raise ConfigError(f"robot {spec.name}: empty calibration range after margins")
     return lo, hi
@@ -201,109 +191,3 @@ class SweepPlan:
             "repeats": self.repeats,
             "n_configurations": int(self.config_index.max()) + 1,
         }
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrialProfile(DictMixin):
-    """The calibration motion of one trial and the recording window.
-
-    One joint moves out and back: accelerate at ``acceleration_rad_s2`` to ``speed_rad_s``,
-    hold for ``hold_s``, decelerate to rest, pause ``pause_s``, then the mirror image back to
-    the start pose. Trial time 0 is the arrival of the state package that triggers the
-    command; the recording covers ``[-pre_s, record_s)``.
-    """
-
-    speed_rad_s: float = 0.4
-    acceleration_rad_s2: float = 8.0
-    hold_s: float = 0.05
-    pause_s: float = 0.15
-    pre_s: float = 0.05
-    record_s: float = 0.65
-
-    def __post_init__(self) -> None:
-        check_positive(
-            "profile",
-            speed_rad_s=self.speed_rad_s,
-            acceleration_rad_s2=self.acceleration_rad_s2,
-            record_s=self.record_s,
-        )
-        check_non_negative("profile", hold_s=self.hold_s, pause_s=self.pause_s, pre_s=self.pre_s)
-        if self.pause_s + self.pulse_s < self.pulse_s + 0.14:
-            raise ConfigError(
-                f"profile: pause_s={self.pause_s} s must be >= 0.14 s so the out pulse can be "
-                "aligned without the return pulse (delays up to 0.12 s)"
-            )
-
-    @property
-    def pulse_s(self) -> float:
-        """Duration of one pulse (out or back), s."""
-        return 2.0 * self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s
-
-    @property
-    def duration_s(self) -> float:
-        """Commanded motion duration, out and back, s."""
-        return 2.0 * self.pulse_s + self.pause_s
-
-    @property
-    def template(self) -> dict[str, Any]:
-        """Keyword arguments of :func:`~timedexec.sim.pulse_profile` for this motion."""
-        return {
-            "speed_rad_s": self.speed_rad_s,
-            "acceleration_rad_s2": self.acceleration_rad_s2,
-            "hold_s": self.hold_s,
-            "pause_s": self.pause_s,
-        }
-
-    @property
-    def displacement_rad(self) -> float:
-        """Joint travel of the out pulse, rad."""
-        return self.speed_rad_s * (self.speed_rad_s / self.acceleration_rad_s2 + self.hold_s)
-
-
-@dataclass(frozen=True, kw_only=True)
-class SweepProtocol(DictMixin):
-    """How a calibration sweep runs on any robot, live or simulated.
-
-    What the live runner needs and a recording states: the controller period, the trial
-    motion, the gyro's constants and the pauses. The simulator derives one from its
-    settings (``SimSettings.protocol``); a live run builds one from measured values.
-
-    Parameters
-    ----------
-    robot : str
-        Robot name (``ur10``, ``ur10e``, ``kr5``).
-    controller_period_s : float
-        Controller cycle, s.
-    profile : TrialProfile
-        The calibration motion and the recording window.
-    gyro : GyroHeader
-        The sensor's constants (filter group delay and transport latency included).
-    still_s : float
-        Stationary gyro recording before the sweep (filter design, zero-rate), s.
-    config_move_s : float
-        Time allowed to move to a new configuration, s.
-    trial_gap_s : float
-        Stillness required between trials, s.
-    """
-
-    robot: str
-    controller_period_s: float
-    profile: TrialProfile = field(default_factory=lambda: TrialProfile())
-    gyro: GyroHeader = field(default_factory=lambda: GyroHeader())
-    still_s: float = 10.0
-    config_move_s: float = 3.0
-    trial_gap_s: float = 0.3
-
-    def __post_init__(self) -> None:
-        check_positive("protocol", controller_period_s=self.controller_period_s)
-        check_non_negative(
-            "protocol",
-            still_s=self.still_s,
-            config_move_s=self.config_move_s,
-            trial_gap_s=self.trial_gap_s,
-        )
-
-    @property
-    def spec(self) -> RobotSpec:
-        """The robot spec with this protocol's controller period."""
-        return get_robot(self.robot, period_s=self.controller_period_s)

@@ -36,6 +36,49 @@ DEMO_STEPS = (
 _HELD_OUT_SEED = 20_261
 
 
+#: The demo's record of what it wrote in its output folder: only files named there are
+#: ever replaced by a later demo run.
+DEMO_MARKER = ".timedexec-demo.json"
+
+
+def _claim(out: Path, paths: list[Path]) -> None:
+    """Make sure the demo only replaces what an earlier demo wrote in ``out``, then record
+    ``paths`` as the demo's (in :data:`DEMO_MARKER`) before anything is written.
+
+    Raises
+    ------
+    ConfigError
+        When ``out`` holds one of ``paths`` (or a piece of an unfinished recording) that no
+        demo wrote: a user's own file is never replaced.
+    """
+    marker = out / DEMO_MARKER
+    owned: set[str] = set()
+    if marker.is_file():
+        try:
+            owned = set(json.loads(marker.read_text()).get("written", []))
+        except (OSError, ValueError, AttributeError):
+            owned = set()
+    names = {p.name for p in paths}
+    recording = paths[0].name  # its journal and temporary files start with its name
+
+    def ours(name: str) -> bool:
+        return name in owned or (recording in owned and name.startswith(recording))
+
+    present = sorted(
+        p.name
+        for p in (out.iterdir() if out.is_dir() else [])
+        if (p.name in names or p.name.startswith(recording)) and not ours(p.name)
+    )
+    if present:
+        raise ConfigError(
+            f"--out {out} already holds {', '.join(present)}, which no earlier demo wrote "
+            "there; the demo never replaces files it did not make: give a new or empty "
+            "folder (or move those files away)"
+        )
+    make_dir(out, "output folder (--out)")
+    write_atomic(marker, json.dumps({"written": sorted(names | owned)}, indent=1) + "\n")
+
+
 def _write_json(path: Path, data: dict[str, Any]) -> Path:
     return write_atomic(path, json.dumps(data, indent=2) + "\n")
 
@@ -56,7 +99,8 @@ def run_demo(
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e", "kr5"}
+    robot : str
+        A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     out_dir : path
         Output folder (created): ``ROBOT-sweep.h5`` (recording), ``ROBOT-delays.csv``,
         ``model/`` (bundle with ``cv.json``), ``evaluation.json``, ``conveyor.json`` and
@@ -104,13 +148,15 @@ def run_demo(
         raise ConfigError(
             f"eval_configs={eval_configs} must be >= 1 and eval_draws={eval_draws} >= 2"
         )
-    out = make_dir(out_dir, "output folder (--out)")
-    n_jobs = jobs or min(2, os.cpu_count() or 1)
+    out = Path(out_dir)
     rec = out / f"{spec.name}-sweep.h5"
     delays = out / f"{spec.name}-delays.csv"
     model_dir = out / "model"
     eval_json = out / "evaluation.json"
     conveyor_json = out / "conveyor.json"
+    written = [rec, delays, model_dir, eval_json, conveyor_json, out / "report"]
+    _claim(out, written)
+    n_jobs = jobs or min(2, os.cpu_count() or 1)
     seconds: dict[str, float] = {}
     clock = [time.monotonic()]
 

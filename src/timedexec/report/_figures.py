@@ -178,7 +178,7 @@ def fig_model(
     table: DelayTable | None = None,
     *,
     joint: int = 2,
-    method: str = "gpr",
+    method: str | None = None,
     points: int = 200,
 ) -> Path:
     """Fig. 6: the model's delays of ``joint`` against the joint 2 and joint 3 angles.
@@ -197,6 +197,9 @@ def fig_model(
         Measured trials of the same robot: the reference pose, the angle ranges, the dots.
     joint : int
         Actuated joint whose delays are shown (the paper's Fig. 6: joint 2).
+    method : str, optional
+        The model's method drawn; default the bundle's ``default_method`` (the GP where it
+        has one).
     """
     from timedexec.robots import get_robot
 

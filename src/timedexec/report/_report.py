@@ -11,19 +11,18 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._files import check_paths, make_dir, write_atomic
+from timedexec._files import check_input_kind, check_paths, make_dir, write_atomic
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
 
 __all__ = ["build_report", "delay_summary", "published_table_markdown"]
 
 
-def _paper_row(delay: str, robot: str, method: str) -> tuple[float, ...] | None:
-    """The paper's Table I/II row for this robot's family, or None."""
+def _paper_row(delay: str, family: str | None, method: str) -> tuple[float, ...] | None:
+    """The paper's Table I/II row for a robot family (``paper_family``), or None."""
     from timedexec.learning import PAPER_TABLES
 
-    family = "kuka" if robot.startswith("kr") else "ur"
-    return PAPER_TABLES.get(family, {}).get(delay, {}).get(method)
+    return PAPER_TABLES.get(family or "", {}).get(delay, {}).get(method)
 
 
 def delay_summary(table: DelayTable) -> dict[str, Any]:
@@ -67,6 +66,9 @@ def published_table_markdown(
     ``floor`` (``{delay: {column: ms}}``, a bundle's ``noise_floor_ms``) adds the replicate
     scatter as a last row: the error no model can beat.
     """
+    from timedexec.learning import paper_family
+
+    family = paper_family(robot)
     lines = []
     for delay, title in (
         ("actuation_delay", "Table I — actuation"),
@@ -83,7 +85,7 @@ def published_table_markdown(
         )
         lines.append("|---" * (len(cols) + 1) + "|")
         for method, row in methods.items():
-            pub = _paper_row(delay, robot, method)
+            pub = _paper_row(delay, family, method)
             cells = []
             for k, c in enumerate(cols):
                 value = row.get(c)
@@ -95,7 +97,7 @@ def published_table_markdown(
         if floor and delay in floor:
             cells = [f"{floor[delay][c]:.2f}" if c in floor[delay] else "-" for c in cols]
             lines.append("| *noise floor* | " + " | ".join(cells) + " |")
-        if delay == "response_delay" and not robot.startswith("kr"):
+        if delay == "response_delay" and family == "ur":
             lines += ["", "(the paper's UR response table has joint 4 in the joint 5 column)"]
         lines.append("")
     return "\n".join(lines)
@@ -229,6 +231,7 @@ def build_report(
         path = Path(raw)
         if not path.exists():
             raise RecordingError(f"result {path} does not exist")
+        check_input_kind(path, "result")
         kind, data = _kind(path)
         if kind == "recording":
             _recording_trials(path, int(trial))

@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
 
-__all__ = ["N_JOINTS", "ROBOT_NAMES", "RobotSpec", "check_configuration"]
+__all__ = ["N_JOINTS", "RobotSpec", "check_configuration"]
 
 _T = TypeVar("_T")
 
@@ -76,9 +76,6 @@ FloatArray = NDArray[np.float64]
 
 #: Number of joints of every robot described here.
 N_JOINTS = 6
-
-#: Names accepted by :func:`get_robot`.
-ROBOT_NAMES: tuple[str, ...] = ("ur10", "ur10e", "kr5")
 
 # Joint-limit checks accept values this far outside a limit (rad): limits given in degrees
 # and converted to rad, or angles read back from a controller, differ in the last bits.
@@ -119,11 +116,12 @@ class RobotSpec:
     Attributes
     ----------
     name : str
-        Short name, ``"ur10"``, ``"ur10e"`` or ``"kr5"`` for the built-in robots.
+        Short name; the built-in robots' are :data:`~timedexec.robots.ROBOT_NAMES`.
     description : str
         Human-readable model and interface.
     vendor : str
-        ``"universal_robots"`` or ``"kuka"`` (drivers choose their protocol by it).
+        ``"universal_robots"`` or ``"kuka"`` (the interface it speaks: its catalog entry's
+        ``twin.interface``).
     controller_period_s : float
         Controller cycle period, s; one of ``period_options_s``.
     period_options_s : tuple of float

@@ -9,10 +9,20 @@
   lower envelope, that follow oscillator drift; window length chosen from the data).
 - Reader: :func:`open_gyro` -> :class:`GyroReader` (background thread, ring buffer,
   zero-rate calibration), :class:`GyroSamples`, :class:`GyroStats`, :class:`GyroSettings`.
+- Check: :func:`check_gyro` -> :class:`GyroCheckResult` (rate and drift, lost and corrupted
+  frames, noise at rest, inferred range, against :class:`GyroCheckLimits`), the analysis
+  alone :func:`check_gyro_samples` (``timedexec gyro check``, docs/gyro-kit.md).
 """
 
 from __future__ import annotations
 
+from timedexec.sensors._check import (
+    TYPICAL_NOISE_DENSITY_DPS_RTHZ,
+    GyroCheckLimits,
+    GyroCheckResult,
+    check_gyro,
+    check_gyro_samples,
+)
 from timedexec.sensors._clock import (
     ClockFit,
     SensorClock,
@@ -31,16 +41,14 @@ from timedexec.sensors._frames import (
 )
 from timedexec.sensors._ports import SUPPORTED_URL_SCHEMES
 from timedexec.sensors._reader import (
-    DLPF_GROUP_DELAY_S,
-    SENSITIVITY_LSB_PER_DPS,
     GyroReader,
     GyroSamples,
-    GyroSettings,
     GyroStats,
     ZeroRateCalibration,
     open_gyro,
     raw_to_rad_s,
 )
+from timedexec.sensors._settings import DLPF_GROUP_DELAY_S, SENSITIVITY_LSB_PER_DPS, GyroSettings
 from timedexec.sensors._simport import SimGyroPort, parse_sim_url
 from timedexec.sensors._unwrap import (
     CounterUnwrapper,
@@ -56,10 +64,13 @@ __all__ = [
     "SENSITIVITY_LSB_PER_DPS",
     "SUPPORTED_URL_SCHEMES",
     "SYNC",
+    "TYPICAL_NOISE_DENSITY_DPS_RTHZ",
     "ClockFit",
     "CounterUnwrapper",
     "DriftingClockFit",
     "FrameParser",
+    "GyroCheckLimits",
+    "GyroCheckResult",
     "GyroReader",
     "GyroSamples",
     "GyroSettings",
@@ -69,6 +80,8 @@ __all__ = [
     "SimGyroPort",
     "UnwrapResult",
     "ZeroRateCalibration",
+    "check_gyro",
+    "check_gyro_samples",
     "crc8",
     "encode_frames",
     "fit_clock_drifting",

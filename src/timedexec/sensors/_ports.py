@@ -11,14 +11,12 @@ pyserial's network URLs (``socket://``) are not accepted: the reader relies on
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import serial
 
 from timedexec.errors import ConfigError, SensorError
-
-if TYPE_CHECKING:
-    from timedexec.sensors._reader import GyroSettings
+from timedexec.sensors._settings import GyroSettings
 
 __all__ = ["SUPPORTED_URL_SCHEMES", "Port", "open_port"]
 

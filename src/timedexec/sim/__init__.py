@@ -40,7 +40,6 @@ from timedexec.sim._settings import (
     SimSettings,
     TimingSettings,
     default_settings,
-    with_gyro_latency,
 )
 from timedexec.sim._sweep import SweepResult, simulate_delays, simulate_sweep, truth_table
 
@@ -80,5 +79,4 @@ __all__ = [
     "step_rate_source",
     "sweep_clock",
     "truth_table",
-    "with_gyro_latency",
 ]

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from timedexec._signal import ONSET_FRACTION, interp_rows
 from timedexec.effects import EffectSet
 from timedexec.recording import SweepPlan, trial_layout
-from timedexec.robots import RobotSpec, joint_axis_in_tool
+from timedexec.robots import RobotSpec, get_robot_entry, joint_axis_in_tool
 from timedexec.sim._physics import JointBank, joint_params, pulse_profile
 from timedexec.sim._settings import SimSettings
 
@@ -78,17 +78,17 @@ class SweepClock:
 def sweep_clock(plan: SweepPlan, settings: SimSettings, seed: int) -> SweepClock:
     """Draw the sweep-wide truths and lay out the trials in time.
 
-    A still recording of ``settings.still_s`` opens the sweep; each trial takes its record
-    window plus ``trial_gap_s``; moving to a new configuration adds ``config_move_s``.
+    A still recording of the protocol's ``still_s`` opens the sweep; each trial takes its
+    record window plus ``trial_gap_s``; moving to a new configuration adds ``config_move_s``.
     """
     rng = np.random.default_rng([seed, 0xC10C])
-    gyro = settings.gyro
-    trial_s = settings.profile.pre_s + settings.profile.record_s + settings.trial_gap_s
+    gyro, protocol = settings.gyro, settings.protocol
+    trial_s = protocol.profile.pre_s + protocol.profile.record_s + protocol.trial_gap_s
     new_config = np.r_[True, plan.config_index[1:] != plan.config_index[:-1]]
-    step = trial_s + np.where(new_config, settings.config_move_s, 0.0)
+    step = trial_s + np.where(new_config, protocol.config_move_s, 0.0)
     # Small host-side scheduling jitter between trials (the runner waits for a package).
-    step = step + rng.uniform(0.0, settings.controller_period_s, len(plan))
-    t0 = settings.still_s + settings.profile.pre_s + np.cumsum(step) - step[0]
+    step = step + rng.uniform(0.0, protocol.controller_period_s, len(plan))
+    t0 = protocol.still_s + protocol.profile.pre_s + np.cumsum(step) - step[0]
     hours = 1.0 / 3600.0
     return SweepClock(
         t0_s=t0,
@@ -123,8 +123,8 @@ def simulate_block(
     rng = np.random.default_rng([seed, 1, int(rows[0])])
     n = len(rows)
     lay = trial_layout(settings.protocol)
-    timing, gyro, prof = settings.timing, settings.gyro, settings.profile
-    period = settings.controller_period_s
+    timing, gyro, prof = settings.timing, settings.gyro, settings.protocol.profile
+    period = settings.protocol.controller_period_s
     joint = plan.joint[rows]
     direction = plan.direction[rows].astype(float)
     q_start = plan.q_start_rad[rows]
@@ -228,8 +228,8 @@ def simulate_block(
     qd_pkg = np.zeros_like(q_pkg)
     r = np.arange(n)
     q_pkg[r, :, col] = q_rep
-    if spec.vendor == "kuka":
-        # RSI reports positions only; the host differentiates (a T/2 lag, documented).
+    if not get_robot_entry(spec.name).timing.state_velocity:
+        # Positions only (RSI); the host differentiates (a T/2 lag, documented).
         qd_rep = np.diff(q_rep, axis=1, prepend=q_rep[:, :1]) / period
     else:
         qd_rep = interp_rows(v_hist, pos)

@@ -169,7 +169,7 @@ class ControllerSim:
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec).
     effects : EffectSet, optional
         Defaults to the robot's default effect set.
     q0_rad : array (6,), optional
@@ -203,7 +203,7 @@ class ControllerSim:
         self.settings = settings or default_settings(spec, period_s=period_s)
         self.spec = self.settings.spec
         self.effects = effects if effects is not None else default_effects(self.spec.name)
-        self.period_s = self.settings.controller_period_s
+        self.period_s = self.settings.protocol.controller_period_s
         rate = physics_rate_hz or self.settings.gyro.nominal_rate_hz
         if not rate > 0:
             raise ConfigError(f"physics_rate_hz={physics_rate_hz!r} must be > 0")

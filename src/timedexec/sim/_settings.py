@@ -19,7 +19,7 @@ import numpy as np
 from timedexec._validation import DictMixin, check_joint_tuple, check_non_negative, check_positive
 from timedexec.errors import ConfigError
 from timedexec.recording import GyroHeader, SweepProtocol, TrialProfile
-from timedexec.robots import RobotSpec, get_robot, joint_inertia
+from timedexec.robots import RobotSpec, get_robot, get_robot_entry, joint_inertia
 
 __all__ = [
     "GyroModel",
@@ -27,7 +27,6 @@ __all__ = [
     "SimSettings",
     "TimingSettings",
     "default_settings",
-    "with_gyro_latency",
 ]
 
 
@@ -237,63 +236,79 @@ class GyroModel(DictMixin):
 
 @dataclass(frozen=True, kw_only=True)
 class SimSettings(DictMixin):
-    """Everything the simulator needs beyond the robot spec and the effect set."""
+    """Everything the simulator needs beyond the robot spec and the effect set.
 
-    robot: str
-    controller_period_s: float
+    Parameters
+    ----------
+    protocol : SweepProtocol
+        The sweep it runs, as a live run would (robot, controller period, trial motion,
+        pauses; :meth:`SweepProtocol.for_robot`). Its ``gyro`` entry is what the recording
+        states about the sensor: the simulated sensor's own constants, ``gyro.header()``.
+    timing : TimingSettings
+        The simulated control box's timing.
+    servo : ServoSettings
+        The simulated drives' physics.
+    gyro : GyroModel
+        The simulated sensor.
+    """
+
+    protocol: SweepProtocol
     timing: TimingSettings
     servo: ServoSettings
     gyro: GyroModel = dataclasses.field(default_factory=GyroModel)
-    profile: TrialProfile = dataclasses.field(default_factory=TrialProfile)
-    still_s: float = 10.0
-    config_move_s: float = 3.0
-    trial_gap_s: float = 0.3
 
     def __post_init__(self) -> None:
-        check_positive("settings", controller_period_s=self.controller_period_s)
-        check_non_negative(
-            "settings",
-            still_s=self.still_s,
-            config_move_s=self.config_move_s,
-            trial_gap_s=self.trial_gap_s,
-        )
+        period = self.protocol.controller_period_s
         hi = self.timing.packing_phase_s[1]
-        if hi >= self.controller_period_s * 1.0000001 + 1e-12 and hi > 0:
+        if hi >= period * 1.0000001 + 1e-12 and hi > 0:
             raise ConfigError(
                 f"timing: packing_phase_s upper bound {hi} s must be below the controller period "
-                f"{self.controller_period_s} s (use response_extra_cycle for whole periods)"
+                f"{period} s (use response_extra_cycle for whole periods)"
             )
-
-    @property
-    def protocol(self) -> SweepProtocol:
-        """The sweep protocol these settings run (what a live run needs of them)."""
-        return SweepProtocol(
-            robot=self.robot,
-            controller_period_s=self.controller_period_s,
-            profile=self.profile,
-            gyro=self.gyro.header(),
-            still_s=self.still_s,
-            config_move_s=self.config_move_s,
-            trial_gap_s=self.trial_gap_s,
-        )
+        if self.protocol.gyro != self.gyro.header():
+            raise ConfigError(
+                f"settings: the protocol states the gyro {self.protocol.gyro} but the simulated "
+                f"sensor is {self.gyro.header()}; a simulated recording states its sensor's "
+                "constants: change both together (protocol=dataclasses.replace(protocol, "
+                "gyro=gyro.header()))"
+            )
 
     @property
     def spec(self) -> RobotSpec:
         """The robot spec with this settings' controller period."""
-        return get_robot(self.robot, period_s=self.controller_period_s)
+        return self.protocol.spec
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict in the layout recordings store: the protocol's fields beside the
+        simulator's (flat, as before the protocol was a field of its own); the protocol's
+        gyro entry is the sensor model's header and is not stored twice."""
+        protocol = self.protocol
+        return {
+            "robot": protocol.robot,
+            "controller_period_s": protocol.controller_period_s,
+            "timing": self.timing.to_dict(),
+            "servo": self.servo.to_dict(),
+            "gyro": self.gyro.to_dict(),
+            "profile": protocol.profile.to_dict(),
+            "still_s": protocol.still_s,
+            "config_move_s": protocol.config_move_s,
+            "trial_gap_s": protocol.trial_gap_s,
+        }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> SimSettings:
-        """Inverse of :meth:`to_dict`."""
+        """Inverse of :meth:`to_dict` (reads every recording's stored settings)."""
         d = dict(data)
         timing = dict(d.pop("timing"))
         timing["packing_phase_s"] = tuple(timing["packing_phase_s"])
+        servo = ServoSettings(**d.pop("servo"))
+        gyro = GyroModel(**d.pop("gyro"))
+        profile = TrialProfile(**d.pop("profile"))
         return cls(
+            protocol=SweepProtocol(profile=profile, gyro=gyro.header(), **d),
             timing=TimingSettings(**timing),
-            servo=ServoSettings(**d.pop("servo")),
-            gyro=GyroModel(**d.pop("gyro")),
-            profile=TrialProfile(**d.pop("profile")),
-            **d,
+            servo=servo,
+            gyro=gyro,
         )
 
     def replace(self, **changes: Any) -> SimSettings:
@@ -307,34 +322,31 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"`` (or its spec).
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec). The controller's
+        timing (pipeline, packing phase, jitter, velocity loop, breakaway) is the robot's
+        catalog entry's :class:`~timedexec.robots.ControllerTiming`.
     period_s : float, optional
         Controller period (the KR 5 also runs RSI at 0.004 s).
+
+    Raises
+    ------
+    ConfigError
+        For a robot the catalog does not hold (a spec of another name).
     """
-    spec = robot if isinstance(robot, RobotSpec) else get_robot(robot, period_s=period_s)
-    if period_s is not None and abs(spec.controller_period_s - period_s) > 1e-12:
+    spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
+    if period_s is not None:
         spec = spec.with_period(period_s)
+    protocol = SweepProtocol.for_robot(spec)
     period = spec.controller_period_s
-    profile = TrialProfile(speed_rad_s=0.4, acceleration_rad_s2=8.0)
-    if spec.vendor == "universal_robots":
-        # CB3: the script thread takes the register one cycle after intake; e-Series has a
-        # longer pipeline in cycles but a 4x shorter cycle.
-        pipeline = 1 if spec.name == "ur10" else 4
-        timing = TimingSettings(
-            pipeline_cycles=pipeline, packing_phase_s=(0.02 * period, 0.97 * period)
-        )
-        bandwidth = (25.0, 25.0, 25.0, 40.0, 40.0, 40.0)
-        breakaway_time = (0.0045, 0.0045, 0.0045, 0.0045, 0.0045, 0.0045)
-    else:
-        # RSI: the IPO cycle interpolates and a drive-bus stage follows; the pipeline is a
-        # time (about 72 ms), so at 4 ms it holds three times as many cycles.
-        timing = TimingSettings(
-            pipeline_cycles=max(1, round(0.072 / period)),
-            packing_phase_s=(0.0005, min(0.0095, 0.8 * period)),
-            cycle_jitter_s=10e-6,
-        )
-        bandwidth = (12.0, 12.0, 12.0, 25.0, 25.0, 25.0)
-        breakaway_time = (0.0015, 0.0015, 0.0015, 0.0015, 0.0015, 0.0015)
+    profile = protocol.profile
+    controller = get_robot_entry(spec.name).timing  # the catalog's numbers for this controller
+    timing = TimingSettings(
+        pipeline_cycles=controller.pipeline_cycles_at(period),
+        packing_phase_s=controller.packing_phase_at(period),
+        cycle_jitter_s=controller.cycle_jitter_s,
+    )
+    bandwidth = controller.bandwidth_hz
+    breakaway_time = controller.breakaway_time_s
     # Warm breakaway torque per joint, N·m: what the nominal velocity loop (kp = J_nom·ω)
     # builds in `breakaway_time` under the calibration ramp. Published friction data of
     # these drives do not exist; this ties the torques to the drives' scale instead.
@@ -346,12 +358,4 @@ def default_settings(robot: str | RobotSpec, *, period_s: float | None = None) -
         breakaway_nm=tuple(float(round(f, 3)) for f in breakaway),
         viscous_nms=tuple(float(round(0.05 * f, 4)) for f in breakaway),
     )
-    return SimSettings(
-        robot=spec.name, controller_period_s=period, timing=timing, servo=servo, profile=profile
-    )
-
-
-def with_gyro_latency(settings: SimSettings, latency_s: float) -> SimSettings:
-    """``settings`` whose gyro reaches the host ``latency_s`` after sampling (at least): the
-    transport latency measured by :func:`timedexec.twins.measure_gyro_transport_latency`."""
-    return settings.replace(gyro=dataclasses.replace(settings.gyro, usb_latency_s=latency_s))
+    return SimSettings(protocol=protocol, timing=timing, servo=servo)

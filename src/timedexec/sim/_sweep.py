@@ -42,7 +42,7 @@ def _still_recording(
     gyro = settings.gyro
     rng = np.random.default_rng([seed, 2])
     f = gyro.true_rate_hz
-    n = int(settings.still_s * gyro.nominal_rate_hz)
+    n = int(settings.protocol.still_s * gyro.nominal_rate_hz)
     n -= n % gyro.block_samples
     first = math.ceil(-clock.gyro_offset_s * f)
     t = clock.gyro_offset_s + (first + np.arange(n)) / f
@@ -104,7 +104,7 @@ def simulate_sweep(
     Parameters
     ----------
     robot : str or RobotSpec
-        ``"ur10"``, ``"ur10e"`` or ``"kr5"``.
+        A name in :data:`~timedexec.robots.ROBOT_NAMES` (or its spec).
     n_trials : int
         Trials (1 .. 10,000,000); ignored when ``plan`` is given.
     out : path
@@ -142,9 +142,9 @@ def simulate_sweep(
         "effects": effects.to_dict(),
         "plan": plan.meta(),
         "seed": seed,
-        "profile": settings.profile.to_dict(),
-        "controller_period_s": settings.controller_period_s,
-        "gyro": settings.gyro.header().to_dict(),
+        "profile": settings.protocol.profile.to_dict(),
+        "controller_period_s": settings.protocol.controller_period_s,
+        "gyro": settings.protocol.gyro.to_dict(),
         "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
         "time_origin": "trial time 0 = host arrival of the trigger state package",
     }

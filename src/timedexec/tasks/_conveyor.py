@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
 from timedexec.execution import ExecutionLimits, JointPlan
-from timedexec.robots import RobotSpec, get_robot, solve_ik, tool_pose
+from timedexec.robots import RobotSpec, get_robot, get_robot_entry, solve_ik, tool_pose
 
 __all__ = [
     "SEAM_KINDS",
@@ -214,23 +214,6 @@ class WeldCell:
         }
 
 
-#: Per robot: the torch-down seed pose and the work point (torch tip, base frame, m). The
-#: belt runs along base y, across the front of the robot, 0.55 m (KR 5: 850 mm reach) or
-#: 0.80 m (UR10/UR10e: 1.3 m reach) out, at a work height the tip reaches over +-0.3 m of
-#: belt with every joint well inside its limits.
-_CELLS: dict[str, tuple[tuple[float, ...], tuple[float, float, float]]] = {
-    "kr5": ((0.0, -math.pi / 2, math.pi / 2, 0.0, math.pi / 2, 0.0), (0.55, 0.20, 0.30)),
-    "ur10": (
-        (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0),
-        (-0.80, 0.20, 0.20),
-    ),
-    "ur10e": (
-        (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0),
-        (-0.80, 0.20, 0.20),
-    ),
-}
-
-
 #: Torch tilt from vertical of the built-in cells, rad, about a horizontal axis at 45° to
 #: the belt: a push angle and a work angle together, as a torch is held on a fillet weld.
 #: A vertical torch would leave a wrist joint still (the arm's plane contains the torch).
@@ -247,15 +230,16 @@ def default_cell(
     the KR 5 joints 2 and 3, on the UR joint 4 reverse during the weld (the reach passes a
     minimum) and stick there for a moment (docs/welding.md).
 
+    The seed pose and the work point are the robot's catalog entry's
+    (:class:`~timedexec.robots.WorkCell`).
+
     Raises
     ------
     ConfigError
-        For a robot without a built-in cell.
+        For a robot the catalog does not hold.
     """
-    spec = get_robot(robot)
-    if spec.name not in _CELLS:
-        raise ConfigError(f"no built-in weld cell for {spec.name!r}; build a WeldCell")
-    seed, point = _CELLS[spec.name]
+    entry = get_robot_entry(robot)
+    spec, seed, point = entry.spec, entry.cell.seed_q_rad, entry.cell.work_point_m
     tool = (0.0, 0.0, 0.15)
     from scipy.spatial.transform import Rotation
 

@@ -79,6 +79,14 @@ class GyroTwin(Twin):
     max_backlog_s : float
         When nobody reads, keep at most this much unsent data, s; older bytes are dropped
         (counted in :attr:`bytes_dropped_overflow`), as a USB device does.
+    nominal_rate_hz : float
+        Nominal sample rate, Hz (8000; 1000 plays a sensor with its DLPF on).
+    frame_loss : float
+        Probability that a sample's frame is never sent (a device that drops samples: the
+        host sees counter gaps), 0..1; counted in :attr:`frames_lost`.
+    byte_error_rate : float
+        Probability that a byte is replaced by a random one (a noisy line; 1 sends nothing
+        but garbage), 0..1.
 
     Examples
     --------
@@ -101,6 +109,9 @@ class GyroTwin(Twin):
         dlpf_group_delay_s: float = 0.98e-3,
         record_truth: bool = False,
         max_backlog_s: float = 0.5,
+        nominal_rate_hz: float = 8000.0,
+        frame_loss: float = 0.0,
+        byte_error_rate: float = 0.0,
     ) -> None:
         if not (math.isfinite(burst_period_s) and 1e-4 <= burst_period_s <= 0.1):
             raise ConfigError(
@@ -108,16 +119,24 @@ class GyroTwin(Twin):
             )
         if not max_backlog_s > 0:
             raise ConfigError(f"max_backlog_s={max_backlog_s!r} must be positive, s")
+        for name, value in (("frame_loss", frame_loss), ("byte_error_rate", byte_error_rate)):
+            if not 0.0 <= value <= 1.0:
+                raise ConfigError(f"{name}={value!r} must be a probability in 0..1")
         self.source = GyroFrameSource(
             rate_source,
             clock_error_ppm=clock_error_ppm,
             noise_density_dps_rthz=noise_density_dps_rthz,
             bias_dps=bias_dps,
             full_scale_dps=full_scale_dps,
+            nominal_rate_hz=nominal_rate_hz,
             dlpf_group_delay_s=dlpf_group_delay_s,
             seed=seed,
             record_truth=record_truth,
         )
+        self.frame_loss = float(frame_loss)
+        self.byte_error_rate = float(byte_error_rate)
+        self.frames_lost = 0
+        """Frames not sent because of ``frame_loss``."""
         self.link_path = link_path
         self.burst_period_s = float(burst_period_s)
         self._max_backlog = int(max_backlog_s * self.source.true_rate_hz) * 11
@@ -295,7 +314,22 @@ class GyroTwin(Twin):
             raise ConfigError(f"{name}={n!r} must be a non-negative number of bytes")
         return int(n)
 
+    def _degrade(self, data: bytes) -> bytes:
+        """The steady faults of a bad device: lost frames, then damaged bytes."""
+        if self.frame_loss > 0:
+            frames = np.frombuffer(data, dtype=np.uint8).reshape(-1, 11)
+            keep = self._fault_rng.random(frames.shape[0]) >= self.frame_loss
+            self.frames_lost += int(frames.shape[0] - np.count_nonzero(keep))
+            data = frames[keep].tobytes()
+        if self.byte_error_rate > 0 and data:
+            buf = np.frombuffer(data, dtype=np.uint8).copy()
+            hit = self._fault_rng.random(buf.shape[0]) < self.byte_error_rate
+            buf[hit] = self._fault_rng.integers(0, 256, int(np.count_nonzero(hit)), dtype=np.uint8)
+            data = buf.tobytes()
+        return data
+
     def _apply_faults(self, data: bytes, offset: int) -> bytes:
+        data = self._degrade(data)
         with self._lock:
             if not (self._corrupt_left or self._drop_left or self._garbage):
                 return data
@@ -386,6 +420,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--frequency-hz", type=float, default=1.0)
     parser.add_argument("--step-time-s", type=float, default=1.0)
     parser.add_argument("--axis", type=int, default=2)
+    parser.add_argument("--nominal-rate-hz", type=float, default=8000.0)
+    parser.add_argument("--frame-loss", type=float, default=0.0)
+    parser.add_argument("--byte-error-rate", type=float, default=0.0)
     args = parser.parse_args(argv)
 
     source: RateSource | None = None
@@ -414,6 +451,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             bias_dps=args.bias_dps,
             full_scale_dps=args.full_scale_dps,
             seed=args.seed,
+            nominal_rate_hz=args.nominal_rate_hz,
+            frame_loss=args.frame_loss,
+            byte_error_rate=args.byte_error_rate,
         )
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)

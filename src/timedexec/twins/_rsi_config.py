@@ -13,7 +13,7 @@ import numpy as np
 
 from timedexec.effects import EffectSet
 from timedexec.errors import ConfigError, ProtocolError
-from timedexec.robots import get_robot
+from timedexec.robots import get_robot, get_robot_entry
 
 __all__ = ["STOP_REASONS", "RSITwinConfig", "RSITwinStatus"]
 
@@ -40,7 +40,7 @@ class RSITwinConfig:
     host : str
         The PC's address (loopback).
     robot : str
-        Robot spec name (``"kr5"``).
+        A KUKA robot of the catalog (its entry's interface is ``kuka_rsi``), ``"kr5"``.
     period_s : float
         RSI cycle, s: 0.012 (``#IPO``) or 0.004 (``#IPO_FAST``).
     q0_rad : tuple of 6 float or None
@@ -124,7 +124,7 @@ class RSITwinConfig:
         if not isinstance(self.port, int) or not 1 <= self.port <= 65535:
             raise ConfigError(f"port={self.port!r} must be an integer in 1..65535")
         spec = get_robot(self.robot, period_s=self.period_s)  # validates robot and period
-        if spec.vendor != "kuka":
+        if get_robot_entry(spec.name).twin.interface != "kuka_rsi":
             raise ConfigError(f"robot {self.robot!r} is not a KUKA robot; RSI needs one")
         if self.q0_rad is not None:
             q0 = tuple(float(x) for x in self.q0_rad)

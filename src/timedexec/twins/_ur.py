@@ -8,8 +8,9 @@ clock: controller time ``t`` happens at host time ``t0_monotonic_s + t``
 
 What it emulates (see ``docs/ur-twin.md``):
 
-* RTDE protocol version 2: version negotiation, controller version (3.15.7 for a CB3 UR10,
-  so the client streams at 125 Hz; 5.11.1 for a UR10e, 500 Hz), output recipes with the
+* RTDE protocol version 2: version negotiation, controller version (the robot's catalog
+  identity: 3.15.7 for a CB3 UR10, so the client streams at 125 Hz; 5.11.1 for an
+  e-Series, 500 Hz), output recipes with the
   real controller's types (``NOT_FOUND`` for unknown names), input recipes numbered per
   connection, input ownership (a second writer gets ``IN_USE``; released on disconnect),
   start/pause, data packages both ways.
@@ -97,9 +98,10 @@ def run_ur_twin(
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e"}
-        Simulated robot; reports controller version 3.15.7 (CB3, 125 Hz, 8 ms cycle) or
-        5.11.1 (e-Series, 500 Hz, 2 ms cycle).
+    robot : str
+        Simulated robot, a key of :data:`UR_CONTROLLER_VERSIONS` (the catalog's UR robots);
+        reports its catalog identity: e.g. controller version 3.15.7 (CB3, 125 Hz, 8 ms
+        cycle) for the ur10, 5.11.1 (e-Series, 500 Hz, 2 ms cycle) for the ur10e.
     host : str
         Address to listen on (RTDE 30004, dashboard 29999, script 30003).
     seed : int
@@ -221,8 +223,9 @@ class URTwin(Twin):
 
     Parameters
     ----------
-    robot : {"ur10", "ur10e"}
-        Simulated robot (controller version 3.15.7 / 5.11.1; 8 ms / 2 ms cycle).
+    robot : str
+        Simulated robot, a key of :data:`UR_CONTROLLER_VERSIONS` (ur10: controller version
+        3.15.7, 8 ms cycle; the e-Series robots: 5.11.1, 2 ms).
     host : str
         Loopback address to serve on; ports are fixed by the client (30004, 29999, 30003),
         so run one twin per address (127.0.0.2, 127.0.0.3, ... for parallel twins).

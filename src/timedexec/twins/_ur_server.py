@@ -39,6 +39,7 @@ except ImportError:  # pragma: no cover
 
 from timedexec._realtime import GcPauses, fast_wakeup, quiet_gc, try_realtime
 from timedexec.errors import ConfigError, ProtocolError
+from timedexec.robots import ROBOT_NAMES, TwinIdentity, get_robot_entry
 from timedexec.twins._cartesian import tcp_values
 from timedexec.twins._rtde import RTDE_OUTPUT_TYPES, RTDE_TYPE_CODES, _RTDEConnection
 from timedexec.twins._ur_truthlog import TruthLog, json_safe
@@ -66,13 +67,19 @@ RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 SCRIPT_PORT = 30003
 
-#: Controller software version the twin reports per robot: (major, minor, bugfix, build).
+
+def _version(identity: TwinIdentity) -> tuple[int, int, int, int]:
+    major, minor, bugfix, build = identity.controller_version  # four for a UR (checked)
+    return major, minor, bugfix, build
+
+
+#: The robots the UR twin simulates (the catalog's ``ur_rtde`` robots) and the controller
+#: software version it reports for each: (major, minor, bugfix, build).
 UR_CONTROLLER_VERSIONS: dict[str, tuple[int, int, int, int]] = {
-    "ur10": (3, 15, 7, 106331),
-    "ur10e": (5, 11, 1, 108318),
+    name: _version(get_robot_entry(name).twin)
+    for name in ROBOT_NAMES
+    if get_robot_entry(name).twin.interface == "ur_rtde"
 }
-_SERIAL_NUMBERS = {"ur10": "2018300001", "ur10e": "20215000001"}
-_MODEL_NAMES = {"ur10": "UR10", "ur10e": "UR10"}
 #: Joint mode reported for every joint: JOINT_RUNNING_MODE.
 _JOINT_RUNNING_MODE = 253
 
@@ -195,11 +202,13 @@ def _set_timer_slack_ns(slack_ns: int) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(29, slack_ns, 0, 0, 0)
 
 
-def _check_robot(robot: str) -> None:
+def _check_robot(robot: str) -> TwinIdentity:
+    """The identity the twin reports for ``robot``; ConfigError for a robot it cannot be."""
     if robot not in UR_CONTROLLER_VERSIONS:
         raise ConfigError(
             f"robot={robot!r} is not a simulated UR; use one of {sorted(UR_CONTROLLER_VERSIONS)}"
         )
+    return get_robot_entry(robot).twin
 
 
 def _sleep_until(deadline: float) -> None:
@@ -229,7 +238,7 @@ class _TwinServer:
         external_control: tuple[str, int] = ("127.0.0.1", EXTERNAL_CONTROL_PORT),
         log: Callable[[str], None] | None = None,
     ) -> None:
-        _check_robot(robot)
+        self.identity = _check_robot(robot)
         self.robot = robot
         self.host = host
         self.rt_priority = rt_priority
@@ -444,8 +453,8 @@ class _TwinServer:
         return _dashboard_reply(
             line,
             version=self.version,
-            serial_number=_SERIAL_NUMBERS[self.robot],
-            model=_MODEL_NAMES[self.robot],
+            serial_number=self.identity.serial_number,
+            model=self.identity.model_name,
             playing=playing,
         )
 

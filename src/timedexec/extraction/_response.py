@@ -1,0 +1,631 @@
+"""The response delay: the age of the reported state, with a standard error.
+
+**The fit.** The reported positions are aligned with the integrated gyro angle. The angle
+of a white-noise rate is a random walk, so a least-squares fit of positions weights the
+late, noisy part of the walk as if it were exact; the generalised least-squares fit of a
+random-walk error is the fit of *increments* between consecutive packages (independent
+errors, variance ∝ their time span). Model per increment j:
+``Δq_j = k·(A(h_j - τ) - A(h_{j-1} - τ)) + c·(h_j - h_{j-1})`` (c absorbs a rate offset,
+k a gain error), solved by Gauss-Newton for (τ, c, k) with the exact derivative of the
+(linearly interpolated) angle and a backtracking line search, which converges to the
+least-squares minimum (a fixed number of plain Gauss-Newton steps with the interpolated
+speed as the derivative stopped up to 50 µs short of it, and could cycle). The standard
+error of τ is the sandwich of the two errors the increments carry — the angle's random
+walk, measured where the joint rests, and each package's latency jitter times the speed,
+which enters neighbouring increments with opposite signs — with the sensor's and the
+network's variances pooled over the chunk's trials (see the code's notes).
+
+The gyro rate is averaged over ``RESPONSE_SMOOTH_S`` (a centred, odd-length moving
+average: zero phase) before it is integrated. The raw angle's noise is a random walk, rough
+at the sample scale; shifting it by τ resamples that roughness, so the cost is rough in τ
+and its minimum wanders further than the residuals' curvature says (the error grew faster
+than the noise, and the standard error did not follow). The average makes the angle smooth
+at the scale of τ's uncertainty; over a ramp it offsets the angle by a constant, which the
+increments cancel. See ``RESPONSE_SMOOTH_S`` for the measurements.
+
+**Compliant joints.** Real arms report the angle of a *motor-side* encoder divided by the
+gear ratio, and the gyro sees the *link*, which deflects against the gear by the torque that
+accelerates it (plus gravity's, whose change with the angle is a gain). The response delay
+is the age of the reported (motor) sample (``docs/architecture.md``). The deflection leads
+or lags the link by a frequency-dependent amount that the shift fit takes for age: a damped
+spring lags by ∝ ω² below its resonance, a hysteretic gear by the friction inside it
+(half the loop's width over the speed, up to 0.4 ms at 1 arcmin and 0.4 rad/s), and the
+increments (a fit of speeds) weight the high frequencies where that lag is largest.
+On ``tests/compliant_sweep.py``'s UR10 (200 trials) the fit read the age -0.46 / -0.69 /
+-0.44 / -0.03 ms off (joints 1/2/3/5) with standard errors of 0.03-0.15 ms; with a perfect
+gyro (96 trials, no noise) -0.43 / -0.67 / -0.42 / -0.03 ms, a least-squares shift of the
+positions onto the true link -0.14 / -0.24 / -0.17 / -0.03 ms: the bias is the
+deflection's, not the gyro's; with the deflection terms (below) +0.18 / -0.00 / +0.03 /
+-0.02 ms.
+
+So the fit can carry the deflection, linear in unknown coefficients, as a function of the
+link acceleration the gyro measures (:func:`deflection_regressors`): the acceleration and
+its square (a stiffening spring about a gravity preload), its derivative (viscous damping:
+a lag) and two stop operators of it (the gear's hysteresis, a Prandtl-Ishlinskii sum). On
+the rigid joints of our simulator those terms only add variance (response RMSE 0.023 ->
+0.060 ms, UR10, 300 trials), so a joint's trials get them only where the change they would
+make is positive and clear on that joint (:func:`response_delay`). The gear's law stays
+unknown: with the hysteresis terms and without them the fit brackets the age (on the
+compliant generator's base joint the two differ by 0.35 ms, the truth in between), and half
+their difference enters the standard error. Measured (``benchmarks/bench_extract_compliant.py``,
+200 trials per condition, clean / 2x / 5x noise / 150 ppm drift / lossy USB): UR10 joints
+2 and 3 -0.69 / -0.44 ms -> -0.07..+0.02 / +0.03..+0.08 ms, 95 % intervals covering
+88-95 / 100 % (0-5 % before); the lightly loaded base joints stay off by up to 0.27 ms
+(UR10, 5x) and 0.16 ms (KR 5), their intervals covering 89-100 %.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d, uniform_filter1d
+
+__all__ = [
+    "DEFLECTION_MIN_CHANGE_S",
+    "DEFLECTION_MODEL_SHARE",
+    "DEFLECTION_SMOOTH_S",
+    "DEFLECTION_STOPS",
+    "DEFLECTION_STRIDE",
+    "RESPONSE_SMOOTH_S",
+    "ResponseFit",
+    "deflection_regressors",
+    "deflection_smoothing",
+    "response_delay",
+    "response_increments",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Width of the moving average of the gyro rate in the response fit, s (97 samples at
+#: 8 kHz). Measured on the independent recordings (benchmarks/bench_extract_robustness.py,
+#: 300 trials each; response RMSE and 95 % coverage of its standard error, without -> with):
+#: UR10 clean 0.051 -> 0.047 ms, 10x noise 0.298 -> 0.149 ms (coverage 78 -> 98 %), 20x
+#: 0.966 -> 0.265 ms (35 -> 94 %); clean UR10e 0.145 -> 0.042 ms. The width: on the UR10e
+#: (2 ms packages) at 10x noise one period (2 ms) gave 0.436 ms, 4 ms 0.254 ms, 12 ms
+#: 0.171 ms (68 / 93 / 99.7 % coverage); 20 ms gained little more and excludes more of each
+#: trial's ends. An even length shifted the estimate by half a sample (63 µs).
+RESPONSE_SMOOTH_S = 0.012
+#: Thresholds of the deflection's stop operators, fractions of the trial's largest |a|.
+DEFLECTION_STOPS = (0.1, 0.4)
+#: The first so many deflection terms are the elastic and viscous ones (a, ȧ, a²).
+_ELASTIC_TERMS = 3
+#: The deflection terms are formed on every so many gyro samples (1 kHz at 8 kHz: they
+#: are smooth at the scale of their Gaussian, >= 4 ms), linear in between.
+DEFLECTION_STRIDE = 8
+#: Step halvings of the response fit's line search before a row is taken as converged.
+_LINE_SEARCH_HALVINGS = 6
+#: Half the baseline of the angle's slope in the response's standard error, s.
+_SE_SLOPE_S = 0.002
+
+
+@dataclass(frozen=True)
+class ResponseFit:
+    """Per row: the age of the reported state ``tau`` (s), its standard error ``se`` (s)
+    and ``probe`` (s): how far one Gauss-Newton step with the deflection terms would move
+    ``tau`` from the fit without them (NaN where not asked for)."""
+
+    tau: FloatArray
+    se: FloatArray
+    probe: FloatArray
+
+
+def deflection_regressors(y: FloatArray, dt: FloatArray, smooth_s: float) -> FloatArray:
+    """The signals a gear's deflection is made of, every ``DEFLECTION_STRIDE``-th gyro
+    sample: (5, n, ceil(g / stride)).
+
+    The deflection follows the torque through the gear, J·a (gravity's change with the
+    angle is a gain, which the fit has), through the gear's law: a spring (∝ a; a² for
+    a stiffening spring's asymmetry about a gravity preload), viscous damping (∝ ȧ: a lag)
+    and hysteresis (stop operators of a with thresholds ``DEFLECTION_STOPS`` of the
+    trial's largest |a|: a Prandtl-Ishlinskii sum, the standard linear-in-parameters form
+    of a rate-independent loop). a and ȧ are the first and second derivatives of the link
+    speed ``y`` (rad/s) averaged over a stride and smoothed by a Gaussian of ``smooth_s``
+    (s; :func:`deflection_smoothing`); ``dt`` is each row's sample spacing (s). Returned
+    in the order a, ȧ, a²/max|a| (the elastic and viscous terms), then the stops.
+    """
+    n, g = y.shape
+    k = DEFLECTION_STRIDE
+    pad = (-g) % k
+    y_c = np.pad(y, ((0, 0), (0, pad)), mode="edge").reshape(n, -1, k).mean(axis=2)
+    d_c = k * dt[:, None]
+    sigma = smooth_s / float(np.median(d_c))
+    acc = gaussian_filter1d(y_c, sigma, axis=1, order=1, mode="nearest") / d_c
+    rate = gaussian_filter1d(y_c, sigma, axis=1, order=2, mode="nearest") / d_c**2
+    step = np.diff(acc, axis=1, prepend=acc[:, :1])
+    amax = np.max(np.abs(acc), axis=1)
+    radius = np.array(DEFLECTION_STOPS)[:, None] * amax[None, :]  # (s, n)
+    state = np.zeros_like(radius)
+    stops = np.empty((len(DEFLECTION_STOPS), *acc.shape))
+    for j in range(acc.shape[1]):
+        state = np.clip(state + step[None, :, j], -radius, radius)
+        stops[:, :, j] = state
+    square = acc * acc / np.maximum(amax, 1e-9)[:, None]
+    return np.concatenate([acc[None], rate[None], square[None], stops])
+
+
+def response_increments(
+    t_g: FloatArray,
+    y: FloatArray,
+    host: FloatArray,
+    q_rel: FloatArray,
+    dt: FloatArray,
+    tau0: FloatArray,
+    *,
+    smooth_samples: int = 1,
+    deflection: bool = False,
+    hysteresis: bool = True,
+    probe: bool = False,
+    deflection_smooth_s: float = 0.004,
+    iterations: int = 15,
+    max_step_s: float = 0.004,
+) -> ResponseFit:
+    """Shift τ of the reported positions behind the gyro angle, fitted on increments.
+
+    Parameters
+    ----------
+    t_g : ndarray, shape (n, g)
+        Gyro sample times, s (uniform per row).
+    y : ndarray, shape (n, g)
+        Physical speed along the commanded direction, rad/s.
+    host : ndarray, shape (n, p)
+        Package arrival times, s (NaN: lost or excluded).
+    q_rel : ndarray, shape (n, p)
+        Reported position change along the commanded direction, rad (NaN: lost).
+    dt : ndarray, shape (n,)
+        Each row's sample spacing, s.
+    tau0 : ndarray, shape (n,)
+        Starting shifts, s.
+    smooth_samples : int, default 1
+        Width of the centred moving average applied to ``y`` before it is integrated
+        (odd: zero phase); 1 leaves it as it is. See the module notes.
+    deflection : bool, default False
+        Fit the gear's deflection too (:func:`deflection_regressors`; the reported angle
+        is a motor-side encoder's). The standard error then also counts the residuals'
+        own covariance in motion (what the deflection terms leave unexplained).
+    hysteresis : bool, default True
+        With ``deflection``: the hysteresis terms too (else the elastic and viscous ones).
+    probe : bool, default False
+        Without ``deflection``: also return how far the deflection terms would move τ.
+
+    Returns
+    -------
+    ResponseFit
+        Age of the reported state, its standard error and the probe (s; see there).
+    """
+    n, g = y.shape
+    d = dt[:, None]
+    if smooth_samples % 2 == 0 or smooth_samples < 1:
+        raise ValueError(f"smooth_samples={smooth_samples} must be odd and >= 1 (zero phase)")
+    raw = y
+    if smooth_samples > 1:
+        y = uniform_filter1d(y, smooth_samples, axis=1, mode="nearest")
+    edge = (smooth_samples // 2) * d  # the ends, where the average is padded
+    angle = (
+        np.concatenate([np.zeros((n, 1)), np.cumsum(0.5 * (y[:, 1:] + y[:, :-1]), axis=1)], axis=1)
+        * d
+    )
+    first = t_g[:, :1]
+    # Regressors of the deflection (per sample, each shifted with the angle): fitted with
+    # ``deflection``, or only scored.
+    regs = (deflection_regressors(raw, dt, deflection_smooth_s) if (deflection or probe)
+            else np.zeros((0, n, g)))  # fmt: skip
+    if deflection and not hysteresis:
+        regs = regs[:_ELASTIC_TERMS]
+    m_x = regs.shape[0] if deflection else 0
+    flat_x = [x.ravel() for x in regs]
+    ok = np.isfinite(host) & np.isfinite(q_rel)
+    # Pair each valid package with the previous valid one.
+    idx = np.where(ok, np.arange(host.shape[1]), -1)
+    prev = np.maximum.accumulate(np.concatenate([np.full((n, 1), -1), idx[:, :-1]], axis=1), axis=1)
+    use = ok & (prev >= 0)
+    pj = np.clip(prev, 0, None)
+    h = np.where(ok, host, 0.0)
+    h1 = np.where(use, host, 0.0)
+    h0 = np.where(use, np.take_along_axis(host, pj, axis=1), 0.0)
+    dq = np.where(use, q_rel - np.take_along_axis(q_rel, pj, axis=1), 0.0)
+    use &= (h0 > first + 0.03 + edge) & (h1 < t_g[:, -1:] - 0.005 - edge)
+    span = np.where(use, h1 - h0, 1.0)
+    typical = np.nanmedian(np.where(use, span, np.nan), axis=1, keepdims=True)
+    wgt = np.where(use, typical / span, 0.0)
+    wgt = np.nan_to_num(wgt)
+    j_c = h1 - h0
+    tau = np.asarray(tau0, dtype=np.float64).copy()
+    c = np.zeros(n)
+    k = np.ones(n)
+    beta = np.zeros((n, m_x))
+    flat_angle = angle.ravel()
+
+    def at(
+        rows: NDArray[np.intp],
+        x: FloatArray,
+        sig: FloatArray = flat_angle,
+        stride: int = 1,
+        size: int = g,
+    ) -> tuple[FloatArray, FloatArray]:
+        """A per-sample signal of ``rows`` (the gyro angle by default; else ``size``
+        values per row, one every ``stride`` samples) at times x (linear interpolation, the
+        ends held), and its derivative with respect to x (the interpolant's slope; 0 past
+        the ends)."""
+        step_ = d[rows] * stride
+        # A strided value is the mean of its ``stride`` samples: centred between them.
+        pos = (x - first[rows] - 0.5 * (stride - 1) * d[rows]) / step_
+        i0 = np.clip(np.floor(pos).astype(np.int64), 0, size - 2)
+        frac = np.clip(pos - i0, 0.0, 1.0)
+        flat = i0 + (rows * size)[:, None]
+        lo = sig[flat]
+        hi = sig[flat + 1]
+        inside = (pos >= 0.0) & (pos <= size - 1)
+        return lo + frac * (hi - lo), np.where(inside, (hi - lo) / step_, 0.0)
+
+    def at_x(rows: NDArray[np.intp], x: FloatArray, m: int = m_x) -> tuple[FloatArray, FloatArray]:
+        """The first m deflection signals at times x of ``rows``: values and slopes,
+        each (m, rows, p)."""
+        vals = [at(rows, x, fx, DEFLECTION_STRIDE, regs.shape[2]) for fx in flat_x[:m]]
+        shape = (m, *x.shape)
+        return (np.array([v for v, _ in vals]).reshape(shape),
+                np.array([s for _, s in vals]).reshape(shape))  # fmt: skip
+
+    def incr(rows: NDArray[np.intp], x: FloatArray) -> FloatArray:
+        """Increments x_j - x_prev(j) of per-package values of ``rows``."""
+        out: FloatArray = x - np.take_along_axis(x, pj[rows], axis=1)
+        return out
+
+    def residual(
+        rows: NDArray[np.intp],
+        a_all: FloatArray,
+        c_r: FloatArray,
+        k_r: FloatArray,
+        x_all: FloatArray,
+        b_r: FloatArray,
+    ) -> FloatArray:
+        out: FloatArray = dq[rows] - k_r[:, None] * incr(rows, a_all) - c_r[:, None] * j_c[rows]
+        for i in range(m_x):
+            out = out - b_r[:, i, None] * incr(rows, x_all[i])
+        return out
+
+    def cost(rows: NDArray[np.intp], *state: FloatArray) -> FloatArray:
+        res = residual(rows, *state)
+        out: FloatArray = np.sum(wgt[rows] * res * res, axis=1)
+        return out
+
+    def normal(w_: FloatArray, cols: list[FloatArray]) -> FloatArray:
+        """Σ w·Jᵢ·Jⱼ per row, (rows, p, p), with a relative ridge against round-off."""
+        a = np.stack([np.stack([np.sum(w_ * ci * cj, axis=1) for cj in cols], -1)
+                      for ci in cols], -2)  # fmt: skip
+        diag = np.einsum("nii->ni", a)
+        ridged: FloatArray = a + np.eye(len(cols)) * (1e-12 * diag[:, None, :] + 1e-30)
+        return ridged
+
+    # Gauss-Newton on (τ, c, k[, β]) with the exact derivative of the interpolated angle and
+    # a backtracking line search (the interpolant's slope jumps where a package crosses a
+    # sample, so full steps can cycle); the angle at each package's time serves as the
+    # end of one increment and the start of the next. c absorbs a rate offset, k a gain
+    # error of the gyro (the out pulse's gain calibration is ~1 % off where the joint
+    # still creeps in the pause: on the independent KR 5 the residuals were 7x the gyro's
+    # noise, correlated over 2-4 packages), β the deflection's coefficients. A row stops
+    # when its accepted step falls below 1 ns or no step along its direction lowers the cost.
+    rows = np.arange(n)
+    a_cur, s_cur = at(rows, h - tau[:, None])
+    x_cur, xs_cur = at_x(rows, h - tau[:, None])
+    f_cur = cost(rows, a_cur, c, k, x_cur, beta)
+    active = rows
+    for _ in range(iterations):
+        if active.size == 0:
+            break
+        r_ = active
+        w_ = wgt[r_]
+        res = residual(r_, a_cur[r_], c[r_], k[r_], x_cur[:, r_], beta[r_])
+        d_tau = -k[r_, None] * incr(r_, s_cur[r_])
+        for i in range(m_x):
+            d_tau = d_tau - beta[r_, i, None] * incr(r_, xs_cur[i, r_])
+        cols = [d_tau, j_c[r_], incr(r_, a_cur[r_])]
+        cols += [incr(r_, x_cur[i, r_]) for i in range(m_x)]
+        a = normal(w_, cols)
+        b = np.stack([np.sum(w_ * ci * res, axis=1) for ci in cols], -1)
+        ok_a = np.all(np.isfinite(a), axis=(1, 2)) & (np.abs(np.linalg.det(a)) > 0)
+        delta = np.zeros_like(b)
+        delta[ok_a] = np.linalg.solve(a[ok_a], b[ok_a][..., None])[..., 0]
+        delta[:, 0] = np.clip(delta[:, 0], -max_step_s, max_step_s)
+        step = np.ones(r_.size)
+        pending = np.arange(r_.size)
+        moved = np.zeros(r_.size)
+        for _ in range(_LINE_SEARCH_HALVINGS):
+            rr = r_[pending]
+            tau_try = tau[rr] + step[pending] * delta[pending, 0]
+            c_try = c[rr] + step[pending] * delta[pending, 1]
+            k_try = k[rr] + step[pending] * delta[pending, 2]
+            b_try = beta[rr] + step[pending, None] * delta[pending, 3:]
+            a_try, s_try = at(rr, h[rr] - tau_try[:, None])
+            x_try, xs_try = at_x(rr, h[rr] - tau_try[:, None])
+            f_try = cost(rr, a_try, c_try, k_try, x_try, b_try)
+            better = f_try <= f_cur[rr]
+            acc = pending[better]
+            ra = rr[better]
+            tau[ra], c[ra], k[ra] = tau_try[better], c_try[better], k_try[better]
+            beta[ra] = b_try[better]
+            a_cur[ra], s_cur[ra], f_cur[ra] = a_try[better], s_try[better], f_try[better]
+            x_cur[:, ra], xs_cur[:, ra] = x_try[:, better], xs_try[:, better]
+            moved[acc] = np.abs(step[acc] * delta[acc, 0])
+            pending = pending[~better]
+            if pending.size == 0:
+                break
+            step[pending] *= 0.5
+        active = r_[moved >= 1e-9]
+    res = np.where(use, residual(rows, a_cur, c, k, x_cur, beta), 0.0)
+    # The standard error with the slope of the angle over ±2 ms as the derivative: the
+    # one-sample slope carries the gyro's white noise, which inflates Σ w·J² (and so
+    # shrinks the error) as the noise grows (95 % coverage at 10x noise: 55 % -> 78 %).
+    ap, _ = at(rows, h - tau[:, None] + _SE_SLOPE_S)
+    am, _ = at(rows, h - tau[:, None] - _SE_SLOPE_S)
+    speed = k[:, None] * (ap - am) / (2 * _SE_SLOPE_S)  # at each package's sample time
+    d_tau = -incr(rows, speed)
+    if m_x:
+        xp, _ = at_x(rows, h - tau[:, None] + _SE_SLOPE_S)
+        xm, _ = at_x(rows, h - tau[:, None] - _SE_SLOPE_S)
+        d_tau = d_tau - incr(rows, np.einsum("nm,mnp->np", beta, xp - xm) / (2 * _SE_SLOPE_S))
+    cols = [np.where(use, d_tau, 0.0), np.where(use, j_c, 0.0),
+            np.where(use, incr(rows, a_cur), 0.0)]  # fmt: skip
+    cols += [np.where(use, incr(rows, x_cur[i]), 0.0) for i in range(m_x)]
+    noise = _NoiseModel(res, use, wgt, speed, pj, dt, smooth_samples, typical, len(cols))
+    q = noise.cov_matrix(cols)
+    a = normal(wgt, cols)
+    ok_a = np.all(np.isfinite(a), axis=(1, 2)) & (np.abs(np.linalg.det(a)) > 0)
+    se = np.full(n, np.nan)
+    if ok_a.any():
+        a_inv = np.linalg.inv(a[ok_a])
+        var = np.einsum("ni,nij,nj->n", a_inv[:, 0], q[ok_a], a_inv[:, 0])
+        # What the model leaves unexplained is not the noise model's: the influence of
+        # each increment on τ against the residuals' own covariance (Bartlett-weighted
+        # lags) beyond the noise model's.
+        if m_x:
+            infl = np.einsum("ni,inp->np", a_inv[:, 0], np.array(cols)[:, ok_a]) * wgt[ok_a]
+            misfit = noise.misfit_variance(infl, res[ok_a], use[ok_a], ok_a)
+            var = var + np.maximum(misfit, 0.0)
+        se[ok_a] = np.sqrt(var)
+    moved = np.full(n, np.nan)
+    if probe and not deflection:
+        x_fit, _ = at_x(rows, h - tau[:, None], regs.shape[0])
+        z = [np.where(use, incr(rows, x), 0.0) for x in x_fit]
+        moved = _expected_change(cols, z, wgt, res)
+    return ResponseFit(tau=tau, se=se, probe=moved)
+
+
+#: Lags (packages) of the residuals' own covariance in the misfit variance.
+_HAC_LAGS = 3
+
+
+class _NoiseModel:
+    """The covariance of the increments' errors under the noise model, for the sandwich.
+
+    Two errors reach the increments. The gyro angle's random walk: increments of variance
+    ∝ their span (the weights), correlated over the moving average's width. And each
+    package's *timing*: its latency jitter ε shifts its level by v·ε, which enters two
+    neighbouring increments with opposite signs (E[e_j e_j+1] = -v_j²·σ_ε²). Counted as
+    independent noise, the second made the standard error 2-9x the error (clean: 99-100 %
+    coverage on the independent recordings and our simulator). The first is measured where
+    the joint rests (no level error there: its lag-0..L covariances γ_l), σ_ε² from the
+    lag-1 covariance in motion beyond γ_1, and the error of τ is the sandwich A⁻¹ Q A⁻¹
+    (A = JᵀWJ) of the covariance they give, positive by construction. (σ_r² as the
+    residual variance beyond the level part took up the level estimate's error: a 10 %
+    low σ_ε made it 7x the rest increments' variance.)
+    """
+
+    def __init__(
+        self,
+        res: FloatArray,
+        use: NDArray[np.bool_],
+        wgt: FloatArray,
+        speed: FloatArray,
+        pj: NDArray[np.int64],
+        dt: FloatArray,
+        smooth_samples: int,
+        typical: FloatArray,
+        n_params: int,
+    ) -> None:
+        n = res.shape[0]
+        n_use = np.maximum(np.sum(use, axis=1), 1)
+        dof = n_use / np.maximum(n_use - n_params, 1)
+        v2 = np.where(use, speed, 0.0) ** 2
+        v2_prev = np.where(use, np.take_along_axis(v2, pj, axis=1), 0.0)
+        rest = use & (v2 + v2_prev <= (0.05 * np.max(np.abs(speed), axis=1, keepdims=True)) ** 2)
+        has_rest = np.sum(rest, axis=1) >= 8
+        typical_s = float(np.nanmedian(typical)) if np.isfinite(typical).any() else 1.0
+        lags = int(min(max(math.ceil(smooth_samples * float(np.median(dt)) / typical_s), 1), 16))
+        gamma = np.zeros((n, lags + 1))
+        for lag in range(lags + 1):
+            pair = rest[:, lag:] & rest[:, : rest.shape[1] - lag]
+            prod = np.where(pair, res[:, lag:] * res[:, : res.shape[1] - lag], 0.0)
+            gamma[:, lag] = np.sum(prod, axis=1) / np.maximum(np.sum(pair, axis=1), 1) * dof
+        both = use[:, 1:] & use[:, :-1]
+        lag1 = np.sum(np.where(both, res[:, 1:] * res[:, :-1], 0.0), axis=1)
+        lag1 -= np.where(has_rest, gamma[:, 1], 0.0) * np.sum(both, axis=1)
+        s_e2 = np.maximum(
+            -lag1 / np.maximum(np.sum(np.where(both, v2[:, :-1], 0.0), axis=1), 1e-30), 0.0
+        )
+        # Without 8 increments at rest: σ_r² as the variance beyond the level part, no lags.
+        gamma[~has_rest] = 0.0
+        gamma[~has_rest, 0] = np.maximum(
+            np.sum(wgt * (res * res * dof[:, None] - s_e2[:, None] * (v2 + v2_prev)), axis=1)
+            / n_use,
+            0.0,
+        )[~has_rest]
+        # Both are properties of the sensor and of the network, not of a trial: estimated
+        # per trial from ~35 increments each, they scattered the standard error enough to
+        # give the errors heavy tails (99th percentile of |error / se| 3.0-4.4 instead of
+        # 2.6: 88-93 % coverage); the chunk's median is used, and a trial's own estimate
+        # where it exceeds three times that (a disturbance of that trial: the ratio of two
+        # variance estimates from ~35 increments stays below 2 on 99.9 % of trials).
+        own_g, own_e = gamma[:, 0].copy(), s_e2.copy()
+        if has_rest.any():
+            pooled = np.median(gamma[has_rest], axis=0)
+            gamma = np.where((has_rest & (own_g <= 3.0 * pooled[0]))[:, None], pooled, gamma)
+        self.gamma = gamma
+        self.lags = lags
+        self.s_e2 = np.where(own_e > 3.0 * np.median(own_e), own_e, np.median(own_e))
+        self.v2 = v2
+        self.v2_prev = v2_prev
+        self.wgt = wgt
+        self.span_rel = np.where(use, 1.0 / np.where(wgt > 0, wgt, 1.0), 0.0)  # span / typical
+
+    def cov(self, ci: FloatArray, cj: FloatArray) -> FloatArray:
+        """Covariance of Σ w·cᵢ·e and Σ w·cⱼ·e per row."""
+        a_, b_ = self.wgt * ci, self.wgt * cj
+        out: FloatArray = self.gamma[:, 0] * np.sum(a_ * b_ * self.span_rel, axis=1)
+        for lag in range(1, self.lags + 1):
+            out = out + self.gamma[:, lag] * np.sum(
+                a_[:, lag:] * b_[:, :-lag] + a_[:, :-lag] * b_[:, lag:], axis=1
+            )
+        # Level k is the end of increment k and the start of the next: its error enters the
+        # weighted scores as v_k·ε_k·(g_k - g_k+1), g = w·J.
+        da = np.diff(np.pad(a_, ((0, 0), (0, 1))), axis=1)
+        db = np.diff(np.pad(b_, ((0, 0), (0, 1))), axis=1)
+        total: FloatArray = out + self.s_e2 * np.sum(self.v2 * da * db, axis=1)
+        return total
+
+    def misfit_variance(
+        self, infl: FloatArray, res: FloatArray, use: NDArray[np.bool_], rows: NDArray[np.bool_]
+    ) -> FloatArray:
+        """Variance of τ = Σ ψ_j e_j from the residuals' lag covariances beyond the noise
+        model's (Bartlett weights 1 - l/(L+1), L = ``_HAC_LAGS``), for ``rows``: what a
+        misfit adds to the standard error (negative: none seen)."""
+        gamma = self.gamma[rows]
+        e2 = self.s_e2[rows, None]
+        z = np.where(use, infl, 0.0)
+        expect0 = gamma[:, :1] * self.span_rel[rows] + e2 * (self.v2[rows] + self.v2_prev[rows])
+        var = np.sum(z * z * (res * res - expect0), axis=1)
+        for lag in range(1, _HAC_LAGS + 1):
+            # The noise model's lag covariance: γ_l, and at lag 1 the shared level's -v²σ_ε².
+            expect = gamma[:, lag, None] if lag < gamma.shape[1] else np.zeros((z.shape[0], 1))
+            if lag == 1:
+                expect = expect - e2 * self.v2[rows][:, :-1]
+            prod = res[:, lag:] * res[:, :-lag] - expect
+            w_l = 2 * (1 - lag / (_HAC_LAGS + 1))
+            var = var + w_l * np.sum(z[:, lag:] * z[:, :-lag] * prod, axis=1)
+        out: FloatArray = var
+        return out
+
+    def cov_matrix(self, cols: list[FloatArray]) -> FloatArray:
+        """(n, p, p) covariance of the weighted scores of the columns."""
+        p = len(cols)
+        q = np.empty((cols[0].shape[0], p, p))
+        for i in range(p):
+            for j in range(i, p):
+                q[:, i, j] = q[:, j, i] = self.cov(cols[i], cols[j])
+        return q
+
+
+def _expected_change(
+    cols: list[FloatArray], z: list[FloatArray], wgt: FloatArray, res: FloatArray
+) -> FloatArray:
+    """The change of τ (the first column) that one Gauss-Newton step from the fit of
+    ``cols`` would make with the columns ``z`` added (the expected parameter change):
+    -(A⁻¹B S⁻¹u)_τ, with A = XᵀWX, B = XᵀWZ, Z̃ = Z - XA⁻¹B, S = Z̃ᵀWZ̃, u = Z̃ᵀWr
+    (Xᵀ W r = 0 at the fit)."""
+    p, m = len(cols), len(z)
+    x = np.array(cols)  # (p, n, P)
+    zz = np.array(z)
+    a = np.einsum("inp,jnp->nij", x * wgt, x)
+    a += np.eye(p) * (1e-12 * np.einsum("nii->n", a)[:, None, None] + 1e-300)
+    coef = np.linalg.solve(a, np.einsum("inp,jnp->nij", x * wgt, zz))  # A⁻¹B, (n, p, m)
+    zt = zz - np.einsum("inp,nim->mnp", x, coef)
+    u = np.einsum("mnp,np->nm", zt * wgt, res)
+    s_ = np.einsum("inp,jnp->nij", zt * wgt, zt)
+    s_ += np.eye(m) * (1e-12 * np.einsum("nii->n", s_)[:, None, None] + 1e-300)
+    out: FloatArray = np.einsum(
+        "ni,ni->n", -coef[:, 0, :], np.linalg.solve(s_, u[..., None])[..., 0]
+    )
+    return out
+
+
+#: A joint's trials are fitted with the deflection terms when the change of the age those
+#: terms would make (the ``probe``) is positive on them — a passive gear can only make the
+#: link lag the motor — by more than this (s) and 3 standard errors, in median or in mean
+#: (a gear that deflects on some poses only shows in the mean). On our simulator's rigid
+#: joints the medians were -0.006 to -0.034 ms and the means -0.015 to -0.029 (terms fitted
+#: there moved the estimates by -0.02 ms, away from the truth), on the independent
+#: generator's (link-side encoder) -0.036 to +0.012 ms; on ``tests/compliant_sweep.py``'s
+#: heavy joints +0.14 to +0.60 ms; its KR 5 wrist median +0.027 ms, mean +0.065 ms (t 3.6).
+DEFLECTION_MIN_CHANGE_S = 5e-5
+#: The gear's law is unknown: the age with the hysteresis terms and without them bracket
+#: it, and this share of their difference enters the standard error as the model's.
+DEFLECTION_MODEL_SHARE = 0.5
+#: Fewest trials of a joint (in a chunk) that decide for all of them.
+_MIN_GROUP = 5
+#: The deflection terms' Gaussian at the MPU-6000's noise density (0.005 °/s/√Hz), s; it
+#: widens as (noise / that)^0.43, so that the terms' own noise (errors in variables: their
+#: coefficients shrink towards zero, the correction with them) stays small.
+DEFLECTION_SMOOTH_S = 0.004
+_REFERENCE_DENSITY = math.radians(0.005)  # rad/s/√Hz
+
+
+def deflection_smoothing(noise_rad_s: float, fs_hz: float) -> float:
+    """Width (s) of the deflection terms' Gaussian for a gyro noise of ``noise_rad_s``
+    per sample at ``fs_hz``."""
+    ratio = float(noise_rad_s) / (_REFERENCE_DENSITY * math.sqrt(fs_hz / 2))
+    return float(DEFLECTION_SMOOTH_S * max(ratio, 1.0) ** 0.43)
+
+
+def response_delay(
+    t_g: FloatArray,
+    y: FloatArray,
+    host: FloatArray,
+    q_rel: FloatArray,
+    dt: FloatArray,
+    tau0: FloatArray,
+    *,
+    smooth_samples: int,
+    joint: NDArray[np.int64],
+    sound: NDArray[np.bool_],
+    noise_rad_s: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The response delay of each row, with the deflection terms where its joint shows a
+    gear's deflection (:func:`response_increments`, the module notes).
+
+    Trials of one ``joint`` share the gear, so they decide together
+    (``DEFLECTION_MIN_CHANGE_S``), on the ``probe`` of the ``sound`` ones (recorded without
+    gaps or clipping); fewer than ``_MIN_GROUP`` of them in the chunk: no terms. Where the
+    terms are fitted, the standard error adds ``DEFLECTION_MODEL_SHARE`` of the difference
+    the hysteresis terms make. ``noise_rad_s`` is each row's gyro noise per sample (the
+    terms' smoothing follows the chunk's median, :func:`deflection_smoothing`).
+
+    Returns
+    -------
+    tau, se, change : ndarray, shape (n,)
+        The age of the reported state (s), its standard error (s) and, where the
+        deflection terms were fitted, how far they moved it (s; NaN elsewhere).
+    """
+    fs = 1.0 / float(np.median(dt))
+    finite = noise_rad_s[np.isfinite(noise_rad_s)]
+    smooth_s = deflection_smoothing(float(np.median(finite)) if finite.size else 0.0, fs)
+    fit = response_increments(t_g, y, host, q_rel, dt, tau0, smooth_samples=smooth_samples,
+                              probe=True, deflection_smooth_s=smooth_s)  # fmt: skip
+    thr = DEFLECTION_MIN_CHANGE_S
+    deflected = np.zeros(y.shape[0], dtype=bool)
+    for key in np.unique(joint):
+        voters = (joint == key) & sound & np.isfinite(fit.probe)
+        vote = fit.probe[voters]
+        if vote.size < _MIN_GROUP:
+            continue
+        med = float(np.median(vote))
+        sem = 1.2533 * 1.4826 * float(np.median(np.abs(vote - med))) / math.sqrt(vote.size)
+        mean = float(np.mean(vote))
+        se_mean = float(np.std(vote)) / math.sqrt(vote.size)
+        deflected[joint == key] = med > max(thr, 3 * sem) or mean > max(thr, 3 * se_mean)
+    tau, se = fit.tau.copy(), fit.se.copy()
+    change = np.full(y.shape[0], np.nan)
+    sub = np.flatnonzero(deflected)
+    if sub.size:
+        args = (t_g[sub], y[sub], host[sub], q_rel[sub], dt[sub], tau0[sub])
+        full, elastic = (
+            response_increments(*args, smooth_samples=smooth_samples, deflection=True,
+                                hysteresis=hyst, deflection_smooth_s=smooth_s)
+            for hyst in (True, False)
+        )  # fmt: skip
+        change[sub] = full.tau - tau[sub]
+        tau[sub] = full.tau
+        model = DEFLECTION_MODEL_SHARE * (full.tau - elastic.tau)
+        se[sub] = np.sqrt(full.se**2 + model**2)
+    return tau, se, change
