@@ -71,7 +71,7 @@ from timedexec.execution._timing import (
     prepare_plan,
     require_scheduled,
 )
-from timedexec.robots import RobotSpec
+from timedexec.robots import RobotSpec, check_configuration, get_robot
 
 __all__ = ["TimedExecutor"]
 
@@ -487,8 +487,22 @@ class TimedExecutor:
 
         Joints the model does not cover (a sweep of joints 1, 2, 3, 5) get the mean of the
         covered joints' predictions. Cached per configuration (to 0.1 mrad) and directions.
+
+        Raises
+        ------
+        ConfigError
+            ``q_rad`` outside the robot's joint limits (or not 6 finite angles), or a
+            direction that is not +1/-1: a model answers anywhere, but not with meaning.
         """
-        return self._predictions.predict(q_rad, directions)
+        spec = self._session.spec or get_robot(str(self.model.robot))
+        q = check_configuration(spec, q_rad)
+        if directions is not None:
+            d = np.asarray(directions)
+            if d.shape != (6,) or not np.isin(d, (1, -1)).all():
+                raise ConfigError(
+                    f"directions={directions!r}: give six directions, each +1 or -1"
+                )
+        return self._predictions.predict(q, directions)
 
     def onset_bounds(
         self,

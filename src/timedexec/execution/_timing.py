@@ -224,9 +224,16 @@ def execution_end_s(
     Raises
     ------
     ConfigError
-        No ``until_s`` for a plan that ends moving (a conveyor cruise).
+        No ``until_s`` for a plan that ends moving (a conveyor cruise), or an ``until_s``
+        not after the plan's start (it used to return at once, having done nothing).
     """
     if until_s is not None:
+        if until_s <= plan.start_time_s:
+            raise ConfigError(
+                f"until_s={until_s!r} is not after the plan's start at {plan.start_time_s!r} "
+                "(host time, s): nothing would run; give a later until_s, or None to run "
+                "until the plan has settled"
+            )
         return until_s
     if np.any(plan.qd_end_rad_s != 0):
         raise ConfigError("this plan ends moving (a cruise); give until_s")
