@@ -245,9 +245,7 @@ class DelayTable:
         """Rows whose ``delay`` (a :data:`DELAY_COLUMNS` name) may be used: no reason in
         any of its :data:`FLAG_COLUMNS` (a missing column flags nothing), shape (n,)."""
         if delay not in FLAG_COLUMNS:
-            raise ConfigError(
-                f"unknown delay {delay!r}; choose one of {', '.join(DELAY_COLUMNS)}"
-            )
+            raise ConfigError(f"unknown delay {delay!r}; choose one of {', '.join(DELAY_COLUMNS)}")
         keep = np.ones(len(self), dtype=bool)
         for name in FLAG_COLUMNS[delay]:
             if name in self.columns:

@@ -678,13 +678,14 @@ def response_delay(
         ref = rows & sound[sub] & np.isfinite(own) & np.isfinite(bracket) & (full.se > 0)
         if ref.sum() < _MIN_GROUP:
             continue
-        corr, sens, sens_own = _shrink(own, bracket, full.se, rows, ref)
+        corr, sens, sens_own, pooled = _shrink(own, bracket, full.se, rows, ref)
         r = sub[rows]
         out.tau[r] = fit.tau[r] + corr
         out.change[r] = corr
         # The shrunk age mixes the fit with the terms and the (less noisy) one without:
-        # at most the former's noise; plus the gear law's part, uniform over the bracket.
-        out.se[r] = np.sqrt(full.se_noise[rows] ** 2 + (_GEAR_LAW_SD * sens) ** 2)
+        # at most the former's noise; plus the pooled median's error and the gear law's
+        # part, uniform over the bracket.
+        out.se[r] = np.sqrt(full.se_noise[rows] ** 2 + pooled + (_GEAR_LAW_SD * sens) ** 2)
         # The flag looks at the trial's own part (w·bracket): the pooled part moves every
         # trial of the joint alike, a bias of the joint that no trial's flag removes.
         out.gear_flag[r] = DEFLECTION_MODEL_SHARE * np.abs(sens_own) > RESPONSE_GEAR_TOLERANCE_S
@@ -703,7 +704,7 @@ def _shrink(
     se: FloatArray,
     rows: NDArray[np.bool_],
     ref: NDArray[np.bool_],
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, float]:
     """One joint's deflection corrections, shrunk towards their median (empirical Bayes).
 
     ``own`` is each trial's own correction (the change the deflection terms make, s),
@@ -717,7 +718,8 @@ def _shrink(
     Returns, for ``rows``: the corrections, the age's sensitivity to the gear law (the
     change from the law without hysteresis to the law with it: w·bracket of the trial's own
     plus (1 - w)·the median bracket of the pooled part) and the trial's own part of it
-    (w·bracket), all s.
+    (w·bracket), all s; and the error variance of the pooled part, (1 - w)²·var(m) (s²;
+    the median of k values varies as π/2 · spread / k).
     """
     m = float(np.median(own[ref]))
     spread = _robust_var(own[ref])
@@ -725,4 +727,6 @@ def _shrink(
     w = float(np.clip(1.0 - noise / spread, 0.0, 1.0)) if spread > 0 else 0.0
     corr = m + w * (own[rows] - m)
     sens_own = w * bracket[rows]
-    return corr, sens_own + (1.0 - w) * float(np.median(bracket[ref])), sens_own
+    sens = sens_own + (1.0 - w) * float(np.median(bracket[ref]))
+    pooled = (1.0 - w) ** 2 * (math.pi / 2) * spread / int(ref.sum())
+    return corr, sens, sens_own, pooled
