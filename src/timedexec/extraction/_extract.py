@@ -41,14 +41,17 @@ each step assumes of the recording):
    positions, fitted on increments between packages (the generalised least squares of a
    random-walk angle error), with a standard error; where a joint's trials show a gear's
    deflection (a motor-side encoder leads the link), the deflection is fitted with it as
-   a function of the link acceleration, and the standard error counts what is left and
-   the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
+   a function of the link acceleration (each trial's correction shrunk towards its joint's),
+   and the standard error counts the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
    measured and the reported speed maxima.
 7. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
    delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
    needs), ``package_gap``, ``no_motion``, ``no_onset``, ``gain`` (implausible gyro gain),
    ``response_fit``, ``uncertain`` (standard error above ``max_se_s``), ``damaged`` (the
    trial's rows lie in a chunk of the file that fails its checksum: the rest is extracted).
+   A trial whose response delay alone cannot be trusted keeps both delays and a reason in
+   ``response_flag``: ``deflection`` (its age depends on the unknown gear law by more than
+   ``RESPONSE_GEAR_TOLERANCE_S``).
 """
 
 from __future__ import annotations
@@ -671,7 +674,8 @@ def extract_recording(
         The delay table (columns of ``timedexec.delays`` plus ``flag``,
         ``actuation_delay_se``, ``actuation_delay_crb``, ``response_delay_se`` (s),
         ``response_deflection_s`` (how far separating a gear's deflection moved the
-        response delay, s; NaN where the trial's joint showed none), ``onset_window_s``,
+        response delay, s; NaN where the trial's joint showed none), ``response_flag``
+        (why the response delay alone is not to be used, "" when fine), ``onset_window_s``,
         ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
         and what was learnt of the sensor (clock offset and drift, filter, noise).
 
