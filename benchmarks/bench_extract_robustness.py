@@ -82,23 +82,27 @@ CONDITIONS: list[tuple[str, str, str, Conditions]] = [
 ]  # fmt: skip
 
 
-def score(table: object, name: str) -> dict[str, float]:
+def score(table: DelayTable, name: str, joint: int | None = None) -> dict[str, float]:
+    """RMSE, bias (ms), flagged share, coverage and RMS standard error of one delay on the
+    trials it may be used on (``DelayTable.usable``), of one joint (None: all)."""
     t = table
-    ok = np.array([not f for f in t["flag"]], dtype=np.bool_)  # type: ignore[index]
-    err = (t[name] - t[f"true_{name}"])[ok] * 1e3  # type: ignore[index]
+    ok = t.usable(name)
+    if joint is not None:
+        ok = ok & (t["joint"] == joint)
+    err = (t[name] - t[f"true_{name}"])[ok] * 1e3
     out = {
         "rmse": float(np.sqrt(np.mean(err**2))) if err.size else math.nan,
         "bias": float(err.mean()) if err.size else math.nan,
         "flagged": float(1 - ok.mean()),
     }
     se_name = f"{name}_se"
-    if se_name in t:  # type: ignore[operator]
-        se = t[se_name][ok] * 1e3  # type: ignore[index]
+    if se_name in t:
+        se = t[se_name][ok] * 1e3
         out["cover"] = float(np.mean(np.abs(err) <= 1.96 * se)) if err.size else math.nan
         out["se"] = float(np.sqrt(np.mean(se**2))) if err.size else math.nan
     crb_name = f"{name}_crb"
-    if crb_name in t:  # type: ignore[operator]
-        crb = t[crb_name][ok] * 1e3  # type: ignore[index]
+    if crb_name in t:
+        crb = t[crb_name][ok] * 1e3
         out["crb"] = float(np.sqrt(np.mean(crb**2))) if err.size else math.nan
     return out
 
@@ -113,8 +117,9 @@ def run_conditions(args: argparse.Namespace, cache: Path, baseline: Path | None)
           + (f"; old = {args.baseline}" if baseline else ""))
     old_head = "| old act. | old resp. | old flagged " if baseline else ""
     print(f"| condition {old_head}| new act. | new resp. | new flagged "
-          "| act. CRB | act. RMSE/CRB | act. 95 % cover | resp. 95 % cover |")
-    print("|---" * (8 + 3 * bool(baseline)) + "|")
+          "| act. CRB | act. RMSE/CRB | act. 95 % cover | resp. 95 % cover "
+          "| resp. cover per joint |")
+    print("|---" * (9 + 3 * bool(baseline)) + "|")
     for group, label, robot, cond in CONDITIONS:
         if only and group not in only:
             continue
@@ -138,6 +143,8 @@ def run_conditions(args: argparse.Namespace, cache: Path, baseline: Path | None)
         if "crb" in a:
             cells += [f"{a['crb']:.3f}", f"{a['rmse'] / a['crb']:.2f}",
                       f"{100 * a['cover']:.1f} %", f"{100 * r.get('cover', math.nan):.1f} %"]  # fmt: skip
+            per_joint = [score(new, "response_delay", j) for j in sorted(set(new["joint"]))]
+            cells.append(" / ".join(f"{100 * pj.get('cover', math.nan):.0f}" for pj in per_joint))
         print("| " + " | ".join(cells) + " |", flush=True)
 
 

@@ -19,44 +19,72 @@ from independent_sweep import Conditions, write_independent_sweep
 from timedexec.extraction import extract_recording
 
 
+def _usable(t: Any) -> np.ndarray:
+    """Trials whose response delay may be used: no ``flag``, no ``response_flag``."""
+    return np.asarray(t.usable("response_delay"))
+
+
 def _response(t: Any, joints: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Response errors and standard errors (s) of the unflagged trials of ``joints``."""
-    ok = np.array([not f for f in t["flag"]]) & np.isin(t["joint"], joints)
+    """Response errors and standard errors (s) of the usable trials of ``joints``."""
+    ok = _usable(t) & np.isin(t["joint"], joints)
     return (t["response_delay"] - t["true_response_delay"])[ok], t["response_delay_se"][ok]
 
 
 @pytest.fixture(scope="module")
 def ur10_table(tmp_path_factory: pytest.TempPathFactory) -> Any:
     p = tmp_path_factory.mktemp("compliant") / "ur10.h5"
-    write_compliant_sweep(p, "ur10", 64, CompliantConditions(), seed=3)
+    write_compliant_sweep(p, "ur10", 128, CompliantConditions(), seed=3)
     return extract_recording(p, progress=False).table
 
 
-def test_heavy_joints_response_is_the_motor_age_with_honest_errors(ur10_table: Any) -> None:
-    """UR10 with hysteretic harmonic drives, 64 trials: the response delay of the heavy
-    joints (2 and 3) is the motor sample's age within ±0.2 ms of bias per joint, and the
-    95 % intervals cover it on >= 85 % of their trials. Measured here: -0.037 / +0.034 ms,
-    94 % (36 trials); on 200 trials -0.068 / +0.030 ms, 88 / 100 %. Before the deflection
-    was separated the fit read -0.73 / -0.36 ms with intervals covering 3 % (200 trials:
-    -0.78 / -0.48 ms, 0 %): confident and wrong. The band: ~18 trials per joint put a
-    standard error of ~0.05 ms on each mean, and the gear law's unknown part leaves up to
-    ±0.07 ms on 200 trials; 36 trials put a binomial sd of ~4 % on the coverage."""
+def test_compliant_response_meets_the_targets_on_the_unflagged_trials(ur10_table: Any) -> None:
+    """UR10 with hysteretic harmonic drives, 128 trials (~30 per joint): on the trials
+    without a response flag every joint's response delay is the motor sample's age within
+    0.2 ms RMS and 0.12 ms of bias (issue 37: 0.2 / 0.1 ms on 200 trials; ~30 trials put
+    ~0.02-0.03 ms of sampling error on a joint's mean). Measured here (joints 1/2/3/5):
+    0.12 (+0.09) / 0.17 (+0.07) / 0.10 (+0.04) / 0.05 (-0.03) ms; main's extractor read
+    0.21 (+0.15) / 0.24 (+0.07) / 0.11 / 0.05 ms with nothing flagged (joints 1 and 2 fail).
+    Before the deflection was separated at all: -0.7 ms on joint 2."""
     t = ur10_table
-    for joint in (2, 3):
+    for joint in (1, 2, 3, 5):
         err, _ = _response(t, (joint,))
-        assert err.size >= 10
-        assert abs(float(np.mean(err))) <= 0.2e-3, (joint, np.mean(err))
+        assert err.size >= 15
+        assert np.sqrt(np.mean(err**2)) <= 0.2e-3, (joint, np.sqrt(np.mean(err**2)))
+        assert abs(float(np.mean(err))) <= 0.12e-3, (joint, np.mean(err))
+    # The 95 % intervals: 94 % of the usable trials here (main: 98 %); heavy joints 2 and 3
+    # 92 %. ~100 trials put a binomial sd of ~2.3 % on the pooled coverage.
+    err, se = _response(t, (1, 2, 3, 5))
+    assert 0.88 <= np.mean(np.abs(err) <= 1.96 * se) <= 0.99
     err, se = _response(t, (2, 3))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
+
+
+def test_response_flag_keeps_the_actuation_and_says_why(ur10_table: Any) -> None:
+    """Where a trial's age depends on the unknown gear law by more than the tolerance
+    (half its own hysteresis bracket > 0.2 ms), its response gets ``response_flag =
+    "deflection"`` (13 of 36 base-joint trials here) and nothing else: the trial keeps its
+    ``flag`` empty and both delays (the value with its standard error, for diagnosis), and
+    its actuation delay — timed on the link, which the gyro sees — is as good as the
+    others' (RMSE <= 0.25 ms; 0.13 ms on all trials). Only joints whose deflection was
+    separated can carry it."""
+    t = ur10_table
+    rf = np.array([f == "deflection" for f in t["response_flag"]])
+    assert rf.sum() >= 3
+    assert {str(f) for f in t["response_flag"]} <= {"", "deflection"}
+    assert all(not f for f in t["flag"][rf])
+    assert np.all(np.isfinite(t["response_delay"][rf]))
+    assert np.all(np.isfinite(t["response_deflection_s"][rf]))
+    e = (t["actuation_delay"] - t["true_actuation_delay"])[rf]
+    assert np.sqrt(np.mean(e**2)) <= 0.25e-3
+    # The separation moved the heavy joints' ages later (the link lags the motor).
     deflected = np.isin(t["joint"], (2, 3))
     assert np.all(np.isfinite(t["response_deflection_s"][deflected]))
-    # The separation moved the heavy joints' ages later (the link lags the motor).
     assert np.median(t["response_deflection_s"][deflected]) > 0.2e-3
 
 
 def test_actuation_unchanged_by_compliance(ur10_table: Any) -> None:
     """The actuation delay is timed on the link's speed, which the gyro sees, so the
-    motor-side encoder does not touch it: RMSE <= 0.2 ms on these 64 trials (200 trials:
+    motor-side encoder does not touch it: RMSE <= 0.2 ms on these 128 trials (200 trials:
     0.130 ms clean), nothing flagged."""
     t = ur10_table
     ok = np.array([not f for f in t["flag"]])
@@ -73,6 +101,7 @@ def test_a_rigid_joint_gets_no_deflection_terms(tmp_path: Path) -> None:
     p = write_independent_sweep(tmp_path / "rigid.h5", "ur10", 48, Conditions(), seed=3)
     t = extract_recording(p, progress=False).table
     assert np.all(np.isnan(t["response_deflection_s"]))
+    assert not any(t["response_flag"])
     err, _ = _response(t, (1, 2, 3, 5))
     assert np.sqrt(np.mean(err**2)) <= 0.15e-3
 
@@ -84,12 +113,14 @@ def test_a_rigid_joint_gets_no_deflection_terms(tmp_path: Path) -> None:
 )
 def test_compliant_conditions_bounded(tmp_path: Path, robot: str, cond: Any) -> None:
     """Two of the benchmark's conditions, 96 trials each: UR10 at 5x noise and a KR 5
-    (cycloidal gears with a soft zone). Every joint's response bias within ±0.3 ms and the
-    intervals covering >= 85 % of all trials. Measured (joints 1/2/3/5): UR10 +0.11 /
-    +0.20 / +0.06 / -0.01 ms, 99 %; KR 5 -0.01 / +0.00 / +0.03 / +0.03 ms, 98 %; before
-    the change -0.24 / -0.70 / -0.33 / -0.01 ms, 42 % and -0.41 / -0.29 / -0.19 / -0.05 ms,
-    39 % (fails both). 96 trials put ~0.06 ms of sampling error on a joint's mean, and the
-    lightly loaded base joints keep up to ~0.27 ms of bias on 200 trials (README)."""
+    (cycloidal gears with a soft zone). On the trials without a response flag every
+    joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them.
+    Measured (joints 1/2/3/5): UR10 +0.03 / +0.21 / +0.14 / -0.01 ms, 95 %; KR 5 +0.01 /
+    +0.03 / -0.02 / -0.05 ms, 92 %; before the deflection was separated -0.24 / -0.70 /
+    -0.33 / -0.01 ms, 42 % and -0.41 / -0.29 / -0.19 / -0.05 ms, 39 % (fails both). ~25
+    trials per joint (the joint's shared correction is pooled over them) put ~0.06 ms of
+    sampling error on a joint's mean; on 200 trials the UR10's 5x joints 1/2 keep
+    +0.18 / +0.10 ms of bias (README)."""
     p = write_compliant_sweep(tmp_path / f"{robot}.h5", robot, 96, cond, seed=2)
     t = extract_recording(p, progress=False).table
     for joint in (1, 2, 3, 5):

@@ -15,10 +15,22 @@ actuation_delay           float, s
 response_delay            float, s
 true_actuation_delay      optional, simulated sweeps only, s
 true_response_delay       optional, simulated sweeps only, s
-flag                      optional str: why a trial could not be measured ("" when fine)
+flag                      optional str: why a trial could not be measured ("" when fine);
+                          its delays are NaN
+response_flag             optional str: why the trial's response delay is not to be used
+                          although its actuation delay is ("" when fine; see below)
 ========================  ==================================================================
 
 Extra columns are kept as they are. Delays are in seconds; human-facing tables show ms.
+
+``response_flag`` says that a trial's response delay is not trustworthy while its
+actuation delay is: extraction writes ``deflection`` where the reported angle is a
+motor-side encoder's and the age of the state could not be separated from the gear's
+deflection to within the table's response accuracy (``docs/architecture.md``). The value
+stays in ``response_delay`` (with its standard error) for diagnosis; everything that uses
+response delays takes the rows :meth:`DelayTable.usable` gives (learning trains the
+response models without them, and still trains actuation on them). A table without the
+column (older extractions, other recorders) has no response flags.
 
 A table is refused (:class:`~timedexec.errors.ConfigError`) when a trial id occurs twice:
 a duplicated row would count twice in training and in every statistic, so the message
@@ -43,7 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec._files import write_atomic
 from timedexec.errors import ConfigError, RecordingError
 
-__all__ = ["DELAY_COLUMNS", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "DelayTable"]
+__all__ = ["DELAY_COLUMNS", "FLAG_COLUMNS", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "DelayTable"]
 
 CONFIG_COLUMNS = tuple(f"q{i}" for i in range(1, 7))
 REQUIRED_COLUMNS: tuple[str, ...] = (
@@ -56,10 +68,20 @@ REQUIRED_COLUMNS: tuple[str, ...] = (
     "actuation_delay",
     "response_delay",
 )
-OPTIONAL_COLUMNS: tuple[str, ...] = ("true_actuation_delay", "true_response_delay", "flag")
+OPTIONAL_COLUMNS: tuple[str, ...] = (
+    "true_actuation_delay",
+    "true_response_delay",
+    "flag",
+    "response_flag",
+)
 DELAY_COLUMNS: tuple[str, ...] = ("actuation_delay", "response_delay")
 _INT_COLUMNS = ("trial", "joint", "direction")
-_STR_COLUMNS = ("robot", "flag")
+_STR_COLUMNS = ("robot", "flag", "response_flag")
+#: The flag columns that rule out each delay of a row (a non-empty text: the reason).
+FLAG_COLUMNS: dict[str, tuple[str, ...]] = {
+    "actuation_delay": ("flag",),
+    "response_delay": ("flag", "response_flag"),
+}
 
 
 class DelayTable:
@@ -219,12 +241,30 @@ class DelayTable:
             {k: v[idx] for k, v in self.columns.items()}, source=self.source, allow_nan=True
         )
 
-    def validated_for_training(self) -> DelayTable:
-        """Rows that carry no flag, checked to hold only finite delays."""
+    def usable(self, delay: str) -> NDArray[np.bool_]:
+        """Rows whose ``delay`` (a :data:`DELAY_COLUMNS` name) may be used: no reason in
+        any of its :data:`FLAG_COLUMNS` (a missing column flags nothing), shape (n,)."""
+        if delay not in FLAG_COLUMNS:
+            raise ConfigError(f"unknown delay {delay!r}; choose one of {', '.join(DELAY_COLUMNS)}")
         keep = np.ones(len(self), dtype=bool)
-        if "flag" in self.columns:
-            keep &= np.array([not f for f in self.columns["flag"]], dtype=bool)
-        table = self.select(keep)
+        for name in FLAG_COLUMNS[delay]:
+            if name in self.columns:
+                keep &= np.array([not f for f in self.columns[name]], dtype=bool)
+        return keep
+
+    def reason_counts(self, column: str = "flag") -> dict[str, int]:
+        """How many rows give each reason in a flag column (``flag``, ``response_flag``),
+        most frequent first; empty when the table has no such column."""
+        counts: dict[str, int] = {}
+        for f in self.columns.get(column, ()):
+            if f:
+                counts[str(f)] = counts.get(str(f), 0) + 1
+        return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+    def validated_for_training(self) -> DelayTable:
+        """Rows that carry no ``flag``, checked to hold only finite delays (a row with a
+        ``response_flag`` is kept: its actuation delay is sound; see :meth:`usable`)."""
+        table = self.select(self.usable("actuation_delay"))
         table._check_values(allow_nan=False)
         return table
 

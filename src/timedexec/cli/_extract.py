@@ -33,7 +33,9 @@ def add_parser(sub: Any) -> None:
             "repair, gyro clock fit that follows the oscillator's drift, zero-rate, then per "
             "trial the onset (noise-adaptive local fit with a standard error, default) or "
             "the published extrema method. Trials that cannot be measured keep their row "
-            "with NaN delays and a reason in the `flag` column.\n\n"
+            "with NaN delays and a reason in the `flag` column; a trial whose response delay "
+            "alone is not trustworthy (a compliant gear whose deflection cannot be separated "
+            "from the state's age) keeps both delays and a reason in `response_flag`.\n\n"
             "Output: the delay table (CSV; docs: timedexec.delays).\n\n"
             "With --scheduler (or $TIMEDEXEC_SCHEDULER) the trial chunks are extracted on a "
             "Dask cluster's workers (the recording must be at the same path on every "
@@ -114,12 +116,20 @@ def run(args: argparse.Namespace) -> int:
         f"{args.method} to {args.out}; filter cutoff {info['filter_cutoff_hz']:.0f} Hz, gyro "
         f"clock {info['gyro_rate_error_ppm']:+.0f} ppm off nominal"
     )
+    if info["response_flagged"]:
+        reasons = ", ".join(f"{r} {c}" for r, c in info["response_flags"].items())
+        text += (
+            f"\n{info['response_flagged']} trials have a response_flag ({reasons}): their "
+            "actuation delay is sound, their response delay is not used for training "
+            "(deflection: the gear's deflection could not be separated from the state's age; "
+            "docs/architecture.md)"
+        )
     for name in ("actuation_delay", "response_delay"):
         # Ground truth where the recording has it (a simulator's; another recorder may
         # state one delay, or leave it NaN): scored over the measured trials that have it.
         if f"true_{name}" not in table:
             continue
-        ok = np.array([not f for f in table["flag"]], dtype=bool)
+        ok = table.usable(name)
         err = (table[name] - table[f"true_{name}"])[ok]
         err = err[np.isfinite(err)]
         if err.size:

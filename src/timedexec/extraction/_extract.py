@@ -41,8 +41,8 @@ each step assumes of the recording):
    positions, fitted on increments between packages (the generalised least squares of a
    random-walk angle error), with a standard error; where a joint's trials show a gear's
    deflection (a motor-side encoder leads the link), the deflection is fitted with it as
-   a function of the link acceleration, and the standard error counts what is left and
-   the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
+   a function of the link acceleration (each trial's correction shrunk towards its joint's),
+   and the standard error counts the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
    measured and the reported speed maxima.
 7. **Flags.** Trials that cannot be measured get a reason in the ``flag`` column and NaN
    delays: ``no_baseline``, ``clipped``, ``gyro_gap`` (lost samples cover what the estimate
@@ -51,6 +51,9 @@ each step assumes of the recording):
    trial's rows lie in a chunk of the file that fails its checksum: the rest is extracted),
    ``bad_time`` (its ``t0_s`` or ``cmd_send_time_s`` is not finite: the trial is left out
    of every sweep-wide statistic, the others are extracted as if it were not there).
+   A trial whose response delay alone cannot be trusted keeps both delays and a reason in
+   ``response_flag``: ``deflection`` (its age depends on the unknown gear law by more than
+   ``RESPONSE_GEAR_TOLERANCE_S``).
 """
 
 from __future__ import annotations
@@ -82,7 +85,11 @@ from timedexec.extraction._onset import (
     _row_nanmedian,
     onset_adaptive,
 )
-from timedexec.extraction._response import RESPONSE_SMOOTH_S, response_delay
+from timedexec.extraction._response import (
+    RESPONSE_FLAG_DEFLECTION,
+    RESPONSE_SMOOTH_S,
+    response_delay,
+)
 from timedexec.extraction._stationary import StillAnalysis
 from timedexec.recording import DamagedChunkError, RecordingReader, damage_note
 from timedexec.sensors import (
@@ -143,14 +150,13 @@ class ExtractionResult:
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe summary."""
-        flags = [f for f in self.table["flag"] if f]
-        counts: dict[str, int] = {}
-        for f in flags:
-            counts[f] = counts.get(f, 0) + 1
+        response_flags = self.table.reason_counts("response_flag")
         out = {
             "trials": len(self.table),
             "flagged": self.n_flagged,
-            "flags": counts,
+            "flags": self.table.reason_counts("flag"),
+            "response_flagged": sum(response_flags.values()),
+            "response_flags": response_flags,
             "filter_cutoff_hz": self.cutoff_hz,
             "gyro_rate_hz": self.clock_rate_hz,
             "gyro_rate_error_ppm": self.clock_rate_error_ppm,
@@ -324,6 +330,7 @@ def _extract_chunk_inner(
     accel = prof["acceleration_rad_s2"]
     pulse = 2 * prof["speed_rad_s"] / accel + prof["hold_s"]
     flag = np.full(n, "", dtype=object)
+    resp_flag = np.full(n, "", dtype=object)
 
     session = chunk["session"] if "session" in chunk else np.zeros(n, np.int64)
     raw = chunk["gyro_raw"]
@@ -441,12 +448,14 @@ def _extract_chunk_inner(
     if method == "fit":
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
         sound = ~clipped & ~package_gap & np.isfinite(gain)
-        resp, resp_se, resp_deflection = response_delay(
+        rd = response_delay(
             t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
             np.full(n, 0.6 * ctx.period_s),
             smooth_samples=2 * round(RESPONSE_SMOOTH_S * ctx.fs_hz / 2) + 1,  # odd
             joint=joint, sound=sound, noise_rad_s=sigma,
         )  # fmt: skip
+        resp, resp_se = rd.tau, rd.se
+        resp_flag[rd.gear_flag] = RESPONSE_FLAG_DEFLECTION
         # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
         # displacement is the position *sampled* then, reported one response delay later.
         # The first guess (reported at +30 ms) is off when the joint still creeps in the
@@ -486,7 +495,7 @@ def _extract_chunk_inner(
             "actuation_delay_se": act_se,
             "actuation_delay_crb": on["crb"],
             "response_delay_se": resp_se,
-            "response_deflection_s": resp_deflection,
+            "response_deflection_s": rd.change,
             "onset_window_s": np.array([sum(w) for w in _windows()])[on["window"].astype(int)],
         }
     else:
@@ -522,7 +531,9 @@ def _extract_chunk_inner(
     bad = flag != ""
     act = np.where(bad, np.nan, act)
     resp = np.where(bad, np.nan, resp)
-    out = {"actuation_delay": act, "response_delay": resp, "flag": flag, "gyro_gain": gain,
+    resp_flag[bad] = ""  # the trial's flag says it
+    out = {"actuation_delay": act, "response_delay": resp, "flag": flag,
+           "response_flag": resp_flag, "gyro_gain": gain,
            "gyro_noise_rad_s": sigma, "gyro_missing": 1.0 - have.mean(axis=1), **n_cols}  # fmt: skip
     if traces:
         out.update(
@@ -693,7 +704,8 @@ def extract_recording(
         The delay table (columns of ``timedexec.delays`` plus ``flag``,
         ``actuation_delay_se``, ``actuation_delay_crb``, ``response_delay_se`` (s),
         ``response_deflection_s`` (how far separating a gear's deflection moved the
-        response delay, s; NaN where the trial's joint showed none), ``onset_window_s``,
+        response delay, s; NaN where the trial's joint showed none), ``response_flag``
+        (why the response delay alone is not to be used, "" when fine), ``onset_window_s``,
         ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
         and what was learnt of the sensor (clock offset and drift, filter, noise).
 
@@ -819,6 +831,7 @@ def _extract(
     for k, v in truth.items():
         cols[f"true_{k}"] = v
     cols["flag"] = res["flag"]
+    cols["response_flag"] = res["response_flag"]
     for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
               "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s",
               "gyro_missing"):  # fmt: skip
@@ -832,6 +845,7 @@ def _extract(
             **{f"q{i + 1}": plan_q[lost, i] for i in range(6)},
             "t_start": np.where(np.isfinite(lost_t0), lost_t0, np.nan),
             "flag": np.array([excluded[1][int(r)] for r in lost_rows]),
+            "response_flag": np.full(lost.size, "", dtype=object),
         }
         for k, v in cols.items():
             if isinstance(v, np.ndarray):

@@ -115,11 +115,15 @@ class _Data:
     sha256: str
     t_h: FloatArray  # sweep time per trial: its condition's mean t_start, hours
     time_input: bool
+    #: Per delay, the rows it may be trained on (a ``response_flag`` rules out the
+    #: response delay only: ``DelayTable.usable``).
+    usable: dict[str, NDArray[np.bool_]]
 
-    def rows(self, key: str) -> NDArray[np.intp]:
-        if key == "combined":
-            return np.arange(len(self.joint))
-        return np.flatnonzero(self.joint == int(key))
+    def rows(self, key: str, delay: str) -> NDArray[np.intp]:
+        mask = self.usable[delay]
+        if key != "combined":
+            mask = mask & (self.joint == int(key))
+        return np.flatnonzero(mask)
 
     def X(self, key: str, rows: NDArray[np.intp]) -> FloatArray:
         t = self.t_h[rows] if self.time_input else None
@@ -143,10 +147,8 @@ DELAY_RANGE_WHY = {
 def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     if not isinstance(table, DelayTable):
         raise ConfigError(f"expected a DelayTable, got {type(table).__name__}")
-    keep = np.ones(len(table), dtype=bool)
-    if "flag" in table:
-        keep = np.array([not f for f in table["flag"]], dtype=bool)
     for name in DELAYS:
+        keep = table.usable(name)
         values = table[name]
         bad = ~np.isfinite(values) & keep
         if bad.any():
@@ -178,6 +180,16 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     joint = t["joint"].astype(np.int64)
     direction = t["direction"].astype(np.int64)
     y = {d: t[d].astype(float) for d in DELAYS}
+    usable = {d: t.usable(d) for d in DELAYS}
+    for j in sorted({int(x) for x in joint}):
+        if not usable["response_delay"][joint == j].any():
+            reasons = t.select(joint == j).reason_counts("response_flag")
+            raise ConfigError(
+                f"{table.source}: every response delay of joint {j} carries a response_flag "
+                f"({', '.join(f'{r}: {c}' for r, c in reasons.items())}), so its response "
+                "model has nothing to learn from; measure that joint again (more poses, "
+                "less noise) or drop its rows"
+            )
     config = np.unique(q, axis=0, return_inverse=True)[1].reshape(-1)
     key = np.column_stack([config, joint, direction])
     condition = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)
@@ -188,6 +200,8 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     h = hashlib.sha256()
     for arr in (q, joint, direction, y["actuation_delay"], y["response_delay"]):
         h.update(np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<")).tobytes())
+    if not usable["response_delay"].all():  # (a table without response flags: as before)
+        h.update(usable["response_delay"].tobytes())
     return _Data(
         q=q,
         joint=joint,
@@ -200,7 +214,15 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
         sha256=h.hexdigest(),
         t_h=t_h,
         time_input=time_input,
+        usable=usable,
     )
+
+
+def _response_flagged(data: _Data) -> dict[str, int]:
+    """``{"response_flagged": n}`` for the manifest where n trials trained the actuation
+    models but not the response models (nothing for a table without response flags)."""
+    n = int(np.sum(~data.usable["response_delay"]))
+    return {"response_flagged": n} if n else {}
 
 
 def _check_joint_limits(table: DelayTable, robot: str) -> None:
@@ -280,7 +302,7 @@ def _run_task(
 
     start = time.perf_counter()
     method = get_method(task.method)
-    rows = data.rows(task.key)
+    rows = data.rows(task.key, task.delay)
     y = data.y[task.delay][rows]
     X = data.X(task.key, rows)
     inputs = ModelInputs.of(data.robot, task.key, data.joints, data.time_input)
@@ -457,7 +479,7 @@ def _run(
     tasks: list[_Task] = []
     for delay in DELAYS:
         for key in keys:
-            n_rows = len(data.rows(key))
+            n_rows = len(data.rows(key, delay))
             for method in methods:
                 fold_list = list(range(folds)) + ([-1] if final else [])
                 for f in fold_list:
@@ -504,7 +526,7 @@ def _scores(
         for method in methods:
             row: dict[str, float] = {}
             for key in keys:
-                rows = data.rows(key)
+                rows = data.rows(key, delay)
                 y = data.y[delay][rows]
                 f = fold_idx[rows]
                 mses = []
@@ -518,7 +540,7 @@ def _scores(
             scores[delay][method] = row
         fl: dict[str, float] = {}
         for key in keys:
-            rows = data.rows(key)
+            rows = data.rows(key, delay)
             fl[key] = 1e3 * noise_floor(data.y[delay][rows], data.condition[rows])
         fl["average"] = float(np.mean([fl[k] for k in keys]))
         floors[delay] = fl
@@ -545,7 +567,7 @@ def _std_calibration(
     for delay in DELAYS:
         scale[delay], held_out[delay] = {}, {}
         for key in _keys(data):
-            rows = data.rows(key)
+            rows = data.rows(key, delay)
             y = data.y[delay][rows]
             f = fold_idx[rows]
             resid, std = [], []
@@ -584,7 +606,8 @@ def cross_validate(
     Parameters
     ----------
     table : DelayTable
-        One robot's delay table; flagged trials are dropped, NaN/inf delays refused.
+        One robot's delay table; flagged trials are dropped, NaN/inf delays refused; a
+        trial with a ``response_flag`` trains the actuation models only.
     methods : sequence of str or comma list
         Registered methods (:data:`~timedexec.learning.METHODS`); default the paper's four
         (:data:`~timedexec.learning.DEFAULT_METHODS`).
@@ -707,6 +730,7 @@ def train_delay_models(
                 "trials": len(data.joint),
                 "conditions": int(data.condition.max()) + 1,
                 "configurations": int(data.config.max()) + 1,
+                **_response_flagged(data),
             },
         )
     return TrainResult(model=model, cv=cv, seconds=time.perf_counter() - start)

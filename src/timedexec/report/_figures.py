@@ -125,7 +125,7 @@ def fig_trial(traces: dict[str, Any], path: str | os.PathLike[str], i: int = 0) 
 def fig_histograms(table: DelayTable, path: str | os.PathLike[str], column: str) -> Path:
     """Figs. 7 (actuation) and 9 (response): histogram per joint, ms."""
     values = table[column] * 1e3
-    ok = np.isfinite(values)
+    ok = np.isfinite(values) & table.usable(column)
     if not ok.any():
         raise ConfigError(
             f"{table.source}: no finite {_DELAY_LABEL[column]} to plot (every trial flagged)"
@@ -151,7 +151,7 @@ def fig_boxplots(table: DelayTable, path: str | os.PathLike[str], column: str) -
     joints = []
     data = []
     for j in sorted(set(table["joint"].tolist())):
-        v = table[column][table["joint"] == j] * 1e3
+        v = table[column][(table["joint"] == j) & table.usable(column)] * 1e3
         v = v[np.isfinite(v)]
         if len(v):  # a joint without a valid trial gets no empty box
             joints.append(j)

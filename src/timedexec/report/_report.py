@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from timedexec._files import check_input_kind, check_paths, make_dir, write_atomic
-from timedexec.delays import DelayTable
+from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.errors import ConfigError, RecordingError, TimedExecError
 
 __all__ = ["build_report", "delay_summary", "published_table_markdown"]
@@ -28,26 +28,23 @@ def _paper_row(delay: str, family: str | None, method: str) -> tuple[float, ...]
 def delay_summary(table: DelayTable) -> dict[str, Any]:
     """Per-joint medians and spreads (ms), the flagged count and the valid counts.
 
-    ``valid`` (overall and per joint and delay) counts the trials with a finite delay;
-    where it is 0 the statistics are NaN and the report says "no valid trials" instead.
-    ``flag_reasons`` counts the trials per flag text.
+    ``valid`` (overall and per joint and delay) counts the trials with a finite delay that
+    may be used (a ``response_flag`` rules out the response delay only); where it is 0 the
+    statistics are NaN and the report says "no valid trials" instead. ``flag_reasons`` and
+    ``response_flag_reasons`` count the trials per flag text.
     """
     out: dict[str, Any] = {"robots": list(table.robots), "trials": len(table), "joints": {}}
-    flags = table["flag"] if "flag" in table else np.full(len(table), "", dtype=object)
-    out["flagged"] = int(sum(1 for f in flags if f))
-    reasons: dict[str, int] = {}
-    for f in flags:
-        if f:
-            reasons[str(f)] = reasons.get(str(f), 0) + 1
-    out["flag_reasons"] = dict(sorted(reasons.items(), key=lambda kv: -kv[1]))
-    finite = np.isfinite(table["actuation_delay"]) | np.isfinite(table["response_delay"])
-    out["valid"] = int(np.sum(finite))
+    out["flag_reasons"] = table.reason_counts("flag")
+    out["flagged"] = sum(out["flag_reasons"].values())
+    out["response_flag_reasons"] = table.reason_counts("response_flag")
+    out["response_flagged"] = sum(out["response_flag_reasons"].values())
+    usable = {col: table.usable(col) & np.isfinite(table[col]) for col in DELAY_COLUMNS}
+    out["valid"] = int(np.sum(usable["actuation_delay"] | usable["response_delay"]))
     for j in sorted(set(table["joint"].tolist())):
         m = table["joint"] == j
         row = {}
         for col in ("actuation_delay", "response_delay"):
-            v = table[col][m] * 1e3
-            v = v[np.isfinite(v)]
+            v = table[col][m & usable[col]] * 1e3
             row[col] = {
                 "median_ms": float(np.median(v)) if len(v) else float("nan"),
                 "p2_5_ms": float(np.percentile(v, 2.5)) if len(v) else float("nan"),
@@ -270,8 +267,13 @@ def _table_lines(title: str, table: DelayTable, figures: dict[str, Path]) -> lis
     from timedexec.report._figures import fig_boxplots, fig_histograms
 
     summary = delay_summary(table)
+    resp_flagged = (
+        f", {summary['response_flagged']} with a response flag (their response delay left out)"
+        if summary["response_flagged"]
+        else ""
+    )
     md = [f"## Delay table `{title}` ({', '.join(table.robots)}, {len(table):,} trials, "
-          f"{summary['flagged']} flagged)", ""]  # fmt: skip
+          f"{summary['flagged']} flagged{resp_flagged})", ""]  # fmt: skip
     if summary["valid"] == 0:
         reasons = summary["flag_reasons"]
         why = "; ".join(f"{r} ({n})" for r, n in reasons.items()) or "no finite delays"
