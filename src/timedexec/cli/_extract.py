@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         f"{args.method} to {args.out}; filter cutoff {info['filter_cutoff_hz']:.0f} Hz, gyro "
         f"clock {info['gyro_rate_error_ppm']:+.0f} ppm off nominal"
     )
-    if info["response_flagged"]:
+    if info.get("response_flagged"):
         reasons = ", ".join(f"{r} {c}" for r, c in info["response_flags"].items())
         text += (
             f"\n{info['response_flagged']} trials have a response_flag ({reasons}): their "
