@@ -70,6 +70,7 @@ def test_response_flag_keeps_the_actuation_and_says_why(ur10_table: Any) -> None
     t = ur10_table
     rf = np.array([f == "deflection" for f in t["response_flag"]])
     assert rf.sum() >= 3
+    # The UR10's lag is mostly elastic on every joint: no joint is flagged as a whole.
     assert {str(f) for f in t["response_flag"]} <= {"", "deflection"}
     assert all(not f for f in t["flag"][rf])
     assert np.all(np.isfinite(t["response_delay"][rf]))
@@ -106,25 +107,55 @@ def test_a_rigid_joint_gets_no_deflection_terms(tmp_path: Path) -> None:
     assert np.sqrt(np.mean(err**2)) <= 0.15e-3
 
 
+@pytest.fixture(scope="module")
+def kr5_table(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    p = tmp_path_factory.mktemp("compliant") / "kr5.h5"
+    write_compliant_sweep(p, "kr5", 96, CompliantConditions(), seed=2)
+    return extract_recording(p, progress=False).table
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    ("robot", "cond"),
-    [("ur10", CompliantConditions(noise_factor=5.0)), ("kr5", CompliantConditions())],
-)
-def test_compliant_conditions_bounded(tmp_path: Path, robot: str, cond: Any) -> None:
+def test_a_play_dominated_joint_is_flagged_as_a_whole(kr5_table: Any) -> None:
+    """The KR 5's cycloidal base gear has a soft zone: the hysteresis terms make most of its
+    correction (the median change they make over the median change all terms make: 0.82-
+    1.11 on 200-trial sweeps), so its trials share an age that hangs on the gear's law
+    (main read -0.09 to -0.13 ms of bias there, no flag). Every one of its trials gets
+    ``response_flag = "deflection_joint"`` and keeps its flag empty, both delays and its
+    actuation delay (RMSE <= 0.2 ms: it is timed on the link, which the gyro sees); the
+    elbow (joint 2, mostly elastic: 0.38-0.75) is not flagged as a whole."""
+    t = kr5_table
+    reason = np.array([str(f) for f in t["response_flag"]])
+    base = np.asarray(t["joint"]) == 1
+    assert base.sum() >= 10
+    assert np.all(reason[base] == "deflection_joint")
+    assert all(not f for f in t["flag"][base])
+    assert np.all(np.isfinite(t["response_delay"][base]))
+    e = (t["actuation_delay"] - t["true_actuation_delay"])[base]
+    assert np.sqrt(np.mean(e**2)) <= 0.2e-3
+    elbow = np.asarray(t["joint"]) == 2
+    assert np.mean(reason[elbow] == "deflection_joint") == 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("robot", ["ur10", "kr5"])
+def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str) -> None:
     """Two of the benchmark's conditions, 96 trials each: UR10 at 5x noise and a KR 5
     (cycloidal gears with a soft zone). On the trials without a response flag every
-    joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them.
-    Measured (joints 1/2/3/5): UR10 +0.03 / +0.21 / +0.14 / -0.01 ms, 95 %; KR 5 +0.01 /
-    +0.03 / -0.02 / -0.05 ms, 92 %; before the deflection was separated -0.24 / -0.70 /
-    -0.33 / -0.01 ms, 42 % and -0.41 / -0.29 / -0.19 / -0.05 ms, 39 % (fails both). ~25
-    trials per joint (the joint's shared correction is pooled over them) put ~0.06 ms of
-    sampling error on a joint's mean; on 200 trials the UR10's 5x joints 1/2 keep
-    +0.18 / +0.10 ms of bias (README)."""
-    p = write_compliant_sweep(tmp_path / f"{robot}.h5", robot, 96, cond, seed=2)
-    t = extract_recording(p, progress=False).table
+    joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them; a
+    joint whose every trial is flagged is flagged as a whole (``deflection_joint``).
+    MEASURED_BOUNDED"""
+    if robot == "ur10":
+        p = tmp_path / "ur10.h5"
+        write_compliant_sweep(p, "ur10", 96, CompliantConditions(noise_factor=5.0), seed=2)
+        t = extract_recording(p, progress=False).table
+    else:
+        t = kr5_table
+    reason = np.array([str(f) for f in t["response_flag"]])
     for joint in (1, 2, 3, 5):
         err, _ = _response(t, (joint,))
+        if err.size == 0:
+            assert np.all(reason[np.asarray(t["joint"]) == joint] == "deflection_joint")
+            continue
         assert abs(float(np.mean(err))) <= 0.3e-3, (joint, np.mean(err))
     err, se = _response(t, (1, 2, 3, 5))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
