@@ -644,7 +644,7 @@ RESPONSE_FLAG_DEFLECTION = "deflection"
 #: exactly like an age of p/2v while the speed holds, and only the transitions, through the
 #: stop operators' assumed form, tell the two apart — so the age the joint's trials share
 #: hangs on a law the recording cannot pin down, and not even the two laws' bracket bounds
-#: it (main's KR 5 base read 0.09-0.13 ms short, outside it): a bias no trial's own flag
+#: it (main's KR 5 base read 0.09-0.14 ms short, outside it): a bias no trial's own flag
 #: removes. Chosen on seeds 2 and 3 of tests/compliant_sweep.py (200 trials, the
 #: benchmark's five conditions; before its scoring seed 1 was run): the share was
 #: 0.45-0.64 on the UR10's joints, 0.38-0.75 on the KR 5's elbow (joint 2), 0.82-1.11 on
