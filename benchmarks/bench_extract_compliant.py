@@ -6,8 +6,10 @@ written in the documented format, no ``timedexec.sim``). For every condition and
 prints the response delay's RMSE and bias against the age of the motor-side sample, the
 coverage of the per-trial 95 % intervals (``delay ± 1.96·se``) — all on the trials whose
 response delay may be used (no ``flag``, no ``response_flag``) — the count of trials with
-a ``response_flag`` ("rf.") and with a ``flag`` ("fl."), and the actuation RMSE (every
-unflagged trial, response-flagged ones included) — for this worktree's extractor and, in the same run, a reference revision's
+a ``response_flag`` ("rf."; "all N rf.": every one, as for a joint flagged as a whole,
+``deflection_joint``) and with a ``flag`` ("fl."), and the actuation RMSE (every unflagged
+trial, response-flagged ones included) — for this worktree's extractor and, in the same
+run, a reference revision's
 (``--ref REV``, default ``main``: checked out into a temporary ``git worktree`` and run in a
 subprocess with its own ``src`` first on the path).
 
@@ -99,7 +101,9 @@ def score(t: dict[str, Any], joint: int | None) -> dict[str, float]:
     use = ok & ~rf
     err = (t["response_delay"] - t["true_response_delay"])[use] * 1e3
     act = (t["actuation_delay"] - t["true_actuation_delay"])[ok] * 1e3
-    se = t["response_delay_se"][use] * 1e3 if "response_delay_se" in t else np.full(err.size, np.nan)
+    se = (
+        t["response_delay_se"][use] * 1e3 if "response_delay_se" in t else np.full(err.size, np.nan)
+    )
     nan = math.nan
     return {
         "rmse": float(np.sqrt(np.mean(err**2))) if err.size else nan,
@@ -113,6 +117,10 @@ def score(t: dict[str, Any], joint: int | None) -> dict[str, float]:
 
 
 def cell(s: dict[str, float]) -> str:
+    if not s["response_flagged"] < s["n"] - s["flagged"]:  # nothing left to score
+        return f"all {s['response_flagged']:.0f} rf." + (
+            f", {s['flagged']:.0f} fl." if s["flagged"] else ""
+        )
     miss = "!" if s["rmse"] > 0.2 or abs(s["bias"]) > 0.1 else ""
     off = "~" if not 89.5 <= s["cover"] <= 98.5 else ""
     return (f"{s['rmse']:.3f} ({s['bias']:+.3f}){miss} {s['cover']:.0f} %{off}"

@@ -42,7 +42,8 @@ def test_compliant_response_meets_the_targets_on_the_unflagged_trials(ur10_table
     without a response flag every joint's response delay is the motor sample's age within
     0.2 ms RMS and 0.12 ms of bias (issue 37: 0.2 / 0.1 ms on 200 trials; ~30 trials put
     ~0.02-0.03 ms of sampling error on a joint's mean). Measured here (joints 1/2/3/5):
-    0.12 (+0.09) / 0.17 (+0.07) / 0.10 (+0.04) / 0.05 (-0.03) ms; main's extractor read
+    0.12 (+0.07) / 0.17 (+0.04) / 0.09 (+0.01) / 0.05 (-0.03) ms (before the sharpening:
+    0.12 (+0.09) / 0.17 (+0.07) / 0.10 (+0.04) / 0.05 (-0.03)); round 1's extractor read
     0.21 (+0.15) / 0.24 (+0.07) / 0.11 / 0.05 ms with nothing flagged (joints 1 and 2 fail).
     Before the deflection was separated at all: -0.7 ms on joint 2."""
     t = ur10_table
@@ -51,8 +52,8 @@ def test_compliant_response_meets_the_targets_on_the_unflagged_trials(ur10_table
         assert err.size >= 15
         assert np.sqrt(np.mean(err**2)) <= 0.2e-3, (joint, np.sqrt(np.mean(err**2)))
         assert abs(float(np.mean(err))) <= 0.12e-3, (joint, np.mean(err))
-    # The 95 % intervals: 94 % of the usable trials here (main: 98 %); heavy joints 2 and 3
-    # 92 %. ~100 trials put a binomial sd of ~2.3 % on the pooled coverage.
+    # The 95 % intervals: 95 % of the usable trials here (before the sharpening 94 %);
+    # heavy joints 2 and 3 94 % (92 %). ~100 trials put a binomial sd of ~2.3 % on the pooled coverage.
     err, se = _response(t, (1, 2, 3, 5))
     assert 0.88 <= np.mean(np.abs(err) <= 1.96 * se) <= 0.99
     err, se = _response(t, (2, 3))
@@ -62,14 +63,15 @@ def test_compliant_response_meets_the_targets_on_the_unflagged_trials(ur10_table
 def test_response_flag_keeps_the_actuation_and_says_why(ur10_table: Any) -> None:
     """Where a trial's age depends on the unknown gear law by more than the tolerance
     (half its own hysteresis bracket > 0.2 ms), its response gets ``response_flag =
-    "deflection"`` (13 of 36 base-joint trials here) and nothing else: the trial keeps its
+    "deflection"`` (16 of 36 base-joint trials here) and nothing else: the trial keeps its
     ``flag`` empty and both delays (the value with its standard error, for diagnosis), and
     its actuation delay — timed on the link, which the gyro sees — is as good as the
-    others' (RMSE <= 0.25 ms; 0.13 ms on all trials). Only joints whose deflection was
+    others' (RMSE <= 0.25 ms; 0.12 ms on them, 0.135 ms on all trials). Only joints whose deflection was
     separated can carry it."""
     t = ur10_table
     rf = np.array([f == "deflection" for f in t["response_flag"]])
     assert rf.sum() >= 3
+    # The UR10's lag is mostly elastic on every joint: no joint is flagged as a whole.
     assert {str(f) for f in t["response_flag"]} <= {"", "deflection"}
     assert all(not f for f in t["flag"][rf])
     assert np.all(np.isfinite(t["response_delay"][rf]))
@@ -106,25 +108,60 @@ def test_a_rigid_joint_gets_no_deflection_terms(tmp_path: Path) -> None:
     assert np.sqrt(np.mean(err**2)) <= 0.15e-3
 
 
+@pytest.fixture(scope="module")
+def kr5_table(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    p = tmp_path_factory.mktemp("compliant") / "kr5.h5"
+    write_compliant_sweep(p, "kr5", 96, CompliantConditions(), seed=2)
+    return extract_recording(p, progress=False).table
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    ("robot", "cond"),
-    [("ur10", CompliantConditions(noise_factor=5.0)), ("kr5", CompliantConditions())],
-)
-def test_compliant_conditions_bounded(tmp_path: Path, robot: str, cond: Any) -> None:
+def test_a_play_dominated_joint_is_flagged_as_a_whole(kr5_table: Any) -> None:
+    """The KR 5's cycloidal base gear has a soft zone: the hysteresis terms make most of its
+    correction (the median change they make over the median change all terms make: 0.82-
+    1.11 on 200-trial sweeps, 0.84 here), so its trials share an age that hangs on the
+    gear's law (main read
+    -0.09 to -0.13 ms of bias there on the benchmark's seed, no flag). Every one of its
+    trials gets ``response_flag = "deflection_joint"`` and keeps its flag empty, both
+    delays and its actuation delay (timed on the link, which the gyro sees: bit-identical to
+    main's; RMSE 0.23 ms on these ~25 trials, bound 0.3 ms; 0.126-0.155 ms over all joints
+    on 200-trial sweeps). On this small sweep the elbow is flagged too (share 0.83 on its
+    ~26 trials, the median's noise; 0.38-0.75 on 200-trial sweeps, where it is not): not
+    asserted. The UR10's joints (0.45-0.64) never are (test above)."""
+    t = kr5_table
+    reason = np.array([str(f) for f in t["response_flag"]])
+    base = np.asarray(t["joint"]) == 1
+    assert base.sum() >= 10
+    assert np.all(reason[base] == "deflection_joint")
+    assert all(not f for f in t["flag"][base])
+    assert np.all(np.isfinite(t["response_delay"][base]))
+    e = (t["actuation_delay"] - t["true_actuation_delay"])[base]
+    assert np.sqrt(np.mean(e**2)) <= 0.3e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("robot", ["ur10", "kr5"])
+def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str) -> None:
     """Two of the benchmark's conditions, 96 trials each: UR10 at 5x noise and a KR 5
     (cycloidal gears with a soft zone). On the trials without a response flag every
-    joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them.
-    Measured (joints 1/2/3/5): UR10 +0.03 / +0.21 / +0.14 / -0.01 ms, 95 %; KR 5 +0.01 /
-    +0.03 / -0.02 / -0.05 ms, 92 %; before the deflection was separated -0.24 / -0.70 /
-    -0.33 / -0.01 ms, 42 % and -0.41 / -0.29 / -0.19 / -0.05 ms, 39 % (fails both). ~25
-    trials per joint (the joint's shared correction is pooled over them) put ~0.06 ms of
-    sampling error on a joint's mean; on 200 trials the UR10's 5x joints 1/2 keep
-    +0.18 / +0.10 ms of bias (README)."""
-    p = write_compliant_sweep(tmp_path / f"{robot}.h5", robot, 96, cond, seed=2)
-    t = extract_recording(p, progress=False).table
+    joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them; a
+    joint whose every trial is flagged is flagged as a whole (``deflection_joint``).
+    Measured (joints 1/2/3/5): UR10 +0.01 / +0.15 / -0.00 / -0.01 ms, 100 %; KR 5 base and
+    elbow flagged as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5
+    -0.01 / -0.05 ms, 96 %. ~25 trials per joint put ~0.06 ms of sampling error on a
+    joint's mean (the UR10 elbow at 5x read -0.03 to +0.00 ms on 200-trial sweeps)."""
+    if robot == "ur10":
+        p = tmp_path / "ur10.h5"
+        write_compliant_sweep(p, "ur10", 96, CompliantConditions(noise_factor=5.0), seed=2)
+        t = extract_recording(p, progress=False).table
+    else:
+        t = kr5_table
+    reason = np.array([str(f) for f in t["response_flag"]])
     for joint in (1, 2, 3, 5):
         err, _ = _response(t, (joint,))
+        if err.size == 0:
+            assert np.all(reason[np.asarray(t["joint"]) == joint] == "deflection_joint")
+            continue
         assert abs(float(np.mean(err))) <= 0.3e-3, (joint, np.mean(err))
     err, se = _response(t, (1, 2, 3, 5))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85

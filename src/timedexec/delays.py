@@ -26,7 +26,9 @@ Extra columns are kept as they are. Delays are in seconds; human-facing tables s
 ``response_flag`` says that a trial's response delay is not trustworthy while its
 actuation delay is: extraction writes ``deflection`` where the reported angle is a
 motor-side encoder's and the age of the state could not be separated from the gear's
-deflection to within the table's response accuracy (``docs/architecture.md``). The value
+deflection to within the table's response accuracy, ``deflection_joint`` on every trial of
+a joint whose lag is mostly the gear's play, so that the age its trials share depends on
+a law the recording cannot pin down (``docs/architecture.md``). The value
 stays in ``response_delay`` (with its standard error) for diagnosis; everything that uses
 response delays takes the rows :meth:`DelayTable.usable` gives (learning trains the
 response models without them, and still trains actuation on them). A table without the

@@ -53,7 +53,8 @@ each step assumes of the recording):
    of every sweep-wide statistic, the others are extracted as if it were not there).
    A trial whose response delay alone cannot be trusted keeps both delays and a reason in
    ``response_flag``: ``deflection`` (its age depends on the unknown gear law by more than
-   ``RESPONSE_GEAR_TOLERANCE_S``).
+   ``RESPONSE_GEAR_TOLERANCE_S``), ``deflection_joint`` (its joint's shared age does: the
+   lag there is mostly the gear's play, ``DEFLECTION_PLAY_SHARE``).
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ from timedexec.extraction._onset import (
 )
 from timedexec.extraction._response import (
     RESPONSE_FLAG_DEFLECTION,
+    RESPONSE_FLAG_DEFLECTION_JOINT,
     RESPONSE_SMOOTH_S,
     response_delay,
 )
@@ -456,6 +458,7 @@ def _extract_chunk_inner(
         )  # fmt: skip
         resp, resp_se = rd.tau, rd.se
         resp_flag[rd.gear_flag] = RESPONSE_FLAG_DEFLECTION
+        resp_flag[rd.joint_flag] = RESPONSE_FLAG_DEFLECTION_JOINT
         # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
         # displacement is the position *sampled* then, reported one response delay later.
         # The first guess (reported at +30 ms) is off when the joint still creeps in the
