@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -137,6 +138,10 @@ class _Data:
 #: What a measured delay can be, s: a joint cannot move before its command arrives, and a
 #: state cannot be older than... a second is ten times the slowest controller's delay; the
 #: response fit's noise can put a near-zero age slightly below 0.
+#: A response flag on every trial of a joint (``timedexec.delays``): trained on with a
+#: warning when the joint has nothing else, rather than left without a response model.
+JOINT_FLAG = "deflection_joint"
+
 DELAY_RANGE_S = {"actuation_delay": (0.0, 1.0), "response_delay": (-0.005, 1.0)}
 DELAY_RANGE_WHY = {
     "actuation_delay": "no arm moves before its command arrives, none waits a second",
@@ -181,8 +186,23 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     direction = t["direction"].astype(np.int64)
     y = {d: t[d].astype(float) for d in DELAYS}
     usable = {d: t.usable(d) for d in DELAYS}
+    flags = np.array(t.columns.get("response_flag", [""] * len(t)), dtype=object)
     for j in sorted({int(x) for x in joint}):
-        if not usable["response_delay"][joint == j].any():
+        on_j = joint == j
+        if not usable["response_delay"][on_j].any():
+            if np.all(flags[on_j] == JOINT_FLAG):
+                # The joint's only measurement: the age its trials share is uncertain by
+                # the gear's play (~0.1-0.15 ms on the compliant benchmark), not unknown.
+                usable["response_delay"] = usable["response_delay"] | on_j
+                warnings.warn(
+                    f"{table.source}: every response delay of joint {j} is flagged "
+                    f"{JOINT_FLAG!r} (its lag is mostly the gear's play, so the state's age "
+                    "is known to about 0.15 ms only); its response model is trained on them "
+                    "as the joint's only measurement, and back-dating that joint carries "
+                    "that extra uncertainty",
+                    stacklevel=3,
+                )
+                continue
             reasons = t.select(joint == j).reason_counts("response_flag")
             raise ConfigError(
                 f"{table.source}: every response delay of joint {j} carries a response_flag "
