@@ -31,7 +31,9 @@ a joint whose lag is mostly the gear's play, so that the age its trials share de
 a law the recording cannot pin down (``docs/architecture.md``). The value
 stays in ``response_delay`` (with its standard error) for diagnosis; everything that uses
 response delays takes the rows :meth:`DelayTable.usable` gives (learning trains the
-response models without them, and still trains actuation on them). A table without the
+response models without them, and still trains actuation on them; a joint flagged
+``deflection_joint`` on every trial is trained on its own responses, with a warning, as
+its only measurement). A table without the
 column (older extractions, other recorders) has no response flags.
 
 A table is refused (:class:`~timedexec.errors.ConfigError`) when a trial id occurs twice:
