@@ -80,6 +80,11 @@ class RobotDriver(abc.ABC):
     #: target acts only once the previous call's ``t`` has passed. A stream then sends
     #: ``t`` = one period (as ur_rtde's own examples do).
     speedj_duration_paces_updates: bool = False
+    #: Whether :class:`~timedexec.execution.TimedExecutor` locks its commands to this
+    #: controller's cycle and coasts over late packages unless told otherwise
+    #: (``ExecutorSettings(cycle_lock=None, coast=None)``, the defaults): True where the
+    #: controller's state lets the executor probe its command intake (a UR's ``target_qd``).
+    cycle_lock_default: bool = False
 
     @property
     @abc.abstractmethod
