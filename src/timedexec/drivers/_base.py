@@ -145,6 +145,14 @@ class RobotDriver(abc.ABC):
         """Whether an armed watchdog has stopped the program (False by default)."""
         return False
 
+    def diagnose_motion(self) -> str | None:
+        """What the driver saw that keeps a commanded motion from converging (a correction
+        held at its limit, a fault, a stopped program), for a message; None if nothing.
+        The default reports a tripped watchdog."""
+        if self.watchdog_tripped():
+            return "the controller's watchdog stopped the program"
+        return None
+
     def __enter__(self) -> Self:
         self.connect()
         return self
