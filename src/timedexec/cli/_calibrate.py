@@ -161,6 +161,10 @@ def run(args: argparse.Namespace) -> int:
             reach = getattr(driver, "reachable_range_rad", None)
             if args.plan:
                 plan = _read_plan(args.plan, protocol.robot)
+            elif callable(reach) and args.resume and os.path.exists(args.out):
+                # a sweep planned around the pose where RSI first started goes on with its
+                # own configurations (checked against this session's reach below)
+                plan = _recorded_plan(args.out, protocol.robot, args.seed)
             elif callable(reach):  # RSI: around the pose where RSI started, within reach
                 lo, hi = reach()
                 margin = _trial_excursion_rad(protocol)
@@ -264,6 +268,15 @@ def _max_correction(args: argparse.Namespace, url: RobotURL) -> float:
             f"max_correction_deg={given}; give it once"
         )
     return float(args.max_correction_deg)
+
+
+def _recorded_plan(path: str, robot: str, seed: int) -> Any:
+    """The plan a recording holds (what ``--resume`` continues)."""
+    from timedexec.recording import RecordingReader, SweepPlan
+
+    with RecordingReader(path) as rec:
+        arrays = {k: rec.static(k) for k in SweepPlan.generate(robot, 1).to_arrays()}
+    return SweepPlan.from_arrays(robot, arrays, seed=seed)
 
 
 def _trial_excursion_rad(protocol: Any) -> float:
