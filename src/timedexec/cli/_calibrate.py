@@ -274,8 +274,10 @@ def _recorded_plan(path: str, robot: str, seed: int) -> Any:
     """The plan a recording holds (what ``--resume`` continues)."""
     from timedexec.recording import RecordingReader, SweepPlan
 
+    names = ("plan_q_start_rad", "plan_joint", "plan_direction", "plan_config_index",
+             "plan_repeat")  # SweepPlan.to_arrays  # fmt: skip
     with RecordingReader(path) as rec:
-        arrays = {k: rec.static(k) for k in SweepPlan.generate(robot, 1).to_arrays()}
+        arrays = {k: rec.static(k) for k in names}
     return SweepPlan.from_arrays(robot, arrays, seed=seed)
 
 
