@@ -771,6 +771,7 @@ def _caller_level() -> int:
 
 def _arrival_aiming_warning(why: str) -> str:
     """The one warning of a cycle lock whose intake could not be probed at connect."""
+    why = why.removesuffix("; the cycle lock aims by the package arrivals instead")
     return (
         f"cycle lock: the controller's command intake could not be probed at connect ({why}). "
         "The lock aims by the package arrivals instead (half a period after the earliest "
