@@ -13,7 +13,14 @@ the same run, one after the other, quiet and with two busy processes
 * **unlocked**: the same executor sending as soon as each package is handled
   (``cycle_lock=False``), the pre-issue-15 behaviour;
 * **ur_rtde**: ``t = initPeriod(); servoJ(q, 0, 0, 0.002, 0.1, 300); waitPeriod(t)`` on a
-  sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority.
+  sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority;
+* **default** (issue 34): ``TimedExecutor(URDriver(host), model)``, every setting at its
+  default (the cycle lock and coasting on for a UR, normal priority, the default staleness
+  and watchdog); **default_rt**: the same with ``realtime_priority=5``; **arrival**: the
+  default with ``target_qd`` hidden, so the lock cannot probe and aims by the package
+  arrivals (what a failed probe falls back to, with its warning); **ur_rtde_normal**:
+  ur_rtde's pattern at normal priority. Each executor row gives its connect time (the
+  probe's cost) and any warning.
 
 ``--peer`` runs the same phases against the independently written UR peer
 (``tests/independent_ur_peer/``: the real control script's semantics, standard library
@@ -33,8 +40,8 @@ executor's own work per cycle (p50/p99) and what its cycle leaves allocated (tra
 the in-process simulator, files of ``timedexec/execution`` only).
 
     python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer]
-        [--loops executor,coasting,unlocked,ur_rtde] [--warmup 110] [--round-trip 0.0004]
-        [--json F]
+        [--loops executor,coasting,unlocked,ur_rtde,default,default_rt,arrival,ur_rtde_normal]
+        [--loads quiet,loaded] [--warmup 110] [--round-trip 0.0004] [--json F]
 
 ``--warmup S`` runs each executor loop S seconds unmeasured first, so that the cycle lock's
 long-term clock line (``BoundaryLine``: 100 s of arrivals) is in use when it is measured.
