@@ -64,8 +64,8 @@ class ExecutorSettings(DictMixin):
         500 Hz the default missed 0.85 % of the cycles at normal priority on a lightly
         loaded PC (ur_rtde's ``initPeriod``/``waitPeriod`` loop 7.7 %) and 0.1-0.6 % with
         ``realtime_priority=5`` at load 2-17 (ur_rtde's 2.7-37 %); at normal priority on a
-        loaded PC it missed more than ur_rtde's loop (docs/execution.md, "The defaults on
-        a UR").
+        loaded PC (load 6 and more) it missed more than ur_rtde's loop (docs/execution.md,
+        "The defaults on a UR").
     round_trip_s : float
         Shortest boundary-to-package-to-command-arrival time, s (>= 0, below one controller
         period, checked at connect). Default 4e-4: the loopback twin's; measure it for a
