@@ -13,7 +13,14 @@ the same run, one after the other, quiet and with two busy processes
 * **unlocked**: the same executor sending as soon as each package is handled
   (``cycle_lock=False``), the pre-issue-15 behaviour;
 * **ur_rtde**: ``t = initPeriod(); servoJ(q, 0, 0, 0.002, 0.1, 300); waitPeriod(t)`` on a
-  sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority.
+  sinusoid of joint 1 — the pattern ur_rtde's examples use, same priority;
+* **default** (issue 34): ``TimedExecutor(URDriver(host), model)``, every setting at its
+  default (the cycle lock and coasting on for a UR, normal priority, the default staleness
+  and watchdog); **default_rt**: the same with ``realtime_priority=5``; **arrival**: the
+  default with ``target_qd`` hidden, so the lock cannot probe and aims by the package
+  arrivals (what a failed probe falls back to, with its warning); **ur_rtde_normal**:
+  ur_rtde's pattern at normal priority. Each executor row gives its connect time (the
+  probe's cost) and any warning.
 
 ``--peer`` runs the same phases against the independently written UR peer
 (``tests/independent_ur_peer/``: the real control script's semantics, standard library
@@ -33,8 +40,8 @@ executor's own work per cycle (p50/p99) and what its cycle leaves allocated (tra
 the in-process simulator, files of ``timedexec/execution`` only).
 
     python benchmarks/bench_executor_loop.py [--seconds 60] [--host 127.0.0.52] [--peer]
-        [--loops executor,coasting,unlocked,ur_rtde] [--warmup 110] [--round-trip 0.0004]
-        [--json F]
+        [--loops executor,coasting,unlocked,ur_rtde,default,default_rt,arrival,ur_rtde_normal]
+        [--loads quiet,loaded] [--warmup 110] [--round-trip 0.0004] [--json F]
 
 ``--warmup S`` runs each executor loop S seconds unmeasured first, so that the cycle lock's
 long-term clock line (``BoundaryLine``: 100 s of arrivals) is in use when it is measured.
@@ -47,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -55,6 +63,7 @@ import sys
 import tempfile
 import time
 import tracemalloc
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -62,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from timedexec._realtime import fast_wakeup, realtime
-from timedexec.drivers import SimDriver, URDriver
+from timedexec.drivers import RobotState, SimDriver, URDriver
 from timedexec.errors import ConfigError, DriverError
 from timedexec.execution import (
     ExecutorSettings,
@@ -156,21 +165,28 @@ def run_executor(
     host: str,
     seconds: float,
     *,
-    lock: bool = True,
-    coast: bool = False,
+    lock: bool | None = True,
+    coast: bool | None = False,
     warmup_s: float = 0.0,
     round_trip_s: float = DEFAULT_ROUND_TRIP_S,
     on_start: Callable[[], None] = lambda: None,
+    settings: ExecutorSettings | None = None,
+    driver: type[URDriver] = URDriver,
 ) -> dict[str, Any]:
-    settings = ExecutorSettings(
-        realtime_priority=RT_PRIORITY,
-        round_trip_s=round_trip_s,
-        cycle_lock=lock,
-        coast=coast,
-        staleness=BENCH_STALENESS,
-        watchdog_timeout_s=BENCH_WATCHDOG_S,
-    )
-    with TimedExecutor(URDriver(host), MODEL, settings) as ex:
+    if settings is None:
+        settings = ExecutorSettings(
+            realtime_priority=RT_PRIORITY,
+            round_trip_s=round_trip_s,
+            cycle_lock=lock,
+            coast=coast,
+            staleness=BENCH_STALENESS,
+            watchdog_timeout_s=BENCH_WATCHDOG_S,
+        )
+    t_connect = time.monotonic()
+    with warnings.catch_warnings(record=True) as warned, TimedExecutor(
+        driver(host), MODEL, settings
+    ) as ex:
+        connect_s = time.monotonic() - t_connect
         ex.idle(ex.now() + 0.3)
         q0 = ex.estimate().q_rad.copy()
         k = 0
@@ -238,6 +254,9 @@ def run_executor(
         "faults": faults,
         "commands": int(sent.sum()),
         "coasted": coasted,
+        "connect_s": connect_s,
+        "lock": ex.send_phase is not None,
+        "warnings": [str(w.message)[:160] for w in warned],
         "clock_line": line is not None,
         "intake": intake,
         "echo": intake_echo(log),
@@ -249,13 +268,17 @@ def run_executor(
 
 
 def run_ur_rtde(
-    host: str, seconds: float, on_start: Callable[[], None] = lambda: None, **_: Any
+    host: str,
+    seconds: float,
+    on_start: Callable[[], None] = lambda: None,
+    priority: int | None = RT_PRIORITY,
+    **_: Any,
 ) -> dict[str, Any]:
     """ur_rtde's own pattern: initPeriod / servoJ / waitPeriod."""
     import rtde_control
     import rtde_receive
 
-    with realtime(RT_PRIORITY) as rt:
+    with realtime(priority) as rt:
         recv = rtde_receive.RTDEReceiveInterface(host)
         ctrl = rtde_control.RTDEControlInterface(host)
     try:
@@ -351,11 +374,49 @@ def run_coasting(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
     return run_executor(host, seconds, coast=True, **kw)
 
 
+def run_default(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    """``TimedExecutor(URDriver(host), model)``: every setting at its default (the cycle
+    lock and coasting on for a UR, normal priority, the default staleness and watchdog)."""
+    kw.pop("round_trip_s", None)
+    return run_executor(host, seconds, settings=ExecutorSettings(), **kw)
+
+
+def run_default_rt(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    """The defaults plus ``realtime_priority=5`` (what README asks of a real cell)."""
+    kw.pop("round_trip_s", None)
+    return run_executor(host, seconds, settings=ExecutorSettings(realtime_priority=RT_PRIORITY),
+                        **kw)  # fmt: skip
+
+
+class ArrivalOnlyURDriver(URDriver):
+    """A UR driver whose states hide ``target_qd``: the executor's default lock cannot probe
+    the intake and aims by the package arrivals (what a failed probe falls back to)."""
+
+    def read_state(self, timeout_s: float = 0.1) -> RobotState:
+        return dataclasses.replace(super().read_state(timeout_s), target_qd=None)
+
+
+def run_arrival(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    """The defaults aiming by the package arrivals (the fallback when the probe fails)."""
+    kw.pop("round_trip_s", None)
+    return run_executor(host, seconds, settings=ExecutorSettings(), driver=ArrivalOnlyURDriver,
+                        **kw)  # fmt: skip
+
+
+def run_ur_rtde_normal(host: str, seconds: float, **kw: Any) -> dict[str, Any]:
+    """ur_rtde's pattern at normal priority."""
+    return run_ur_rtde(host, seconds, priority=None, **kw)
+
+
 RUNS = (
     ("executor", run_executor),
     ("coasting", run_coasting),
     ("unlocked", run_unlocked),
     ("ur_rtde", run_ur_rtde),
+    ("default", run_default),
+    ("default_rt", run_default_rt),
+    ("arrival", run_arrival),
+    ("ur_rtde_normal", run_ur_rtde_normal),
 )
 
 
@@ -400,6 +461,9 @@ def main(argv: list[str] | None = None) -> int:
         default=",".join(name for name, _ in RUNS),
         help="comma list of the loops to run (default: all)",
     )
+    p.add_argument(
+        "--loads", default="quiet,loaded", help="comma list of quiet,loaded (default: both)"
+    )
     p.add_argument("--json", help="write the figures as JSON here")
     args = p.parse_args(argv)
     unknown = set(args.loops.split(",")) - {name for name, _ in RUNS}
@@ -414,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     out["controller"] = "independent peer" if args.peer else "UR10e twin"
     out["loops"] = [name for name, _ in runs]
+    out["loads"] = [x for x in ("quiet", "loaded") if x in args.loads.split(",")]
     out["allocations"] = allocations_per_cycle()
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         # Every loop under the same wake-up policy: the CPUs kept out of deep idle states
@@ -450,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
             def stats() -> dict[str, float]:
                 return dict(twin.stats())
 
-        for load in ("quiet", "loaded"):
+        for load in out["loads"]:
             procs = busy(args.busy) if load == "loaded" else []
             try:
                 for name, run in runs:
@@ -514,16 +579,16 @@ def report(out: dict[str, Any]) -> None:
         f"{a['growth_bytes_per_cycle']:.2f} B per cycle"
     )
     head = (
-        f"{'loop':9} {'load':7} {'loadavg':>7} {'RT':>3} {'missed %':>8} {'overwr':>6} "
+        f"{'loop':14} {'load':7} {'loadavg':>7} {'RT':>3} {'missed %':>8} {'overwr':>6} "
         f"{'send err p50/p99 ms':>20} {'phase p1/p50/p99 ms':>20} {'<0.3ms':>6} "
         f"{'work p50/p99 us':>16} {'twin CPU':>8} {'twin stall':>10}"
     )
     print(head)
-    for load in ("quiet", "loaded"):
+    for load in out["loads"]:
         for name in out["loops"]:
             r = out[f"{name}_{load}"]
             if "error" in r:
-                print(f"{name:9} {load:7} failed: {r['error']}")
+                print(f"{name:14} {load:7} failed: {r['error']}")
                 continue
             t = r["twin"]
             ph = t.get("phase_before_boundary_ms", {})
@@ -531,7 +596,7 @@ def report(out: dict[str, Any]) -> None:
             w = r.get("work_us", {})
             work = f"{w['p50']:.0f}/{w['p99']:.0f}" if w else "-"
             print(
-                f"{name:9} {load:7} {r['load_average']:7.1f} {'y' if r['realtime'] else 'n':>3} "
+                f"{name:14} {load:7} {r['load_average']:7.1f} {'y' if r['realtime'] else 'n':>3} "
                 f"{100 * t.get('missed_fraction', math.nan):8.2f} {t.get('overwritten', 0):6d} "
                 f"{e['p50']:9.3f}/{e['p99']:<9.3f} "
                 f"{ph.get('p1', math.nan):6.2f}/{ph.get('p50', math.nan):.2f}/"
@@ -544,6 +609,10 @@ def report(out: dict[str, Any]) -> None:
                 gc_note = f"; {r['gc']['count']} collections, longest {r['gc']['max_ms']:.2f} ms"
             if r.get("coasted"):
                 gc_note += f"; {r['coasted']} of {r['commands']} commands from the estimate"
+            if "connect_s" in r:
+                gc_note += f"; connect {r['connect_s']:.2f} s"
+            for w in r.get("warnings", []):
+                gc_note += f"; WARNING {w}"
             if "clock_line" in r:
                 gc_note += f"; clock line {'in use' if r['clock_line'] else 'not yet'}"
             echo = r.get("echo") or {}
@@ -565,12 +634,17 @@ def report(out: dict[str, Any]) -> None:
                 f"{'':17} arrival phase histogram (ms before boundary, 0.2 ms bins): "
                 f"{t.get('phase_histogram')}{gc_note}"
             )
-    for load in ("quiet", "loaded"):
-        ex = out.get(f"executor_{load}", {}).get("twin", {})
-        ur = out.get(f"ur_rtde_{load}", {}).get("twin", {})
-        if "missed_fraction" in ex and "missed_fraction" in ur:
-            ratio = ur["missed_fraction"] / max(ex["missed_fraction"], 1e-9)
-            print(f"{load}: missed cycles, ur_rtde / executor = {ratio:.2f}x")
+    for load in out["loads"]:
+        for mine, native in (("executor", "ur_rtde"), ("default", "ur_rtde_normal"),
+                             ("default_rt", "ur_rtde")):  # fmt: skip
+            ex = out.get(f"{mine}_{load}", {}).get("twin", {})
+            ur = out.get(f"{native}_{load}", {}).get("twin", {})
+            if "missed_fraction" in ex and "missed_fraction" in ur:
+                print(
+                    f"{load}: missed cycles {mine} {100 * ex['missed_fraction']:.2f} % vs "
+                    f"{native} {100 * ur['missed_fraction']:.2f} % "
+                    f"({100 * (ex['missed_fraction'] - ur['missed_fraction']):+.2f} pp)"
+                )
 
 
 if __name__ == "__main__":

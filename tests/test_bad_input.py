@@ -303,7 +303,7 @@ CASES: dict[str, Case] = {
         "--gyro-group-delay 0.98 --gyro-transport-latency 0.8",
         [
             "unknown parameter 'host' for rsi:// URLs (allowed: period, listen, robot, "
-            "ipoc_tick_ms, first_frame_timeout_s)"
+            "ipoc_tick_ms, first_frame_timeout_s, max_correction_deg)"
         ],
         absent=["c.h5"],
     ),

@@ -8,6 +8,7 @@ command arrivals) comes from its truth file, in controller time (host time =
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -143,8 +144,9 @@ def stream_forever(ex: TimedExecutor) -> None:
 def test_stalled_stream_stops_the_twin_within_two_periods(twin: URTwin) -> None:
     """URTwin.stall mid-motion: the executor issues a stop within two periods once the
     state is as old as the stall limit in force (the adaptive default: 50 ms on this
-    stream); the twin's ground truth shows the stop arriving (after ur_rtde's own wait on
-    a stalled stream)."""
+    stream; coasting, a UR's default, keeps commanding from the estimate until then); the
+    twin's ground truth shows the stop arriving (after ur_rtde's own wait on a stalled
+    stream)."""
     model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.001, actuation_std_s=0.001)
     stale_at = None
     # On a loaded machine the stream may stall 50 ms before the twin's stall begins (a
@@ -182,10 +184,11 @@ def test_stalled_stream_stops_the_twin_within_two_periods(twin: URTwin) -> None:
         pytest.skip("the machine is too loaded to stream 500 Hz without a stale fault")
 
     def stop_arrival(t0: float, r: dict) -> float | None:  # type: ignore[type-arg]
-        # The regular command answering the last package arrives ~1 ms after it, the fault
-        # stop (a zero speedj, then speedStop) only after the stale threshold.
+        # The fault stop (a zero speedj, then speedStop) is the last command issued, at the
+        # stale threshold; until then the default executor coasts (issue 34), commanding
+        # each cycle from the estimate, so commands arrive up to the threshold itself.
         t = t0 + r["arrival_s"]
-        return t if t > stale_at - 0.001 else None
+        return t if t >= issued[-1] else None
 
     # The executor issues the stop (a zero speedj) within two periods (4 ms) of the stale
     # threshold, never before it -- plus a wake-up allowance: the loop sleeps in the
@@ -216,3 +219,52 @@ def test_model_for_another_robot_is_refused_after_identifying_the_robot(twin: UR
     assert not drv.is_connected
     with pytest.raises(ModelError):
         TimedExecutor(URDriver(HOST, robot="ur10e"), model)
+
+
+def test_the_default_executor_locks_a_ur_to_its_probed_intake(twin: URTwin) -> None:
+    """``TimedExecutor(URDriver(host), model)`` with every setting at its default locks its
+    sends to the controller's probed intake (and coasts): the probe answers at connect with
+    no warning and costs 0.2-0.7 s there (measured 0.27-0.29 s against this twin, idle
+    machine; band 0.05-1.2 s for a loaded one). ``cycle_lock=False`` opts out: no lock, no
+    probe."""
+    model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011)
+    costs = {}
+    for lock in (None, False):
+        t = time.monotonic()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # the probe answered: not a word
+            ex = TimedExecutor(URDriver(HOST), model, ExecutorSettings(cycle_lock=lock))
+            with ex:
+                costs[lock] = time.monotonic() - t
+                if lock is None:
+                    assert ex.send_phase is not None
+                    assert ex.intake is not None, ex.intake_error
+                    assert ex.intake.trials >= 8
+                else:
+                    assert ex.send_phase is None
+                    assert ex.intake is None
+    assert 0.05 <= costs[None] - costs[False] <= 1.2, costs
+
+
+def test_a_default_lock_that_cannot_probe_says_why_and_what_it_costs(twin: URTwin) -> None:
+    """A UR driver streaming no ``target_qd`` (custom RTDE outputs) cannot have its intake
+    probed: the default lock aims by the package arrivals and says so in exactly one
+    RuntimeWarning naming the reason, the cost (missed cycles) and the opt-out."""
+    model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011)
+    variables = [v for v in URDriver(HOST).variables if v != "target_qd"]
+    ex = TimedExecutor(URDriver(HOST, variables=variables), model)
+    with pytest.warns(RuntimeWarning) as caught:
+        ex.connect()
+    try:
+        assert ex.send_phase is not None
+        assert ex.intake is None
+        assert ex.intake_error == "the driver's state has no target_qd"
+    finally:
+        ex.close()
+    mine = [w for w in caught if "cycle lock" in str(w.message)]
+    assert len(mine) == 1, [str(w.message) for w in caught]
+    text = str(mine[0].message)
+    for part in ("no target_qd", "package arrivals", "% of the cycles missed",
+                 "cycle_lock=False"):  # fmt: skip
+        assert part in text, text
+    assert mine[0].filename == __file__  # the user's line, not the executor's

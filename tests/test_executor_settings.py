@@ -23,20 +23,21 @@ MODEL = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuati
 
 def test_defaults_are_the_constructor_defaults_they_replace() -> None:
     """``ExecutorSettings()`` holds exactly the defaults ``TimedExecutor``'s keyword
-    arguments had (none changed by moving them): the executor built without settings runs
+    arguments had (none changed by moving them), but for the cycle lock and coasting, which
+    since issue 34 are the driver's choice (None): the executor built without settings runs
     with these."""
     s = ExecutorSettings()
     assert s.confidence == 0.95
     assert s.staleness == StalenessLimits()
     assert s.watchdog_timeout_s == 0.1
-    assert s.cycle_lock is False
+    assert s.cycle_lock is None  # the driver's choice: on for a UR (issue 34), else off
     assert s.round_trip_s == 4e-4
     assert s.realtime_priority is None
     assert s.limits == ExecutionLimits()
     assert s.position_gain_1_s == 0.0
     assert s.compensate is True
     assert s.stop_deceleration_rad_s2 is None
-    assert s.coast is False
+    assert s.coast is None
     assert TimedExecutor(SimDriver("ur10e"), MODEL).settings == s
 
 
@@ -76,7 +77,7 @@ def test_round_trip_through_json() -> None:
         ({"realtime_priority": 5.0}, r"realtime_priority=5.0 outside"),
         ({"position_gain_1_s": -1.0}, r"position_gain_1_s=-1.0 is not a gain >= 0 1/s"),
         ({"stop_deceleration_rad_s2": 0.0}, r"stop_deceleration_rad_s2=0.0 is not a dec"),
-        ({"cycle_lock": 1}, r"cycle_lock=1 is not a bool; give True or False"),
+        ({"cycle_lock": 1}, r"cycle_lock=1 is not a bool or None; give True, False or None"),
         ({"limits": {"velocity_fraction": 0.5}}, r"limits=.* is not an ExecutionLimits"),
         ({"staleness": 3}, r"staleness=3 is not a StalenessLimits.*from_stale_periods"),
     ],

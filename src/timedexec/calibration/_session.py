@@ -156,26 +156,61 @@ class Session:
                     "the robot did not come to rest within 30 s; check it is not moving"
                 )
 
-    def move_to(self, q_target: FloatArray, *, tol_rad: float = 5e-4) -> None:
-        """Drive to ``q_target`` with speed commands (works on every driver)."""
+    def move_to(
+        self, q_target: FloatArray, *, tol_rad: float = 5e-4, stuck_s: float = 3.0
+    ) -> None:
+        """Drive to ``q_target`` with speed commands (works on every driver).
+
+        Raises
+        ------
+        DriverTimeout
+            The error has not shrunk by 0.1 mrad for ``stuck_s`` (or the move took over
+            60 s): the message says what was seen — the driver's own diagnosis (RSI: a
+            correction saturated at its limit, RSI stopped; a watchdog trip), else whether
+            the reported position moved at all while speeds were commanded.
+        """
         spec = self.settings.spec
         vmax = 0.5 * np.asarray(spec.qd_max_rad_s)
         st = self.state()
         t_start = st.host_time_s
+        best, best_at, q_best = math.inf, t_start, st.q.copy()
         while True:
             err = q_target - st.q
-            if np.abs(err).max() < tol_rad and np.abs(st.qd).max() < 0.01:
+            worst = float(np.abs(err).max())
+            if worst < tol_rad and np.abs(st.qd).max() < 0.01:
                 break
+            if worst < best - 1e-4:
+                best, best_at, q_best = worst, st.host_time_s, st.q.copy()
+            elapsed = st.host_time_s - t_start
+            if worst >= tol_rad and (st.host_time_s - best_at > stuck_s or elapsed > 60.0):
+                self.driver.speedj(np.zeros(6), 4.0, 0.0)
+                raise DriverTimeout(self._not_converging(err, st.q - q_best, elapsed))
             qd = np.clip(3.0 * err, -vmax, vmax)
             qd = np.where(np.abs(err) < tol_rad, 0.0, qd)
             self.driver.speedj(qd, 4.0, 0.0)
             st = self.state()
-            if st.host_time_s - t_start > 60.0:
-                raise DriverTimeout(
-                    f"moving to the start configuration took over 60 s (error "
-                    f"{np.abs(err).max():.4f} rad); check the robot is enabled and free to move"
-                )
         self.driver.speedj(np.zeros(6), 4.0, 0.0)
+
+    def _not_converging(self, err: FloatArray, moved: FloatArray, elapsed_s: float) -> str:
+        """What a move to the start configuration that does not converge saw."""
+        j = int(np.argmax(np.abs(err)))
+        head = (
+            f"moving to the start configuration stopped converging after {elapsed_s:.1f} s "
+            f"(joint {j + 1} still {err[j]:+.4f} rad off)"
+        )
+        seen = self.driver.diagnose_motion()
+        if seen:
+            return f"{head}: {seen}"
+        if float(np.abs(moved).max()) < 1e-4:
+            return (
+                f"{head}: no motion — the reported position did not change while speeds were "
+                "commanded; check the robot is enabled, in remote/automatic mode and free to "
+                "move"
+            )
+        return (
+            f"{head}: the arm moves ({np.abs(moved).max():.4f} rad since the error last "
+            "shrank) but not towards the target; check nothing holds or drives it"
+        )
 
     def pulse(self, joint: int, direction: float) -> Pulse:
         """Move one joint out and back as a trial does, on the arrival of state packages.

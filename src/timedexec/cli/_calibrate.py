@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import math
 import os
+import sys
 from typing import TYPE_CHECKING, Any
 
 from timedexec.cli._common import (
@@ -91,6 +93,15 @@ def add_parser(sub: Any) -> None:
         help="minimum latency from sampling to host arrival, ms (overrides the profile); "
         "real robots need both constants (profile or these two options)",
     )
+    p.add_argument(
+        "--max-correction-deg",
+        metavar="DEG",
+        type=float_arg(0.0, 360.0, unit="degrees"),
+        help="rsi:// only: the largest correction per axis from the pose where RSI started, "
+        "degrees (the RSI configuration's AXISCORR limits; default 90; per axis: the URL's "
+        "?max_correction_deg=D1,...,D6). A sweep over RSI is planned around that pose within "
+        "it; a --plan that leaves it is refused before anything moves",
+    )
     add_quiet(p)
     add_json(p, "the summary (recording, planned, recorded_now, ...)")
     p.set_defaults(func=run)
@@ -135,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
     options: dict[str, Any] = {"seed": args.seed} if simulated else {}
     if not simulated and robot is not None:
         options["robot"] = robot
+    if args.max_correction_deg is not None:
+        options["max_correction_deg"] = _max_correction(args, url)
     try:
         with contextlib.ExitStack() as stack:
             driver = stack.enter_context(open_driver(url, **options))
@@ -145,10 +158,27 @@ def run(args: argparse.Namespace) -> int:
             )
             if gyro_constants is not None:
                 protocol = dataclasses.replace(protocol, gyro=gyro_constants)
+            reach = getattr(driver, "reachable_range_rad", None)
             if args.plan:
                 plan = _read_plan(args.plan, protocol.robot)
+            elif callable(reach) and args.resume and os.path.exists(args.out):
+                # a sweep planned around the pose where RSI first started goes on with its
+                # own configurations (checked against this session's reach below)
+                plan = _recorded_plan(args.out, protocol.robot, args.seed)
+            elif callable(reach):  # RSI: around the pose where RSI started, within reach
+                lo, hi = reach()
+                margin = _trial_excursion_rad(protocol)
+                plan = SweepPlan.generate(protocol.robot, args.trials, seed=args.seed,
+                                          q_range_rad=(lo + margin, hi - margin))  # fmt: skip
             else:
                 plan = SweepPlan.generate(protocol.robot, args.trials, seed=args.seed)
+            if callable(reach):  # refused before anything moves (exit 2)
+                driver.check_reachable(  # type: ignore[attr-defined]
+                    plan.q_start_rad, margin_rad=_trial_excursion_rad(protocol),
+                    what="the plan's configuration",
+                )  # fmt: skip
+                if not args.quiet:
+                    _say_rsi_plan(driver, plan)
             gyro: Any
             if simulated and not args.imu:
                 gyro = driver.gyro(seed=args.seed)  # type: ignore[attr-defined]
@@ -191,6 +221,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--sensor-profile", args.sensor_profile),
             ("--gyro-group-delay", args.gyro_group_delay),
             ("--gyro-transport-latency", args.gyro_transport_latency),
+            ("--max-correction-deg", args.max_correction_deg),
             ("--out", args.out),
             ("--json", args.json),
             ("--quiet", args.quiet),
@@ -221,6 +252,58 @@ def _robot(args: argparse.Namespace, url: RobotURL) -> str | None:
     if url.scheme == "rsi":
         return str(args.robot or "kr5")
     return None if args.robot is None else str(args.robot)
+
+
+def _max_correction(args: argparse.Namespace, url: RobotURL) -> float:
+    """``--max-correction-deg`` for an ``rsi://`` URL that does not set it otherwise."""
+    if url.scheme != "rsi":
+        raise ConfigError(
+            f"--max-correction-deg is for KUKA RSI (rsi://PORT) only; {url.text} has no "
+            "correction limit: drop the option"
+        )
+    given = url.options.get("max_correction_deg")
+    if given is not None and given != args.max_correction_deg:
+        raise ConfigError(
+            f"--max-correction-deg {args.max_correction_deg:g} contradicts the URL's "
+            f"max_correction_deg={given}; give it once"
+        )
+    return float(args.max_correction_deg)
+
+
+def _recorded_plan(path: str, robot: str, seed: int) -> Any:
+    """The plan a recording holds (what ``--resume`` continues)."""
+    from timedexec.recording import RecordingReader, SweepPlan
+
+    names = ("plan_q_start_rad", "plan_joint", "plan_direction", "plan_config_index",
+             "plan_repeat")  # SweepPlan.to_arrays  # fmt: skip
+    with RecordingReader(path) as rec:
+        arrays = {k: rec.static(k) for k in names}
+    return SweepPlan.from_arrays(robot, arrays, seed=seed)
+
+
+def _trial_excursion_rad(protocol: Any) -> float:
+    """How far one trial moves its joint from the start configuration, rad (ramp, hold
+    and ramp at the profile's speed), plus 0.5° for the ramps' rounding."""
+    prof = protocol.profile
+    ramp = prof.speed_rad_s / prof.acceleration_rad_s2
+    return float(prof.speed_rad_s * (ramp + prof.hold_s)) + math.radians(0.5)
+
+
+def _say_rsi_plan(driver: Any, plan: Any) -> None:
+    """On stderr: where RSI started, how many configurations the sweep has and where."""
+    import numpy as np
+
+    q0 = np.degrees(driver.start_pose_rad)
+    q = np.degrees(plan.q_start_rad)
+    n_cfg = len(np.unique(plan.config_index))
+    span = ", ".join(f"A{j + 1} {q[:, j].min():.1f}..{q[:, j].max():.1f}°" for j in range(6))
+    limit = np.degrees(driver.max_correction_rad)
+    lim = f"{limit[0]:g}°" if np.all(limit == limit[0]) else "/".join(f"{v:g}" for v in limit) + "°"
+    print(
+        f"RSI started at ({', '.join(f'{v:.1f}' for v in q0)})°; the sweep's {n_cfg} "
+        f"configurations ({len(plan)} trials) lie within {span} (max correction {lim})",
+        file=sys.stderr,
+    )
 
 
 def _check_gyro_constants(args: argparse.Namespace, *, real: bool) -> None:

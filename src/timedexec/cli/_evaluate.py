@@ -18,6 +18,7 @@ from timedexec.cli._common import (
     warn,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, submit, worker_model
+from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "run"]
 
@@ -51,7 +52,8 @@ def add_parser(sub: Any) -> None:
             "median|model|oracle: {torch_mean_mm, torch_rms_mm, torch_max_mm, along_*, "
             "across_*}}, onset_strategies, ...}.\n\n"
             "examples:\n  timedexec evaluate --robot kr5 --json kr5-eval.json\n"
-            "  timedexec evaluate --task conveyor --robot kr5 --seam curved --json weld.json"
+            "  timedexec evaluate --task conveyor --robot kr5 --seam curved --json weld.json\n"
+            "  timedexec evaluate --task conveyor --twin --robot ur10 --runs 2 --json twin.json"
         ),
     )
     add_robot(p, required=True)
@@ -121,6 +123,15 @@ def add_parser(sub: Any) -> None:
         help="--task conveyor: parts welded the same way before each measured weld (0: every "
         'weld from a fresh start; > 0: experimental, docs/welding.md "Weld after weld")',
     )
+    p.add_argument(
+        "--twin",
+        action="store_true",
+        help="--task conveyor: weld in real time through the real client against the "
+        "robot's protocol twin (ur_rtde and the UR twin for ur10/ur10e, RSI XML and the RSI "
+        "twin for kr5), the torch from the twin's ground truth; one work point, --runs welds "
+        "per strategy (default 2), tracking delays from 3 uncompensated welds; same "
+        "strategies JSON",
+    )
     add_scheduler(p, what="the evaluation (as one task)")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -132,6 +143,9 @@ _TASK_OPTIONS: dict[str, dict[str, Any]] = {
     "onset": {"configs": 300, "draws": 20, "physics": 0},
     "conveyor": {"seam": "straight", "runs": 4, "cells": 2, "previous_welds": 0},
 }
+#: --twin's own defaults, and the conveyor options it does not take.
+_TWIN_DEFAULTS = {"runs": 2}
+_NOT_ON_TWIN = ("cells", "previous_welds")
 
 
 def _task_options(args: argparse.Namespace) -> None:
@@ -144,6 +158,17 @@ def _task_options(args: argparse.Namespace) -> None:
     """
     from timedexec.errors import ConfigError
 
+    if args.twin:
+        if args.task != "conveyor":
+            raise ConfigError("--twin applies to --task conveyor: add --task conveyor")
+        given = [name for name in _NOT_ON_TWIN if getattr(args, name) is not None]
+        if given:
+            shown = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ConfigError(f"{shown} do(es) not apply to --twin (one work point, each "
+                              "weld from a fresh twin): drop it")  # fmt: skip
+        for name, default in _TWIN_DEFAULTS.items():
+            if getattr(args, name) is None:
+                setattr(args, name, default)
     for task, options in _TASK_OPTIONS.items():
         given = [name for name in options if getattr(args, name) is not None]
         if task != args.task and given:
@@ -168,6 +193,15 @@ def run(args: argparse.Namespace) -> int:
     with cluster(args, "evaluate") as client:
         model = worker_model(args.model, client)
         progress = not args.quiet and client is None
+        if args.twin:
+            from timedexec.evaluation import evaluate_conveyor_twin
+
+            if args.speed != 0.5:
+                raise ConfigError("--speed does not apply to --twin (the example's 0.5 m/s belt)")
+            weld = submit(client, evaluate_conveyor_twin, args.robot, model, seam=args.seam,
+                          runs=args.runs, seed=args.seed, progress=progress)  # fmt: skip
+            emit(args, weld.to_dict(), weld.table())
+            return 0
         if args.task == "conveyor":
             from timedexec.evaluation import evaluate_conveyor
 

@@ -80,6 +80,11 @@ class RobotDriver(abc.ABC):
     #: target acts only once the previous call's ``t`` has passed. A stream then sends
     #: ``t`` = one period (as ur_rtde's own examples do).
     speedj_duration_paces_updates: bool = False
+    #: Whether :class:`~timedexec.execution.TimedExecutor` locks its commands to this
+    #: controller's cycle and coasts over late packages unless told otherwise
+    #: (``ExecutorSettings(cycle_lock=None, coast=None)``, the defaults): True where the
+    #: controller's state lets the executor probe its command intake (a UR's ``target_qd``).
+    cycle_lock_default: bool = False
 
     @property
     @abc.abstractmethod
@@ -139,6 +144,14 @@ class RobotDriver(abc.ABC):
     def watchdog_tripped(self) -> bool:
         """Whether an armed watchdog has stopped the program (False by default)."""
         return False
+
+    def diagnose_motion(self) -> str | None:
+        """What the driver saw that keeps a commanded motion from converging (a correction
+        held at its limit, a fault, a stopped program), for a message; None if nothing.
+        The default reports a tripped watchdog."""
+        if self.watchdog_tripped():
+            return "the controller's watchdog stopped the program"
+        return None
 
     def __enter__(self) -> Self:
         self.connect()

@@ -94,6 +94,7 @@ from timedexec.drivers._rsi_link import (
 )
 from timedexec.drivers._rsi_profile import SpeedCommand as _Command
 from timedexec.drivers._rsi_profile import SpeedProfile as _Profile
+from timedexec.drivers._rsi_reach import check_reach, diagnose
 from timedexec.drivers._rsi_records import RSICommandRecord, RSIState, RSIStats
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
@@ -506,6 +507,52 @@ class KukaRSIDriver(RobotDriver):
     def start_pose_rad(self) -> FloatArray:
         """Pose at RSI start of the current session (first frame), rad, shape (6,)."""
         return self._profile.q_start.copy()
+
+    # ------------------------------------------------------------------ what RSI can reach
+
+    def reachable_range_rad(self) -> tuple[FloatArray, FloatArray]:
+        """The joint positions the correction can reach in this session, rad, (6,) each:
+        the pose where RSI started plus or minus ``max_correction_deg``, inside the joint
+        limits less 0.5°. Waits for the robot's first frame (``first_frame_timeout_s``)
+        when none has arrived yet (and then takes that state off the queue).
+
+        Raises
+        ------
+        DriverTimeout
+            No frame arrived: the robot is not running RSI.
+        """
+        if self._frames_since_connect == 0:
+            self.read_state()
+        prof = self._profile
+        return prof.q_start + prof.lo, prof.q_start + prof.hi
+
+    def check_reachable(self, q_rad: ArrayLike, *, margin_rad: ArrayLike = 0.0,
+                        what: str = "configuration") -> None:  # fmt: skip
+        """Refuse configurations the correction cannot reach from the pose where RSI started
+        (before anything moves): each of ``q_rad`` (n, 6), rad, widened by ``margin_rad``
+        (a trial's excursion, rad, scalar or (6,)), must lie in :meth:`reachable_range_rad`.
+
+        Raises
+        ------
+        ConfigError
+            Naming the first configuration and axis out of reach, the correction it needs,
+            the limit (``max_correction_deg`` or the joint limit), how many configurations
+            leave the limits and how to fix it.
+        """
+        lo, hi = self.reachable_range_rad()
+        check_reach(q_rad, lo, hi, self._profile.q_start, self.max_correction_rad, self.spec,
+                    margin_rad=margin_rad, what=what)  # fmt: skip
+
+    def diagnose_motion(self) -> str | None:
+        """What the driver saw that keeps a motion from converging: a correction held at
+        its limit (per axis, with the correction and the limit), a time-base fault, RSI
+        stopped (no frame for over ten cycles) or the robot's late counter; None if
+        nothing."""
+        silent = time.monotonic() - self._last_rx_s if self._last_ipoc >= 0 else 0.0
+        late = self._stats.get("robot_late_count", -1)
+        return diagnose(self._profile, fault=self._fault, silent_s=silent,
+                        stopped=silent > max(10 * self.controller_period_s, 0.1),
+                        late_count=late if isinstance(late, int) else -1)  # fmt: skip
 
     # ------------------------------------------------------------------ commands
 

@@ -222,6 +222,9 @@ class URDriver(RobotDriver):
     #: The control script's speed thread takes a new target when the previous ``speedj``
     #: returns, after its ``t`` (see :class:`~timedexec.drivers.RobotDriver`).
     speedj_duration_paces_updates = True
+    #: ``target_qd`` shows which cycle took a command: the executor probes the intake at
+    #: connect and locks its sends to it by default.
+    cycle_lock_default = True
 
     def __init__(
         self,
@@ -254,6 +257,7 @@ class URDriver(RobotDriver):
         missing = {"timestamp", "actual_q", "actual_qd"} - set(self.variables)
         if missing:
             raise ConfigError(f"variables must include {sorted(missing)} (read_state needs them)")
+        self._streams_target_qd = "target_qd" in self.variables
         self.poll_interval_s = float(poll_interval_s)
         self.tight_timer_slack = tight_timer_slack
         if isinstance(ur_cap_port, bool) or not (
@@ -433,7 +437,8 @@ class URDriver(RobotDriver):
                 host_time_s = time.monotonic()
                 q = recv.getActualQ()
                 qd = recv.getActualQd()
-                target_qd = recv.getTargetQd()
+                # outputs without target_qd: None (the executor cannot probe the intake)
+                target_qd = recv.getTargetQd() if self._streams_target_qd else None
                 ts_after = recv.getTimestamp()
                 if ts_after != ts:
                     continue  # a newer package landed while reading: take that one

@@ -13,7 +13,7 @@ never falls back silently to a default)::
     sim://[ROBOT]?trials=N[&seed=S][&repeats=R][&effects=E]    a simulated sweep (fleet)
     ur://HOST[?external_control=0|1][&ur_cap_port=P][&program=/programs/X.urp]
     rsi://[LISTEN_IP:]PORT[?listen=IP][&robot=IP][&period=S][&ipoc_tick_ms=MS|auto]
-                          [&first_frame_timeout_s=S]
+                          [&first_frame_timeout_s=S][&max_correction_deg=D|D1,...,D6]
 
 Flags take 1/0, true/false, yes/no, on/off; an empty field (``?seed=1&``) is ignored, a
 name without ``=`` is refused. The path-only forms ``sim:ur10`` and ``ur:HOST`` mean the
@@ -48,7 +48,14 @@ SCHEMES = ("sim", "ur", "rsi")
 URL_PARAMS: dict[str, tuple[str, ...]] = {
     "sim": ("realtime", "seed"),
     "ur": ("external_control", "ur_cap_port", "program"),
-    "rsi": ("period", "listen", "robot", "ipoc_tick_ms", "first_frame_timeout_s"),
+    "rsi": (
+        "period",
+        "listen",
+        "robot",
+        "ipoc_tick_ms",
+        "first_frame_timeout_s",
+        "max_correction_deg",
+    ),
 }
 #: Query parameters of a simulated sweep (``sim://`` only; a fleet manifest's source).
 SWEEP_PARAMS = ("trials", "seed", "repeats", "effects")
@@ -88,7 +95,8 @@ class RobotURL:
         ``sim://`` ``realtime`` (bool), ``seed`` (int); ``ur://`` ``external_control``
         (bool), ``ur_cap_port`` (int), ``program`` (str); ``rsi://`` ``robot_ip`` (str),
         ``period_s`` (float, s), ``ipoc_tick_s`` (float, s, or ``"auto"``),
-        ``first_frame_timeout_s`` (float, s); a sweep ``trials``, ``seed``, ``repeats``
+        ``first_frame_timeout_s`` (float, s), ``max_correction_deg`` (float or 6 floats,
+        degrees); a sweep ``trials``, ``seed``, ``repeats``
         (int), ``effects`` (str). Only what the URL gives.
     sweep : bool
         Parsed as a simulated sweep (``sim://ROBOT?trials=N``), not a robot to drive.
@@ -420,7 +428,7 @@ def _rsi_address(url: str, parts: SplitResult, query: dict[str, str]) -> tuple[s
 
 
 def _rsi_options(url: str, query: dict[str, str]) -> dict[str, Any]:
-    """``?robot=&first_frame_timeout_s=&ipoc_tick_ms=&period=`` as the driver's keyword
+    """``?robot=&first_frame_timeout_s=&ipoc_tick_ms=&period=&max_correction_deg=`` as the driver's keyword
     arguments (``listen`` is the address: :func:`_rsi_address`)."""
     from timedexec.drivers._rsi_link import check_first_frame_timeout, check_robot_ip
 
@@ -455,4 +463,21 @@ def _rsi_options(url: str, query: dict[str, str]) -> dict[str, Any]:
                 "in s > 0 (KUKA RSI: 0.012 or 0.004)"
             )
         out["period_s"] = period
+    if "max_correction_deg" in query:
+        out["max_correction_deg"] = _max_correction_deg(url, query["max_correction_deg"])
     return out
+
+
+def _max_correction_deg(url: str, text: str) -> float | tuple[float, ...]:
+    """``max_correction_deg=D`` (every axis) or ``D1,...,D6``: degrees, each in (0, 360]."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) not in (1, 6) or not all(math.isfinite(v) and 0 < v <= 360 for v in values):
+        raise ConfigError(
+            f"robot URL {url!r}: max_correction_deg={text!r} must be one angle in (0, 360] "
+            "degrees or six separated by commas (A1..A6): the RSI configuration's AXISCORR "
+            "limits, e.g. max_correction_deg=30"
+        )
+    return values[0] if len(values) == 1 else values

@@ -9,7 +9,8 @@ same strategies (``none``, ``constant``, ``median``, ``model``, ``oracle``):
 * ``_welding``: the conveyor weld measured at the torch from the simulator's physical joint
   angles (:func:`evaluate_conveyor` -> :class:`ConveyorEvaluation`, :func:`run_weld`), and
   the same welds through the real clients against the protocol twins
-  (:func:`weld_on_twin`).
+  (:func:`weld_on_twin`; as an evaluation of the strategies, ``_twin_weld``:
+  :func:`evaluate_conveyor_twin`).
 
 This is the layer that runs the simulator; the tasks it evaluates (:mod:`timedexec.tasks`)
 and the executor never import it.
@@ -25,6 +26,7 @@ from timedexec.evaluation._onset import (
     held_out_capacity,
     warm_effects,
 )
+from timedexec.evaluation._twin_weld import evaluate_conveyor_twin
 from timedexec.evaluation._welding import (
     ConveyorEvaluation,
     conveyor_cells,
@@ -43,6 +45,7 @@ __all__ = [
     "conveyor_cells",
     "evaluate",
     "evaluate_conveyor",
+    "evaluate_conveyor_twin",
     "held_out_capacity",
     "phase_seeds",
     "physical_tracking_delays",

@@ -26,7 +26,9 @@ the Smith predictor, the limits), ``_safety`` (watchdog, fault stop, stop to res
 from __future__ import annotations
 
 import math
+import sys
 import time
+import warnings
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any, NoReturn, Self
@@ -174,9 +176,12 @@ class TimedExecutor:
         self._streaming_since = -math.inf
         self._served = -1  # last controller cycle a command was sent for
         virtual = self._virtual = bool(getattr(driver, "virtual", False))
-        self._coast = settings.coast and not virtual
+        by_default = bool(getattr(driver, "cycle_lock_default", False))
+        lock = by_default if settings.cycle_lock is None else settings.cycle_lock
+        coast = by_default if settings.coast is None else settings.coast
+        self._coast = coast and not virtual
         # A virtual clock is waited on through its driver's wait_until.
-        self._cycle_lock = settings.cycle_lock and (not virtual or hasattr(driver, "wait_until"))
+        self._cycle_lock = lock and (not virtual or hasattr(driver, "wait_until"))
         self.watchdog = ControllerWatchdog(driver, settings.watchdog_timeout_s)
         self.send_phase: SendPhase | None = None
         self.intake_error: str | None = None
@@ -187,7 +192,10 @@ class TimedExecutor:
     def connect(self) -> None:
         """Connect the driver (if needed; under the settings' real-time priority), check
         the model against it, read a first state, arm the controller's watchdog and, with
-        ``cycle_lock``, probe the controller's intake where the state carries ``target_qd``."""
+        the cycle lock (a UR's default), probe the controller's intake where the state
+        carries ``target_qd`` (0.2-0.7 s). When the probe cannot answer, the lock aims by
+        the package arrivals and one :class:`RuntimeWarning` says why and what it costs
+        (also when the lock is on by default and the state has no ``target_qd``)."""
         self._session.open(
             self._first_state,
             realtime_priority=self.settings.realtime_priority,
@@ -209,6 +217,11 @@ class TimedExecutor:
                     self.intake_error = str(exc)
             else:
                 self.intake_error = "the driver's state has no target_qd"
+                if self.settings.cycle_lock is not None:
+                    return  # a lock asked for by name aims by the arrivals, as documented
+            if self.intake_error is not None:
+                warnings.warn(_arrival_aiming_warning(self.intake_error), RuntimeWarning,
+                              stacklevel=_caller_level())  # fmt: skip
 
     def close(self) -> None:
         """Stop any motion (returning at rest) and close the driver if the executor
@@ -743,3 +756,30 @@ class TimedExecutor:
 
     def _scheduled(self, plan: JointPlan | None) -> JointPlan:
         return self.prepare(require_scheduled(plan or self._plan or self._last_plan))
+
+
+def _caller_level() -> int:
+    """``stacklevel`` of the first frame outside timedexec (a warning names the user's line,
+    however the executor was entered: ``with``, ``connect()`` or a task)."""
+    level, frame = 2, sys._getframe(2)  # the frame that called our caller
+    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith(
+        "timedexec."
+    ):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _arrival_aiming_warning(why: str) -> str:
+    """The one warning of a cycle lock whose intake could not be probed at connect."""
+    why = why.removesuffix("; the cycle lock aims by the package arrivals instead")
+    return (
+        f"cycle lock: the controller's command intake could not be probed at connect ({why}). "
+        "The lock aims by the package arrivals instead (half a period after the earliest "
+        "arrival, less round_trip_s), which assumes the controller sends each package right "
+        "after its cycle boundary; where it sends later, commands reach it near its deadline, "
+        "some cycles take two and some none, and a speed stream integrates the difference "
+        "(UR10e twin, 500 Hz: 7.1 % of the cycles missed and 19 % of the commands within "
+        "0.3 ms of the intake, against 0.9 % and 0.2 % probed). Call probe_intake() with the "
+        "arm at rest to try again, or pass ExecutorSettings(cycle_lock=False) to send on each "
+        "package's arrival."
+    )

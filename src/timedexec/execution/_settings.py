@@ -27,8 +27,8 @@ MAX_WATCHDOG_TIMEOUT_S = 10.0
 class ExecutorSettings(DictMixin):
     """Every option of :class:`~timedexec.execution.TimedExecutor`, validated once here.
 
-    ``TimedExecutor(driver, model, ExecutorSettings(cycle_lock=True, coast=True))``; the
-    defaults (``ExecutorSettings()``) are what ``TimedExecutor(driver, model)`` runs with.
+    ``TimedExecutor(driver, model, ExecutorSettings(realtime_priority=5))``; the defaults
+    (``ExecutorSettings()``) are what ``TimedExecutor(driver, model)`` runs with.
     :meth:`to_dict` / :meth:`from_dict` round-trip through JSON, so a run can store the
     settings that produced it.
 
@@ -51,16 +51,21 @@ class ExecutorSettings(DictMixin):
         not step the executor for longer while idle it trips harmlessly and the next motion
         re-arms it. A trip while moving raises :class:`~timedexec.errors.DriverError`
         (recover with :meth:`TimedExecutor.recover`). Drivers without a watchdog ignore it.
-    cycle_lock : bool
+    cycle_lock : bool or None
         Send each command at a fixed phase of the controller's cycle, aimed at the middle
         of its intake window: half a period before the controller's command deadline,
         found at connect by probing it (:meth:`TimedExecutor.probe_intake`; a UR's
-        ``target_qd``), else the earliest arrival of the cycle's package plus half a period
-        minus ``round_trip_s``; in virtual time the driver waits (the clock jumps).
-        Default False (opt-in). The recommended setting for a UR: with the probe, ``coast``
-        and ``realtime_priority=5`` it missed 0.03-0.19 % of the cycles where ur_rtde's
-        ``initPeriod``/``waitPeriod`` pattern missed 1.8-6.1 % (independent UR peer and
-        UR10e twin; not yet a real controller or RSI; docs/execution.md).
+        ``target_qd``; 0.2-0.7 s), else the earliest arrival of the cycle's package plus
+        half a period minus ``round_trip_s`` (with a :class:`RuntimeWarning` at connect
+        saying why the probe failed and what that costs); in virtual time the driver waits
+        (the clock jumps). Default None: the driver's choice
+        (``RobotDriver.cycle_lock_default``): on for a UR (``ur://``), off for RSI and the
+        simulator; True or False forces it. Against the UR10e twin through ur_rtde at
+        500 Hz the default missed 0.85 % of the cycles at normal priority on a lightly
+        loaded PC (ur_rtde's ``initPeriod``/``waitPeriod`` loop 7.7 %) and 0.1-0.6 % with
+        ``realtime_priority=5`` at load 2-17 (ur_rtde's 2.7-37 %); at normal priority on a
+        loaded PC (load 6 and more) it missed more than ur_rtde's loop (docs/execution.md,
+        "The defaults on a UR").
     round_trip_s : float
         Shortest boundary-to-package-to-command-arrival time, s (>= 0, below one controller
         period, checked at connect). Default 4e-4: the loopback twin's; measure it for a
@@ -91,13 +96,14 @@ class ExecutorSettings(DictMixin):
         Default None: the spec's smallest joint acceleration limit, which every joint and
         every driver accepts (a driver that checks per joint, as the RSI driver does,
         refuses a stop above a joint's own limit).
-    coast : bool
+    coast : bool or None
         While streaming, send each cycle's command on the controller's clock even when its
         package is late: if none has arrived by the send time (clock model), the command
         goes out from the estimate and the late package is only read (real-time drivers; a
         virtual-time simulator has no late packages). The stall limit still counts from the
-        last package. Default False (opt-in). With ``cycle_lock`` the send-time p99 fell
-        from 0.40-1.15 ms to 0.24-0.35 ms against the independent peer (docs/execution.md).
+        last package. Default None: as ``cycle_lock`` (the driver's choice: on for a UR).
+        With ``cycle_lock`` the send-time p99 fell from 0.40-1.15 ms to 0.24-0.35 ms
+        against the independent peer (docs/execution.md).
 
     Raises
     ------
@@ -109,14 +115,14 @@ class ExecutorSettings(DictMixin):
     confidence: float = 0.95
     staleness: StalenessLimits = field(default_factory=StalenessLimits)
     watchdog_timeout_s: float | None = DEFAULT_WATCHDOG_TIMEOUT_S
-    cycle_lock: bool = False
+    cycle_lock: bool | None = None
     round_trip_s: float = DEFAULT_ROUND_TRIP_S
     realtime_priority: int | None = None
     limits: ExecutionLimits = field(default_factory=ExecutionLimits)
     position_gain_1_s: float = 0.0
     compensate: bool = True
     stop_deceleration_rad_s2: float | None = None
-    coast: bool = False
+    coast: bool | None = None
 
     def __post_init__(self) -> None:
         def bad(name: str, allowed: str, fix: str) -> ConfigError:
@@ -132,9 +138,12 @@ class ExecutorSettings(DictMixin):
             )
         if not isinstance(self.limits, ExecutionLimits):
             raise bad("limits", "is not an ExecutionLimits", "give ExecutionLimits(...)")
-        for name in ("cycle_lock", "compensate", "coast"):
-            if not isinstance(getattr(self, name), bool):
-                raise bad(name, "is not a bool", "give True or False")
+        if not isinstance(self.compensate, bool):
+            raise bad("compensate", "is not a bool", "give True or False")
+        for name in ("cycle_lock", "coast"):
+            if getattr(self, name) is not None and not isinstance(getattr(self, name), bool):
+                raise bad(name, "is not a bool or None", "give True, False or None (the "
+                          "driver's default: on for a UR)")
         wd = self.watchdog_timeout_s
         if wd is not None and not (_is_number(wd) and 0 < wd <= MAX_WATCHDOG_TIMEOUT_S):
             raise bad(

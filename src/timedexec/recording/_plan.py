@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, check_configuration, get_robot, get_robot_entry
@@ -111,12 +111,16 @@ class SweepPlan:
         seed: int = 0,
         joints: Sequence[int] = (1, 2, 3, 5),
         repeats: int = 10,
+        q_range_rad: tuple[ArrayLike, ArrayLike] | None = None,
     ) -> SweepPlan:
         """Draw a plan of ``n_trials`` trials.
 
         Configurations are a scrambled Sobol (quasi-random) sample of the calibration ranges
         (:func:`calibration_ranges`), so few configurations still cover the space; each is
         used for every joint in ``joints``, both directions, ``repeats`` times.
+        ``q_range_rad`` = ``(lo, hi)`` (6,) each, rad, narrows the ranges further (a cell
+        that reaches less: RSI's correction limits around the pose where RSI started); a
+        joint whose narrowed range is empty keeps the middle of what it reaches.
         """
         spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
         if isinstance(n_trials, bool) or not isinstance(n_trials, int | np.integer) or n_trials < 1:
@@ -135,11 +139,14 @@ class SweepPlan:
         from scipy.stats import qmc
 
         lo, hi = calibration_ranges(spec)
+        if q_range_rad is not None:
+            lo, hi = _narrowed(spec, lo, hi, q_range_rad)
         sampler = qmc.Sobol(d=6, scramble=True, seed=np.random.default_rng(seed))
         m = max(0, math.ceil(math.log2(max(n_configs, 1))))
         unit = sampler.random_base2(m)[:n_configs]
         configs = lo + unit * (hi - lo)
-        configs[:, 5] = 0.0  # the flange joint carries the gyro: keep it at zero
+        # the flange joint carries the gyro: keep it at zero (where a narrowed range allows)
+        configs[:, 5] = 0.0 if q_range_rad is None else np.clip(0.0, lo[5], hi[5])
         cfg = np.repeat(np.arange(n_configs), per_config)
         within = np.tile(np.arange(per_config), n_configs)
         joint = np.asarray(joints)[within // (2 * repeats)]
@@ -191,3 +198,20 @@ class SweepPlan:
             "repeats": self.repeats,
             "n_configurations": int(self.config_index.max()) + 1,
         }
+
+
+def _narrowed(
+    spec: RobotSpec, lo: NDArray[np.float64], hi: NDArray[np.float64],
+    q_range_rad: tuple[ArrayLike, ArrayLike],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:  # fmt: skip
+    """The calibration ranges inside ``q_range_rad``; an empty intersection collapses to
+    the middle of ``q_range_rad`` (clipped to the joint limits)."""
+    r_lo, r_hi = (np.broadcast_to(np.asarray(r, dtype=float), (6,)) for r in q_range_rad)
+    if not (np.all(np.isfinite(r_lo)) and np.all(np.isfinite(r_hi)) and np.all(r_lo <= r_hi)):
+        raise ConfigError(
+            f"q_range_rad={q_range_rad!r}: give (lo, hi), 6 finite angles each, lo <= hi"
+        )
+    n_lo, n_hi = np.maximum(lo, r_lo), np.minimum(hi, r_hi)
+    empty = n_lo > n_hi
+    mid = np.clip(0.5 * (r_lo + r_hi), spec.q_min_rad, spec.q_max_rad)
+    return np.where(empty, mid, n_lo), np.where(empty, mid, n_hi)
