@@ -112,7 +112,7 @@ class _Stop(Exception):
 class _Node:
     """The node's state between the ROS callbacks and the executor's loop."""
 
-    def __init__(self, options: NodeOptions, ex: TimedExecutor, rclpy: Any) -> None:
+    def __init__(self, options: NodeOptions, ex: TimedExecutor, rclpy: Any, context: Any) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
@@ -122,7 +122,9 @@ class _Node:
         self.robot = str(ex.model.robot)
         entry = get_robot_entry(self.robot)
         self.names = tuple(options.joint_names or entry.joint_names)
-        node = self.node = rclpy.create_node("timedexec", namespace=options.namespace or None)
+        node = self.node = rclpy.create_node(
+            "timedexec", namespace=options.namespace or None, context=context
+        )
         node.declare_parameter("robot_url", options.robot_url)
         node.declare_parameter("model", options.model)
         node.declare_parameter("joint_names", list(self.names))
@@ -185,6 +187,10 @@ class _Node:
             plan, start_s = self._plan_of(msg)
             self.running_until_s = start_s + plan.duration_s
             result = ex.execute(plan, start_time_s=start_s, on_step=self.on_step)
+            # End the stream (the arm is at rest: three packages): until the next
+            # trajectory the loop only reads, so the next one's preparation (a model query,
+            # tens of ms) is not a stalled stream.
+            ex.stop()
         except ConfigError as exc:
             self.refuse(str(exc))
             return
@@ -351,7 +357,7 @@ def run_node(options: NodeOptions, *, ready: Callable[[str], None] | None = None
     executor = None
     try:
         with ex:
-            node = _Node(options, ex, rclpy)
+            node = _Node(options, ex, rclpy, context)
             node.stop_requested = stop
             executor = SingleThreadedExecutor(context=context)
             executor.add_node(node.node)
@@ -403,8 +409,8 @@ def _loop(node: _Node, stop: threading.Event, ready: Callable[[str], None] | Non
         if ex.now() >= next_diag:
             node.publish_diagnostics()
             next_diag += node.options.diagnostics_period_s * max(1, math.ceil((ex.now() - next_diag) / node.options.diagnostics_period_s))  # fmt: skip
-    node.logger.info("stop requested: stopping the arm")
-    ex.stop()
+    # Leaving the executor's context stops a moving arm (returning at rest) and closes it.
+    node.logger.info("stop requested: stopping the arm and closing the driver")
 
 
 def _write_logs(node: _Node) -> None:
