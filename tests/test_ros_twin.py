@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,9 @@ pytest.importorskip("rclpy", reason="the ROS 2 node needs rclpy: pip install '.[
 pytest.importorskip("mcap_ros2", reason="MCAP needs mcap-ros2-support: pip install '.[ros]'")
 pytest.importorskip("rtde_control")
 
-from mcap_ros2.reader import read_ros2_messages
+with warnings.catch_warnings():  # the reader imports a deprecated mcap_ros1 module
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from mcap_ros2.reader import read_ros2_messages
 
 from timedexec.effects import EffectSet, default_effects
 from timedexec.robots import get_robot_entry

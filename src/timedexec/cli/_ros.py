@@ -51,6 +51,13 @@ def add_parser(sub: Any) -> None:
         action="store_true",
         help="discover ROS peers on this machine only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)",
     )
+    p.add_argument(
+        "--settings",
+        default=None,
+        metavar="JSON",
+        help="the executor's options as a JSON file of ExecutorSettings fields (e.g. "
+        '{"cycle_lock": true, "compensate": false}); default: ExecutorSettings()',
+    )
     p.add_argument("--log", default=None, help="write the node's log here at exit (.npz)")
     p.add_argument("--mcap", default=None, help="write the log as MCAP here at exit")
     p.add_argument(
@@ -66,6 +73,9 @@ def run(args: argparse.Namespace) -> int:
     """Run the node until Ctrl-C or SIGTERM (0); a lost robot raises (exit 3)."""
     from timedexec.ros import NodeOptions, import_rclpy, ros_environment, run_node
 
+    settings = None
+    if args.settings is not None:
+        settings = _read_settings(args.settings)
     names = None
     if args.joint_names is not None:
         names = tuple(n.strip() for n in args.joint_names.split(","))
@@ -79,7 +89,25 @@ def run(args: argparse.Namespace) -> int:
         log_path=args.log,
         mcap_path=args.mcap,
         diagnostics_period_s=args.diagnostics_period,
+        settings=settings,
     )
     ros_environment(domain_id=args.domain_id, localhost_only=args.localhost_only)
     import_rclpy()  # before connecting: a missing rclpy is bad input (exit 2)
     return run_node(options, ready=lambda line: print(f"timedexec ros: {line}", file=sys.stderr, flush=True))  # fmt: skip
+
+
+def _read_settings(path: str) -> Any:
+    """ExecutorSettings from a JSON file (ConfigError naming the file otherwise)."""
+    import json
+
+    from timedexec.errors import ConfigError
+    from timedexec.execution import ExecutorSettings
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except ValueError as exc:
+        raise ConfigError(f"--settings {path}: not JSON ({exc}); give an object of ExecutorSettings fields") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"--settings {path}: a {type(data).__name__}, not an object of ExecutorSettings fields")
+    return ExecutorSettings.from_dict(data)

@@ -128,11 +128,10 @@ def save_node_log(
         "ros_offset_ns": int(ros_offset_ns),
         "diagnostics": list(diagnostics),
     }
+    columns: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
+    columns.update(meta=np.array(json.dumps(meta)), sample_s=sample)
     buf = io.BytesIO()
-    np.savez_compressed(
-        buf, meta=np.array(json.dumps(meta)), sample_s=sample,
-        **{k: np.asarray(v) for k, v in arrays.items()},
-    )  # fmt: skip
+    np.savez_compressed(buf, **columns)
     return write_atomic(path, buf.getvalue())
 
 
@@ -198,13 +197,13 @@ def log_to_mcap(log_path: str | os.PathLike[str], mcap_path: str | os.PathLike[s
             "effort": [],
         }
         writer.write_message("/joint_states", js, message, log_time=ns, sequence=int(arrays["sequence"][i]))  # fmt: skip
-    for i in np.flatnonzero(np.isfinite(arrays["send_s"])):
-        ns = stamp_ns(float(arrays["send_s"][i]), offset)
+    for k in np.flatnonzero(np.isfinite(arrays["send_s"])):
+        ns = stamp_ns(float(arrays["send_s"][k]), offset)
         message = {
             "header": {"stamp": _time(ns), "frame_id": ""},
             "name": names,
             "position": [],
-            "velocity": [float(x) for x in arrays["qd_cmd"][i]],
+            "velocity": [float(x) for x in arrays["qd_cmd"][k]],
             "effort": [],
         }
         writer.write_message(COMMAND_TOPIC, js, message, log_time=ns)
@@ -227,5 +226,5 @@ def log_to_mcap(log_path: str | os.PathLike[str], mcap_path: str | os.PathLike[s
     writer.add_metadata(
         "timedexec", {"robot": str(meta["robot"]), "period_s": repr(meta["period_s"]), "ros_offset_ns": str(offset)}
     )  # fmt: skip
-    writer.finish()
+    writer.finish()  # type: ignore[no-untyped-call]
     return write_atomic(mcap_path, buf.getvalue())
