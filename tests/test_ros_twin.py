@@ -63,10 +63,21 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     # not hear it), discovery on this machine only; the ROS log files in the temp folder.
     ros_environment(env, domain_id=100 + os.getpid() % 100, localhost_only=True)
     env["ROS_LOG_DIR"] = str(tmp / "roslog")
+    # The node's defaults (position correction, cycle lock), with 100 ms of tolerated
+    # silence and a 200 ms controller watchdog, as tests/test_execution_twin.py: this is
+    # about timing, and on this two-core machine at load 12 a process is now and then
+    # descheduled for more than the adaptive 50 ms (the node then stops, exit 3, as it
+    # should; test_ros_cli.py checks a lost robot).
+    settings = tmp / "settings.json"
+    settings.write_text(json.dumps({
+        "position_gain_1_s": 20.0, "cycle_lock": True, "watchdog_timeout_s": 0.2,
+        "staleness": {"floor_s": 0.1, "ceiling_s": 0.1},
+    }))  # fmt: skip
     with URTwin("ur10", HOST, seed=4, effects=warm("ur10"), truth_path=truth):
         node = subprocess.Popen(
             [sys.executable, "-m", "timedexec", "ros", "--robot-url", f"ur://{HOST}",
-             "--model", "ur10-sim", "--localhost-only", "--log", str(log), "--mcap", str(mcap)],
+             "--model", "ur10-sim", "--localhost-only", "--log", str(log), "--mcap", str(mcap),
+             "--settings", str(settings)],
             env=env, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         try:
@@ -140,7 +151,8 @@ def test_trajectories_start_physically_at_their_stamp(run: dict[str, Any]) -> No
             for r in run["truth"].values()
             if r.get("onset_s") and r["onset_s"][j] is not None
         ]
-        near = [t for t in onsets if abs(t - expected_ns) < 0.1e9]
+        # Every command record of the move carries its onset: one instant, several records.
+        near = sorted({t for t in onsets if abs(t - expected_ns) < 0.1e9})
         assert len(near) == 1, (j + 1, [(t - expected_ns) / 1e6 for t in onsets])
         errors.append((near[0] - expected_ns) / 1e9)
         finals.append(float(np.max(np.abs(np.array(sent["final_q"]) - sent["target"]))))

@@ -4,8 +4,8 @@ any driver, speaking joint_trajectory_controller's topics with timing that holds
 The executor's loop runs in the calling thread, once per state package (the controller's
 clock); rclpy's executor spins in a second thread and only queues what arrives. Per
 package the node publishes ``joint_states`` stamped with the instant the state was
-measured (:meth:`TimedExecutor.estimate`'s ``sample_time_s``: arrival back-dated by the
-predicted response delay, or the probed sampling boundary, on the ROS clock). A
+measured (its arrival back-dated by the predicted response delay in force,
+:meth:`TimedExecutor.estimate`'s ``response_delay_s``, on the ROS clock). A
 ``JointTrajectory`` on ``~/joint_trajectory`` is interpolated as joint_trajectory_controller
 does (:func:`plan_from_points`) and executed so that the arm is physically at point k at
 ``header.stamp + time_from_start_k`` (a zero stamp: as soon as the slowest joint's shifted
@@ -47,6 +47,16 @@ __all__ = ["NodeOptions", "run_node"]
 Z95 = 1.959963984540054
 #: Slack added to the earliest start of a zero-stamped trajectory, in controller periods.
 START_MARGIN_PERIODS = 2
+#: Time constants of the position correction the node keeps streaming after a
+#: trajectory's end (the residual falls to e^-5 < 1 % of what it was).
+SETTLE_TIME_CONSTANTS = 5.0
+#: The node's executor options unless given: a position correction with a 50 ms time
+#: constant, so that the arm ends at the last point as joint_trajectory_controller's
+#: position loop makes it (feed-forward only, the UR10 twin's arm ended up to 6 mrad off
+#: on a loaded host; with it 0.01-0.06 mrad), and the cycle lock (commands aimed at the
+#: controller's probed intake: without it a command that misses a cycle boundary starts
+#: a whole 8 ms cycle later; docs/ros2.md has the figures).
+DEFAULT_SETTINGS = {"position_gain_1_s": 20.0, "cycle_lock": True}
 #: Largest distance between the arm and a trajectory's first point at time 0, rad.
 START_TOLERANCE_RAD = 0.005
 
@@ -77,7 +87,8 @@ class NodeOptions:
     diagnostics_period_s : float
         Seconds between ``/diagnostics`` arrays.
     settings : ExecutorSettings or None
-        The executor's options.
+        The executor's options (default: :data:`DEFAULT_SETTINGS`, a position correction
+        of 20 1/s and the cycle lock; the executor's own defaults have neither).
     """
 
     robot_url: str
@@ -149,7 +160,9 @@ class _Node:
     def publish_state(self, state: RobotState) -> None:
         """Publish ``state`` on ``joint_states``, stamped when it was measured (a coasted
         cycle, which repeats the previous package, is logged but not published)."""
-        sample = self.ex.estimate(state.host_time_s).sample_time_s
+        # Arrival back-dated by the predicted response delay in force (with the cycle lock
+        # the executor itself dates packages by the probed sampling boundary instead).
+        sample = state.host_time_s - self.ex.estimate(state.host_time_s).response_delay_s
         self.samples.append(sample)
         if state.sequence == self._last_seq:
             return
@@ -181,23 +194,38 @@ class _Node:
 
     # ------------------------------------------------------------------ trajectories
     def take(self, msg: Any) -> None:
-        """Execute a ``JointTrajectory`` (blocking until it has settled) or refuse it."""
+        """Execute a ``JointTrajectory`` (blocking until it has settled) or refuse it.
+
+        Raises
+        ------
+        _Stop
+            A signal asked the node to stop (the executor's context then stops the arm).
+        """
         ex = self.ex
         try:
             plan, start_s = self._plan_of(msg)
-            self.running_until_s = start_s + plan.duration_s
-            result = ex.execute(plan, start_time_s=start_s, on_step=self.on_step)
-            # End the stream (the arm is at rest: three packages): until the next
-            # trajectory the loop only reads, so the next one's preparation (a model query,
-            # tens of ms) is not a stalled stream.
-            ex.stop()
+            running = ex.schedule(plan, start_s)  # refuses a start too soon: nothing sent
         except ConfigError as exc:
             self.refuse(str(exc))
             return
-        shift = ", ".join(f"{x * 1e3:.1f}" for x in result.actuation_s)
+        self.running_until_s = running.end_time_s
+        # Stream to the end, then on for the largest shift and three periods (the last
+        # commands reach the arm), and with a position correction for five of its time
+        # constants (it pulls in what the open-loop stream lost).
+        settle_s = ex.lead_time_s(running) + 3 * ex.period_s
+        gain = ex.settings.position_gain_1_s
+        if gain > 0:
+            settle_s += SETTLE_TIME_CONSTANTS / gain
+        while ex.now() < running.end_time_s + settle_s:
+            self.on_step(ex.step())
+        # End the stream (stop returns once the arm reports rest): until the next
+        # trajectory the loop only reads, so the next one's preparation (a model query,
+        # tens of ms) is not a stalled stream.
+        ex.stop()
+        shift = ", ".join(f"{x * 1e3:.1f}" for x in running.meta["actuation_s"])
         self.last_trajectory = (OK, f"executed {len(msg.points)} points; shifts [{shift}] ms")
         self.logger.info(f"trajectory of {len(msg.points)} points done (shifts [{shift}] ms)")
-        self.publish_diagnostics(plan=result.plan)
+        self.publish_diagnostics(plan=running)
 
     def _plan_of(self, msg: Any) -> tuple[JointPlan, float]:
         ex = self.ex
@@ -347,7 +375,8 @@ def run_node(options: NodeOptions, *, ready: Callable[[str], None] | None = None
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    ex = TimedExecutor(open_driver(options.robot_url), options.model, options.settings)
+    settings = options.settings or ExecutorSettings.from_dict(DEFAULT_SETTINGS)
+    ex = TimedExecutor(open_driver(options.robot_url), options.model, settings)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     context = rclpy.Context()
