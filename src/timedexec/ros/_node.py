@@ -385,13 +385,15 @@ def run_node(options: NodeOptions, *, ready: Callable[[str], None] | None = None
     spinner: threading.Thread | None = None
     executor = None
     try:
+        # The ROS side first: once connected, the loop must read every package (a
+        # real-time sim:// computes its cycles as they are read and falls behind a pause).
+        node = _Node(options, ex, rclpy, context)
+        node.stop_requested = stop
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node.node)
+        spinner = threading.Thread(target=executor.spin, name="rclpy-spin", daemon=True)
+        spinner.start()
         with ex:
-            node = _Node(options, ex, rclpy, context)
-            node.stop_requested = stop
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node.node)
-            spinner = threading.Thread(target=executor.spin, name="rclpy-spin", daemon=True)
-            spinner.start()
             _loop(node, stop, ready)
         return 0
     except DriverError as exc:
@@ -414,8 +416,7 @@ def run_node(options: NodeOptions, *, ready: Callable[[str], None] | None = None
 
 def _loop(node: _Node, stop: threading.Event, ready: Callable[[str], None] | None) -> None:
     ex = node.ex
-    node.publish_diagnostics()
-    next_diag = ex.now() + node.options.diagnostics_period_s
+    next_diag = ex.now()  # the first array after the first package
     if ready is not None:
         ready(
             f"node /{node.node.get_namespace().strip('/')}{'/' if node.node.get_namespace() != '/' else ''}"
