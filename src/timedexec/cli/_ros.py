@@ -71,7 +71,7 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the node until Ctrl-C or SIGTERM (0); a lost robot raises (exit 3)."""
-    from timedexec.ros import NodeOptions, import_rclpy, ros_environment, run_node
+    from timedexec.ros import NodeOptions, run_node
 
     settings = None
     if args.settings is not None:
@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
         diagnostics_period_s=args.diagnostics_period,
         settings=settings,
     )
-    ros_environment(domain_id=args.domain_id, localhost_only=args.localhost_only)
-    import_rclpy()  # before connecting: a missing rclpy is bad input (exit 2)
+    # run_node sets the ROS environment and imports rclpy before it opens the driver: a
+    # missing rclpy is bad input (exit 2) naming the extra.
     return run_node(options, ready=lambda line: print(f"timedexec ros: {line}", file=sys.stderr, flush=True))  # fmt: skip
 
 
