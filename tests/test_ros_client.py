@@ -57,7 +57,7 @@ def main() -> int:
     ap.add_argument("--moves", default="", help="joint:sign,... (1-based joints)")
     ap.add_argument("--distance", type=float, default=0.2)
     ap.add_argument("--lead", type=float, default=1.5)
-    ap.add_argument("--extra", default="", help="also send: 'soon' (a stamp 1 ms ahead)")
+    ap.add_argument("--extra", default="", help="also send: 'soon' (a stamp 1 ms ahead), 'zero' (stamp 0)")
     args = ap.parse_args()
 
     import rclpy
@@ -103,7 +103,7 @@ def main() -> int:
     while pub.get_subscription_count() == 0 and time.monotonic() < deadline + 30:
         spin_for(0.05)
 
-    def send(joint: int, sign: float, lead_s: float) -> dict:
+    def send(joint: int, sign: float, lead_s: float | None) -> dict:
         names = states[-1][2]
         q0 = np.array(states[-1][3])
         t, x, v = trapezoid(sign * args.distance)
@@ -120,10 +120,11 @@ def main() -> int:
             sec = int(ti)
             p.time_from_start = Duration(sec=sec, nanosec=round((ti - sec) * 1e9))
             msg.points.append(p)
-        stamp = clock.now().nanoseconds + round(lead_s * 1e9)
+        sent_ns = clock.now().nanoseconds
+        stamp = 0 if lead_s is None else sent_ns + round(lead_s * 1e9)
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
         pub.publish(msg)
-        return {"joint": joint, "stamp_ns": stamp, "target": (q0 + np.eye(6)[joint - 1] * x[-1]).tolist(),
+        return {"joint": joint, "stamp_ns": stamp, "sent_ns": sent_ns, "target": (q0 + np.eye(6)[joint - 1] * x[-1]).tolist(),
                 "times_s": t.tolist(), "x_rad": x.tolist(), "v_rad_s": v.tolist()}  # fmt: skip
 
     sent = []
@@ -137,6 +138,12 @@ def main() -> int:
         n_diag = len(diags)
         sent.append(send(1, 1.0, 0.001) | {"soon": True})
         spin_for(1.0)
+        sent[-1]["diagnostics"] = diags[n_diag:]
+        sent[-1]["final_q"] = states[-1][3]
+    if "zero" in args.extra:  # a zero stamp: as soon as the node can
+        n_diag = len(diags)
+        sent.append(send(1, -1.0, None) | {"zero": True})
+        spin_for(args.distance / SPEED_RAD_S + 1.0)
         sent[-1]["diagnostics"] = diags[n_diag:]
         sent[-1]["final_q"] = states[-1][3]
     json.dump({"listen": listen, "sent": sent, "diagnostics": diags[-3:]}, sys.stdout)

@@ -83,7 +83,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         try:
             client = subprocess.run(
                 [sys.executable, str(CLIENT), "--listen", "2", "--moves", MOVES,
-                 "--lead", str(LEAD_S), "--extra", "soon"],
+                 "--lead", str(LEAD_S), "--extra", "soon,zero"],
                 env=env, capture_output=True, text=True, timeout=120,
             )  # fmt: skip
         finally:
@@ -142,7 +142,7 @@ def test_trajectories_start_physically_at_their_stamp(run: dict[str, Any]) -> No
     t0 = float(run["truth_meta"]["t0_monotonic_s"])
     errors, finals = [], []
     for sent in run["client"]["sent"]:
-        if sent.get("soon"):
+        if sent.get("soon") or sent.get("zero"):
             continue
         j = sent["joint"] - 1
         expected_ns = sent["stamp_ns"] + ONSET_AFTER_STAMP_S * 1e9
@@ -175,9 +175,28 @@ def test_a_stamp_too_soon_is_refused_on_diagnostics_and_nothing_moves(run: dict[
     ]  # fmt: skip
     assert refusals, soon["diagnostics"]
     assert "too soon" in refusals[0]["message"], refusals[0]
-    before = run["client"]["sent"][-2]["final_q"]
+    before = run["client"]["sent"][-3]["final_q"]
     assert np.max(np.abs(np.array(soon["final_q"]) - before)) < 1e-4
     assert "trajectory refused: start time too soon" in run["node_err"]
+
+
+def test_a_zero_stamp_starts_as_soon_as_it_can(run: dict[str, Any]) -> None:
+    """A trajectory with a zero stamp (joint 1 back by 0.2 rad) starts once the slowest
+    joint's shifted command can leave: the true onset within 0.3 s of sending (its
+    preparation, the predicted actuation delay and two periods; tens of ms idle), and the
+    arm ends within 2 mrad of the last point."""
+    zero = next(s for s in run["client"]["sent"] if s.get("zero"))
+    offset = run["log"][1]["ros_offset_ns"]
+    t0 = float(run["truth_meta"]["t0_monotonic_s"])
+    onsets = sorted({
+        stamp_ns(t0 + r["onset_s"][0], offset) for r in run["truth"].values()
+        if r.get("onset_s") and r["onset_s"][0] is not None
+        and stamp_ns(t0 + r["onset_s"][0], offset) > zero["sent_ns"]
+    })  # fmt: skip
+    assert onsets, "no onset of joint 1 after the zero-stamped trajectory was sent"
+    assert (onsets[0] - zero["sent_ns"]) / 1e9 < 0.3, (onsets[0] - zero["sent_ns"]) / 1e6
+    assert np.max(np.abs(np.array(zero["final_q"]) - zero["target"])) <= 2e-3
+    print(f"zero stamp: onset {(onsets[0] - zero['sent_ns']) / 1e6:.1f} ms after sending")
 
 
 def test_sigterm_stops_the_node_with_exit_0(run: dict[str, Any]) -> None:
