@@ -32,19 +32,21 @@ def add_parser(sub: Any) -> None:
             "  timedexec ros --robot-url ur://127.0.0.1 --model ur10-sim --mcap run.mcap"
         ),
     )
-    p.add_argument("--robot-url", required=True, help="ur://HOST, rsi://PORT, sim://ROBOT?realtime=1")
-    p.add_argument("--model", required=True, help="model bundle directory or shipped model name")
-    p.add_argument("--namespace", default="", help="the node's ROS namespace (default: the root)")
+    p.add_argument("--robot-url", required=True, metavar="URL", help="ur://HOST, rsi://PORT, sim://ROBOT?realtime=1")
+    p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory or shipped model name")
+    p.add_argument("--namespace", default="", metavar="NS", help="the node's ROS namespace (empty: the root)")
     p.add_argument(
         "--joint-names",
         default=None,
-        help="six comma-separated joint names (default: the robot's conventional names)",
+        metavar="NAMES",
+        help="six comma-separated joint names (None: the robot's conventional names)",
     )
     p.add_argument(
         "--domain-id",
         type=int_arg(0, 232),
         default=None,
-        help="ROS domain id, 0 .. 232 (default: ROS_DOMAIN_ID or 0)",
+        metavar="ID",
+        help="ROS domain id, 0 .. 232 (None: ROS_DOMAIN_ID, else 0)",
     )
     p.add_argument(
         "--localhost-only",
@@ -56,13 +58,15 @@ def add_parser(sub: Any) -> None:
         default=None,
         metavar="JSON",
         help="the executor's options as a JSON file of ExecutorSettings fields (e.g. "
-        '{"cycle_lock": true, "compensate": false}); default: ExecutorSettings()',
+        '{"cycle_lock": true, "compensate": false}); None: position_gain_1_s 20 and the '
+        "cycle lock (docs/ros2.md)",
     )
     p.add_argument("--log", default=None, help="write the node's log here at exit (.npz)")
     p.add_argument("--mcap", default=None, help="write the log as MCAP here at exit")
     p.add_argument(
         "--diagnostics-period",
         type=float_arg(0.05, 60.0, unit="s"),
+        metavar="S",
         default=1.0,
         help="seconds between /diagnostics arrays (0.05 .. 60)",
     )

@@ -429,8 +429,7 @@ def _loop(node: _Node, stop: threading.Event, ready: Callable[[str], None] | Non
     next_diag = ex.now()  # the first array after the first package
     if ready is not None:
         ready(
-            f"node /{node.node.get_namespace().strip('/')}{'/' if node.node.get_namespace() != '/' else ''}"
-            f"timedexec: {node.robot} at {node.options.robot_url}, period "
+            f"node {node.node.get_fully_qualified_name()}: {node.robot} at {node.options.robot_url}, period "
             f"{ex.period_s * 1e3:.1f} ms, joints {', '.join(node.names)}"
         )
     while not stop.is_set():
