@@ -170,6 +170,7 @@ def fakes(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Call]:
         "timedexec.monitoring.DelayMonitor": Call(
             SimpleNamespace(update=lambda moves: None, summary=lambda: dict(MONITOR))
         ),
+        "timedexec.ros.run_node": Call(0),
         "timedexec.report.build_report": Call(Path("r") / "report.md"),
         "timedexec.report.run_demo": Call(DEMO),
     }
@@ -218,6 +219,8 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
               {"scheduler": None, "jobs": 1, "progress": False}, "fleet of 1 robots"),
     "monitor": (["monitor", "r.h5", "--model", "ur10-sim", "--warmup", "50"], "DelayMonitor",
                 {"warmup_moves": 50, "arl0_moves": 10000.0}, "no alarm"),
+    # ros: the node prints nothing on stdout (it publishes; status on stderr)
+    "ros": (["ros", "--robot-url", "sim://ur10", "--model", "ur10-sim"], "run_node", {}, ""),
     "report": (["report", "d.csv", "r.h5", "--out", "r", "--trial", "3"], "build_report",
                {"trial": 3}, "report written to r/report.md"),
     "demo": (["demo", "--robot", "kr5", "--trials", "160", "--out", "demo"], "run_demo",

@@ -27,6 +27,7 @@ from timedexec.cli import (
     _gyro,
     _monitor,
     _report,
+    _ros,
     _serve,
     _simulate,
     _train,
@@ -62,6 +63,7 @@ COMMANDS = (
     _discrepancy,
     _fleet,
     _monitor,
+    _ros,
     _report,
     _demo,
 )
