@@ -451,6 +451,10 @@ def _check_log_times(path: str | os.PathLike[str], data: dict[str, NDArray[Any]]
     """Refuse a cycle log whose clocks cannot be a log: arrival and controller times
     non-finite or running backwards, reported positions not finite (a command of NaN is
     allowed: no command was sent that cycle)."""
+    # A coasted row carries the cycle the executor commanded ahead of a late package, so
+    # the package that then arrives may be dated before it: the packages' own times are
+    # what must run forward.
+    fresh = ~np.asarray(data.get("coasted", np.zeros(len(data["arrival_s"]), bool)), dtype=bool)
     for key in ("arrival_s", "controller_s"):
         t = np.asarray(data[key], dtype=float)
         bad = np.flatnonzero(~np.isfinite(t))
@@ -459,11 +463,12 @@ def _check_log_times(path: str | os.PathLike[str], data: dict[str, NDArray[Any]]
                 f"{os.fspath(path)}: {key} is {float(t[bad[0]])} at row {bad[0]} ({bad.size} such "
                 "row(s)); every row of a cycle log is a state package with a finite time, s"
             )
-        back = np.flatnonzero(np.diff(t) < 0)
+        rows = np.flatnonzero(fresh) if key == "controller_s" else np.arange(t.size)
+        back = np.flatnonzero(np.diff(t[rows]) < 0)
         if back.size:
-            i = int(back[0]) + 1
+            h, i = (int(r) for r in rows[back[0] : back[0] + 2])
             raise RecordingError(
-                f"{os.fspath(path)}: {key} runs backwards at row {i} ({float(t[i - 1])!r} -> "
+                f"{os.fspath(path)}: {key} runs backwards at row {i} ({float(t[h])!r} -> "
                 f"{float(t[i])!r} s; {back.size} such step(s)); a cycle log is in arrival order"
             )
     q = np.asarray(data["q"], dtype=float)
