@@ -595,15 +595,17 @@ def size_error(term: HiddenTerm, found: dict[str, Any]) -> float | None:
     """Largest relative error over the term's joints of the discovered size against the
     generator's, where the hidden form is in the library and was discovered in that form;
     None otherwise."""
-    if not term.in_library or found.get("form") != term.expected.get("form"):
+    forms = {"hinge": ("hinge_up", "hinge_down")}.get(term.expected.get("form", ""), None)
+    forms = forms or (term.expected.get("form"),)
+    if not term.in_library or found.get("form") not in forms:
         return None
     sizes = found.get("size_per_joint", {})
     errs = []
     for j, want in term.expected["per_joint"].items():
-        got = sizes.get(str(j), sizes.get(j))
+        got = sizes.get(str(j))
         if got is None:
             return None
-        errs.append(abs(abs(float(got)) - abs(want)) / abs(want))
+        errs.append(abs(abs(float(got["value"])) - abs(want)) / abs(want))
     return max(errs) if errs else None
 
 

@@ -9,7 +9,7 @@ of one of a few forms, per joint, gated on one direction or on both:
 ============  ==========================================  ================================
 form          basis (x, x1, x2: the inputs)               shape parameters
 ============  ==========================================  ================================
-``linear``    x                                           none
+``linear``    x - x0                                      reference x0 (not fitted)
 ``hinge_up``  max(x - k, 0)                               knot k
 ``hinge_down``  max(k - x, 0)                             knot k
 ``harmonic``  sin(n x), cos(n x)                          order n
@@ -57,7 +57,7 @@ __all__ = [
 
 #: The forms of a data-driven term: number of inputs, of columns, of shape parameters.
 TERM_FORMS: dict[str, tuple[int, int, int]] = {
-    "linear": (1, 1, 0),
+    "linear": (1, 1, 1),
     "hinge_up": (1, 1, 1),
     "hinge_down": (1, 1, 1),
     "harmonic": (1, 2, 1),
@@ -86,7 +86,7 @@ def term_columns(form: str, x: FloatArray, shape: tuple[float, ...]) -> FloatArr
     """The basis of ``form`` at inputs ``x`` (n, inputs) with shape parameters ``shape``:
     (n, columns)."""
     if form == "linear":
-        return x[:, :1]
+        return x[:, :1] - shape[0]
     if form == "hinge_up":
         return np.maximum(x[:, :1] - shape[0], 0.0)
     if form == "hinge_down":
@@ -241,20 +241,26 @@ class DataTerm(Effect):
         s = self.shape
         x = self.inputs[0]
         u = _unit(x)
+
+        def minus(name: str, v: float, unit: str = "") -> str:
+            unit = f" {unit}" if unit else ""
+            return f"{name} {'-' if v >= 0 else '+'} {abs(v):.2f}{unit}"
+
         if self.form == "linear":
-            return x
+            return f"({minus(x, s[0], u)})"
         if self.form == "hinge_up":
-            return f"max({x} - {s[0]:.2f} {u}, 0)"
+            return f"max({minus(x, s[0], u)}, 0)"
         if self.form == "hinge_down":
             return f"max({s[0]:.2f} {u} - {x}, 0)"
         if self.form == "harmonic":
             n = f"{s[0]:g} " if s[0] != 1 else ""
             return f"sin({n}{x} + φ)"
         if self.form == "bump":
-            return f"exp(-({x} - {s[0]:.2f} {u})² / (2·{s[1]:.2f}²))"
+            return f"exp(-({minus(x, s[0], u)})² / (2·({s[1]:.2f} {u})²))"
         x2 = self.inputs[1]
         return (
-            f"exp(-(({x} - {s[0]:.2f})²/{s[1]:.2f}² + ({x2} - {s[2]:.2f})²/{s[3]:.2f}²)/2)"
+            f"exp(-(({minus(x, s[0])})²/{s[1]:.2f}² + ({minus(x2, s[2])})²/{s[3]:.2f}²)/2), "
+            f"{u}"
         )
 
     def formula(self) -> str:
