@@ -595,7 +595,7 @@ def size_error(term: HiddenTerm, found: dict[str, Any]) -> float | None:
     """Largest relative error over the term's joints of the discovered size against the
     generator's, where the hidden form is in the library and was discovered in that form;
     None otherwise."""
-    forms = {"hinge": ("hinge_up", "hinge_down")}.get(term.expected.get("form", ""), None)
+    forms = {"hinge": ("hinge_up", "hinge_down")}.get(term.expected.get("form", ""))
     forms = forms or (term.expected.get("form"),)
     if not term.in_library or found.get("form") not in forms:
         return None

@@ -37,7 +37,13 @@ from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._candidates import compare_models
 from timedexec.discrepancy._conditions import NoiseFloor
 from timedexec.discrepancy._explain import gaps_ms
-from timedexec.discrepancy._grow import TermContext, free_parameters, model_columns, shape_columns, with_shapes
+from timedexec.discrepancy._grow import (
+    TermContext,
+    free_parameters,
+    model_columns,
+    shape_columns,
+    with_shapes,
+)
 from timedexec.discrepancy._library import (
     Candidate,
     Found,
@@ -175,7 +181,11 @@ def _parameters(term: DataTerm, unc: dict[str, Any]) -> dict[str, Any]:
     shape_se = list(unc.get("shape_se", []))
     shape = []
     for i, (name, v) in enumerate(zip(names, term.shape, strict=True)):
-        inp = term.inputs[min(i // 2, len(term.inputs) - 1)] if term.form == "bump2" else term.inputs[0]
+        inp = (
+            term.inputs[min(i // 2, len(term.inputs) - 1)]
+            if term.form == "bump2"
+            else term.inputs[0]
+        )
         fitted = term.form not in ("linear", "harmonic")
         shape.append(
             {
@@ -217,9 +227,7 @@ def _words(term: DataTerm, params: dict[str, Any]) -> str:
     elif term.form == "hinge_up":
         where = f" beyond {x} = {_pm(shape[0]['value'], shape[0]['se'])} {u} (zero below)"
     elif term.form == "hinge_down":
-        where = (
-            f" as {x} falls below {_pm(shape[0]['value'], shape[0]['se'])} {u} (zero above)"
-        )
+        where = f" as {x} falls below {_pm(shape[0]['value'], shape[0]['se'])} {u} (zero above)"
     elif term.form == "harmonic":
         n = int(term.shape[0])
         where = f" periodically with {x}, {n} period{'s' if n > 1 else ''} per turn"
@@ -299,7 +307,9 @@ def add_discovered(
         effects = effects.with_effect(t)
     new_fitted = calibrate(model, effects)
     new_current = with_shapes(model, new_fitted, shapes, terms)
-    n_new = sum(t.n_columns + (0 if t.form in ("linear", "harmonic") else len(t.shape)) for t in new_terms)
+    n_new = sum(
+        t.n_columns + (0 if t.form in ("linear", "harmonic") else len(t.shape)) for t in new_terms
+    )
     check = compare_models(current, new_current, noise, _A, n_new, alpha)
     if not check["confirmed"]:
         say("the discovered terms do not close the gap significantly: not added")
@@ -343,7 +353,9 @@ def add_discovered(
         closed = float(np.sqrt(np.mean(r_without**2)) - np.sqrt(np.mean(r_final**2))) * 1e3
         unc = term_uncertainty(
             lib,
-            Candidate(fitted_t.joints, fitted_t.inputs, fitted_t.form, fitted_t.shape, fitted_t.direction),
+            Candidate(
+                fitted_t.joints, fitted_t.inputs, fitted_t.form, fitted_t.shape, fitted_t.direction
+            ),
             (r_final + contrib) * 1e3,
             np.column_stack([rest, free_jac]),
             pure_ms2=pure,
@@ -373,7 +385,7 @@ def add_discovered(
                 gap_after_resimulated_ms=resim_gap,
                 share_of_excess_explained=share,
                 evidence=evidence,
-                resid_before_s=current.resid_s[_A].copy(),
+                resid_before_s=r_final + contrib,
                 resid_after_s=r_final.copy(),
                 input_values={n: lib.inputs[n] for n in cand.inputs},
                 mask=mask,

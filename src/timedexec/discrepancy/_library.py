@@ -167,7 +167,10 @@ class Library:
         tau = gravity_torque(model.spec, cond.q_rad)
         top = float(np.max(np.abs(tau))) if tau.size else 0.0
         for k in range(6):
-            if top > 0 and np.ptp(tau[:, k]) >= 0.02 * top:
+            # Every torque that varies over the sweep (a wrist's is a hundredth of the
+            # shoulder's but a cable or gear on it may still follow it); not one that is
+            # zero up to rounding (a joint whose axis stays vertical).
+            if top > 0 and np.ptp(tau[:, k]) >= max(1e-6 * top, 1e-3):
                 self.inputs[f"tau{k + 1}"] = tau[:, k]
         self.candidates: list[Candidate] = []
         self.columns: list[FloatArray] = []
@@ -182,9 +185,7 @@ class Library:
             np.column_stack([self.columns[i][:, 0] for i in single]) if single else np.zeros((m, 0))
         )
         self.c2 = (
-            np.stack([self.columns[i] for i in double], axis=1)
-            if double
-            else np.zeros((m, 0, 2))
+            np.stack([self.columns[i] for i in double], axis=1) if double else np.zeros((m, 0, 2))
         )
 
     def __len__(self) -> int:
@@ -194,12 +195,14 @@ class Library:
         """1 on the conditions of ``direction`` (0: all), else 0."""
         if direction == 0:
             return np.ones(len(self.direction))
-        return (np.sign(self.direction) == direction).astype(float)
+        out: FloatArray = (np.sign(self.direction) == direction).astype(np.float64)
+        return out
 
     def values(self, cand: Candidate) -> FloatArray:
         """The candidate's columns at the conditions, (m, k): exactly the data term's basis
         (the simulator applies the same formula)."""
-        return cand.term().basis(self.pose)
+        out: FloatArray = np.asarray(cand.term().basis(self.pose), dtype=np.float64)
+        return out
 
     def _support_ok(self, col: FloatArray, mask: NDArray[np.bool_], both_sides: bool) -> bool:
         a = np.abs(col[mask])
@@ -298,7 +301,9 @@ def _group_loo(u: FloatArray, b: FloatArray, groups: NDArray[np.int64]) -> Float
     return out
 
 
-def _f_p(gain: FloatArray, k: int, rss0: float, m: int, rank0: int, pure_ms2: float, pure_df: float) -> tuple[FloatArray, FloatArray]:
+def _f_p(
+    gain: FloatArray, k: int, rss0: float, m: int, rank0: int, pure_ms2: float, pure_df: float
+) -> tuple[FloatArray, FloatArray]:
     """F statistics and p-values of ``gain`` (sums of squares explained by k columns)."""
     from scipy import stats
 
@@ -496,9 +501,8 @@ def discover(
     threshold = alpha / n
     found: list[Found] = []
     while len(found) < max_terms:
-        gain, f, p = _screen(lib, u0, b, pure_ms2, pure_df)
-        order = np.argsort(p, kind="stable")[:HELD_OUT_TOP]
-        order = [int(i) for i in order if p[i] < threshold]
+        _, f, p = _screen(lib, u0, b, pure_ms2, pure_df)
+        order = [int(i) for i in np.argsort(p, kind="stable")[:HELD_OUT_TOP] if p[i] < threshold]
         if not order:
             break
         loo0 = _group_loo(u0, b, lib.groups)
@@ -713,4 +717,3 @@ def register_found(cand: Candidate) -> DataTerm:
         shape=cand.shape,
         direction=cand.direction,
     )
-

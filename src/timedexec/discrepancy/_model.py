@@ -160,9 +160,7 @@ class SimModel:
         ``rows``, only those conditions are simulated (the others are NaN). Returns
         ``actuation_delay``, ``response_delay`` (s) and ``gravity_torque_nm`` of every
         condition, arrays (m,)."""
-        physical = (
-            effects if closed_form else EffectSet(tuple(e for e in effects if e.simulated))
-        )
+        physical = effects if closed_form else EffectSet(tuple(e for e in effects if e.simulated))
         key = json.dumps(physical.to_dict(), sort_keys=True)
         cached = self._cache.get(key)
         if cached is not None:
@@ -418,7 +416,9 @@ def _linear_fit(
             coef, *_ = np.linalg.lstsq(np.column_stack([consts, *bases]), y, rcond=None)
             col = consts.shape[1]
             for t, b in zip(terms, bases, strict=True):
-                fitted_t = t.with_coefficients(coef[col : col + b.shape[1]])
+                fitted_t = t.with_coefficients(
+                    np.asarray(coef[col : col + b.shape[1]], dtype=np.float64)
+                )
                 effects = effects.with_effect(fitted_t)
                 term_shift = term_shift + closed_form_shift_s(fitted_t, model)
                 col += b.shape[1]

@@ -100,7 +100,9 @@ class DiscoveredTerm:
         The selection's evidence (F test against the library's Bonferroni threshold,
         held-out errors, runners-up) and the confirmation test of the step.
     resid_before_s, resid_after_s : ndarray (m,)
-        Actuation residuals before and after the step (for the figure).
+        Actuation residuals, s, of the model after the step that added the term, without
+        the term's contribution (the partial residual: what the term explains, on top of
+        what it leaves) and with it (for the figure).
     input_values : dict name -> ndarray (m,)
         Its inputs at the conditions (for the figure).
     mask : ndarray of bool (m,)

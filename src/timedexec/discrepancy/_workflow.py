@@ -345,6 +345,7 @@ class Search:
             self._library = Library(self.model)
         return self._library
 
+
 def step_locate(
     model: SimModel,
     noise: NoiseFloor,

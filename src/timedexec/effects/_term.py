@@ -229,7 +229,10 @@ class DataTerm(Effect):
         for i, j in enumerate(self.joints):
             c = np.asarray(self.coef_s[i * k : (i + 1) * k]) * 1e3
             if self.form == "harmonic":
-                out[j] = {"amplitude": float(np.hypot(c[0], c[1])), "phase": float(math.atan2(c[1], c[0]))}
+                out[j] = {
+                    "amplitude": float(np.hypot(c[0], c[1])),
+                    "phase": float(math.atan2(c[1], c[0])),
+                }
             elif self.form.startswith("bump"):
                 out[j] = {"peak": float(c[0])}
             else:
@@ -258,10 +261,7 @@ class DataTerm(Effect):
         if self.form == "bump":
             return f"exp(-({minus(x, s[0], u)})² / (2·({s[1]:.2f} {u})²))"
         x2 = self.inputs[1]
-        return (
-            f"exp(-(({minus(x, s[0])})²/{s[1]:.2f}² + ({minus(x2, s[2])})²/{s[3]:.2f}²)/2), "
-            f"{u}"
-        )
+        return f"exp(-(({minus(x, s[0])})²/{s[1]:.2f}² + ({minus(x2, s[2])})²/{s[3]:.2f}²)/2), {u}"
 
     def formula(self) -> str:
         """The term as a formula in ms, one part per joint, e.g. ``joint 3: +2.80 ms/rad ·
