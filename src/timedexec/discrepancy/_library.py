@@ -28,8 +28,10 @@ the configuration quantities the table and the robot's own model give:
 * **gates**: both directions, the positive or the negative only (a cable that pulls
   against one direction of motion, a one-way clutch or brake).
 
-Each candidate acts on one joint (a term two joints share is found on each and merged when
-one shape serves both). Knots, centres and widths start on a grid of the input's quantiles
+Each candidate acts on one joint, or on every measured joint with one shape and one size
+(selected by that shared column, which pools the joints' evidence; once chosen its size is
+fitted per joint). A term some joints share is found on each and merged when one shape
+serves them all. Knots, centres and widths start on a grid of the input's quantiles
 (the grid counts in the multiplicity) and are refined by nonlinear least squares once a
 candidate is chosen.
 
@@ -219,11 +221,16 @@ class Library:
     ) -> Iterator[tuple[Candidate, FloatArray]]:
         first = np.unique(self.groups, return_index=True)[1]
         angles = [n for n in self.inputs if n.startswith("q")]
-        for j in joints:
-            rows = joint == j
+        # Each joint on its own, and (with several joints) all of them sharing one shape
+        # and one size: a cable, hose or drive-side effect that every drive feels alike
+        # pools the evidence of every joint (selected with one shared column; once chosen,
+        # each joint's coefficient is fitted on its own).
+        sets = [(j,) for j in joints] + ([tuple(joints)] if len(joints) > 1 else [])
+        for js in sets:
+            rows = np.isin(joint, js)
             base: list[tuple[tuple[str, ...], str, tuple[float, ...]]] = []
             for name, x in self.inputs.items():
-                if name == f"tau{j}" or np.ptp(x[rows]) <= 1e-9:
+                if name in {f"tau{j}" for j in js} or np.ptp(x[rows]) <= 1e-9:
                     continue
                 distinct = np.unique(x[first])
                 lo, hi = float(distinct.min()), float(distinct.max())
@@ -258,7 +265,7 @@ class Library:
                         cols[:, 0], mask, both_sides=form not in ("linear", "harmonic")
                     ):
                         continue
-                    yield Candidate((j,), inputs, form, shape, d), cols
+                    yield Candidate(js, inputs, form, shape, d), cols
 
 
 # ------------------------------------------------------------------------ linear algebra
@@ -528,8 +535,20 @@ def discover(
         i, cv0, cv1, z, share, _, _ = chosen
         grid = lib.candidates[i]
         cand = refine(lib, grid, u0, b)
+        unc = term_uncertainty(lib, cand, b, u0, pure_ms2=pure_ms2)
+        if len(cand.joints) > 1:
+            # A shape shared by every joint: kept on the joints whose own size is
+            # determined (the others carry none of it).
+            keep = tuple(
+                j
+                for j, z in zip(cand.joints, unc["size_z_per_joint"], strict=True)
+                if z >= MIN_SIZE_Z
+            )
+            if keep and keep != cand.joints:
+                cand = dataclasses.replace(cand, joints=keep)
+                unc = term_uncertainty(lib, cand, b, u0, pure_ms2=pure_ms2)
         cols = lib.values(cand)
-        size_z = term_uncertainty(lib, cand, b, u0, pure_ms2=pure_ms2)["size_z"]
+        size_z = unc["size_z"]
         if size_z < MIN_SIZE_Z:
             # Significant at its grid point, but its size is not determined once its shape
             # is free (a bump at the edge of the sampled range, say): not a finding.
@@ -664,8 +683,8 @@ def term_uncertainty(
     its refinable shape parameters, from the Gauss-Newton covariance at the fit of ``b_ms``
     on the ``nuisance`` columns and the term: the residual variance (at least the pure
     error) times (JᵀJ)⁻¹, J the sensitivities of the fitted means to the coefficients, the
-    shape and the nuisance. ``size_z``: the largest size over the term's joints in
-    standard errors (slope or peak; a harmonic's amplitude)."""
+    shape and the nuisance. ``size_z_per_joint``: each joint's size in standard errors
+    (slope or peak; a harmonic's amplitude); ``size_z``: the largest."""
     b = np.asarray(b_ms, dtype=float)
     cols = lib.values(cand)
     a = np.column_stack([nuisance, cols])
@@ -704,6 +723,7 @@ def term_uncertainty(
         "shape_se": [float(v) for v in se[p0 + k :]] if refinable else [],
         "coefficient_cov_ms2": cov_c.tolist(),
         "size_z": max(z) if z else 0.0,
+        "size_z_per_joint": z,
     }
 
 
