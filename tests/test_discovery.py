@@ -91,7 +91,8 @@ def test_simulator_applies_the_data_terms_closed_form():
     # multiple of the step moves it by the delay to within the interpolation's error
     # (measured 6 µs at most here); 20 µs is a hundredth of the term's size.
     np.testing.assert_allclose(got, want, atol=2e-5)
-    assert isinstance(term, DataTerm) and term.data_driven
+    assert isinstance(term, DataTerm)
+    assert term.data_driven
 
 
 # ------------------------------------------------------------------ fixed cases
@@ -106,11 +107,14 @@ def test_periodic_drive_term_is_discovered_with_its_size(family):
     assert verdict.right, verdict.reasons
     assert result.added_effects == []
     [term] = result.discovered
-    assert term.joints == [3] and term.inputs == ["q2"]
-    assert term.effect.form == "harmonic" and term.effect.shape == (3.0,)
+    assert term.joints == [3]
+    assert term.inputs == ["q2"]
+    assert term.effect.form == "harmonic"
+    assert term.effect.shape == (3.0,)
     # The size is a least-squares amplitude over 320 condition means at ~0.4 ms each:
     # its standard error is ~0.05 ms, so 20 % (0.9 ms) is the issue's bound, not noise.
-    assert verdict.size_error is not None and verdict.size_error <= 0.2
+    assert verdict.size_error is not None
+    assert verdict.size_error <= 0.2
     assert "joint 3's actuation delay varies by" in term.description
     assert "sin(3 q2" in term.formula
     assert term.gap_closed_ms > 0.5 * (result.gap_before_ms["actuation_delay"])
@@ -174,7 +178,8 @@ def test_json_contract_and_report_figure(family, tmp_path, capsys):
     assert doc["added_effects"] == []
     [d] = doc["discovered"]
     assert {"joints", "inputs", "formula", "gap_closed_ms", "evidence"} <= set(d)
-    assert d["joints"] == [1] and set(d["inputs"]) == {"q2", "q4"}
+    assert d["joints"] == [1]
+    assert set(d["inputs"]) == {"q2", "q4"}
     assert d["gap_closed_ms"] > 0
     assert d["evidence"]["p_value"] < d["evidence"]["library_size_threshold_p"]
     a = "actuation_delay"
