@@ -242,7 +242,10 @@ def test_family_rates():
     detail = f"{len(cases)} cases, per kind {rate}; size errors {sizes}; misses:\n"
     detail += "\n".join(misses)
     assert rate["outside"] >= 0.8, detail
-    assert sum(per_kind["null"]) >= len(per_kind["null"]) - (len(per_kind["null"]) >= 8), detail
+    # Nulls: all right in the bounded form (3); at most one miss in 8 or more (the issue).
+    n_null = len(per_kind["null"])
+    assert sum(per_kind["null"]) >= n_null - (n_null >= 8), detail
     assert rate["control"] == 1.0, detail
-    assert sizes and all(e <= 0.2 for e in sizes), detail
+    assert sizes, detail
+    assert all(e <= 0.2 for e in sizes), detail
     assert all(math.isfinite(o[5]) for o in outcomes)
