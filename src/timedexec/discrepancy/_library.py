@@ -46,7 +46,8 @@ configuration, so the other joints and directions at the same pose would leak it
 candidate passes at p < alpha / N, held-out z >= 1 and a share >= ``min_share`` of the
 excess held-out error; of those within one standard error of the best held-out error, the
 simplest form is kept (fewest columns and shape parameters). The loop stops when nothing
-passes.
+passes. Then backward: a term a later one made redundant (dropping it does not raise the
+held-out error, z < 1) is dropped, the weakest first.
 """
 
 from __future__ import annotations
@@ -579,7 +580,32 @@ def discover(
             )
         )
         u0 = _extend(u0, cols)
-    return found
+    return _prune(lib, found, b, _orth(nuisance))
+
+
+def _prune(lib: Library, found: list[Found], b: FloatArray, u_base: FloatArray) -> list[Found]:
+    """Backward elimination after the forward steps: a term chosen early (a simple form
+    within one standard error of the best) that a later, better term made redundant is
+    dropped, the weakest first, while dropping it does not raise the held-out error
+    (paired z of the per-condition held-out errors < 1, the entry criterion's bar)."""
+    kept = list(found)
+    while len(kept) > 1:
+        full = _group_loo(
+            _extend(u_base, np.column_stack([f.columns for f in kept])), b, lib.groups
+        )
+        zs = []
+        for f in kept:
+            rest = np.column_stack([g.columns for g in kept if g is not f])
+            without = _group_loo(_extend(u_base, rest), b, lib.groups)
+            d = without**2 - full**2
+            d = d[np.isfinite(d)]
+            se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else 0.0
+            zs.append(float(d.mean()) / se if se > 0 else math.inf)
+        weakest = int(np.argmin(zs))
+        if zs[weakest] >= 1.0:
+            break
+        kept.pop(weakest)
+    return kept
 
 
 def merge_terms(
