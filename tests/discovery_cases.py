@@ -34,7 +34,9 @@ form                term on the joint(s) it acts on (ms)                        
                     (a load path through a shared gear or cable); or
                     a · |τ_k| / max|τ_k|                                          no
 ``step``            a · sigmoid((q - c) / 0.04 R): a clip or limit switch         no
-``product``         a · (2u_k - 1)(2u_l - 1): a drag depending on two angles      no
+``product``         a · (2u_k - 1)(2u_l - 1): a drag depending on two angles      form yes,
+                    (the library's product is about the sweep's means, not the    size not
+                    range's centres: its size is not compared)                    compared
 ==================  ============================================================  =========
 
 Each acts on one joint (70 %) or two joints sharing the term with gains of their own

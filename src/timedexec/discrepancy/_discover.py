@@ -45,6 +45,7 @@ from timedexec.discrepancy._grow import (
     with_shapes,
 )
 from timedexec.discrepancy._library import (
+    FIXED_SHAPE,
     Candidate,
     Found,
     Library,
@@ -135,6 +136,7 @@ _SHAPE_NAMES = {
     "harmonic": ("order",),
     "bump": ("centre", "width"),
     "bump2": ("centre", "width", "centre", "width"),
+    "product": ("reference", "reference"),
 }
 
 
@@ -148,7 +150,9 @@ def _parameters(term: DataTerm, unc: dict[str, Any]) -> dict[str, Any]:
     coef_ms = np.asarray(term.coef_s) * 1e3
     se = np.asarray(unc.get("coefficient_se_ms", [math.nan] * len(coef_ms)))
     cov = np.asarray(unc.get("coefficient_cov_ms2", np.full((len(coef_ms),) * 2, math.nan)))
-    x_unit = _unit(term.inputs[0])
+    x_unit = (
+        "·".join(_unit(i) for i in term.inputs) if term.form == "product" else _unit(term.inputs[0])
+    )
     coefficients: dict[str, Any] = {}
     sizes: dict[str, Any] = {}
     for i, j in enumerate(term.joints):
@@ -181,12 +185,10 @@ def _parameters(term: DataTerm, unc: dict[str, Any]) -> dict[str, Any]:
     shape_se = list(unc.get("shape_se", []))
     shape = []
     for i, (name, v) in enumerate(zip(names, term.shape, strict=True)):
-        inp = (
-            term.inputs[min(i // 2, len(term.inputs) - 1)]
-            if term.form == "bump2"
-            else term.inputs[0]
+        inp = {"bump2": term.inputs[min(i // 2, len(term.inputs) - 1)]}.get(
+            term.form, term.inputs[min(i, len(term.inputs) - 1)]
         )
-        fitted = term.form not in ("linear", "harmonic")
+        fitted = term.form not in FIXED_SHAPE
         shape.append(
             {
                 "name": f"{name} of {inp}" if name != "order" else "order",
@@ -215,6 +217,13 @@ def _words(term: DataTerm, params: dict[str, Any]) -> str:
     def size_text(j: int) -> str:
         z = sizes[str(j)]
         v, e = z["value"], z["se"]
+        if z["kind"] == "slope" and term.form == "product":
+            x2, r1, r2 = term.inputs[1], shape[0]["value"], shape[1]["value"]
+            verb = "rises" if v >= 0 else "falls"
+            return (
+                f"{verb} {_pm(abs(v), e)} ms per {u}·{_unit(x2)} of ({x} - {r1:.2f})·"
+                f"({x2} - {r2:.2f}) (with both angles at once, a saddle)"
+            )
         if z["kind"] == "slope":
             verb = "rises" if v >= 0 else "falls"
             return f"{verb} {_pm(abs(v), e)} ms per {u} of {x}"
@@ -222,7 +231,7 @@ def _words(term: DataTerm, params: dict[str, Any]) -> str:
             return f"varies by {_pm(v, e)} ms (amplitude)"
         return f"is {_pm(abs(v), e)} ms {'longer' if v >= 0 else 'shorter'}"
 
-    if term.form == "linear":
+    if term.form in ("linear", "product"):
         where = ""
     elif term.form == "hinge_up":
         where = f" beyond {x} = {_pm(shape[0]['value'], shape[0]['se'])} {u} (zero below)"
@@ -307,9 +316,7 @@ def add_discovered(
         effects = effects.with_effect(t)
     new_fitted = calibrate(model, effects)
     new_current = with_shapes(model, new_fitted, shapes, terms)
-    n_new = sum(
-        t.n_columns + (0 if t.form in ("linear", "harmonic") else len(t.shape)) for t in new_terms
-    )
+    n_new = sum(t.n_columns + (0 if t.form in FIXED_SHAPE else len(t.shape)) for t in new_terms)
     check = compare_models(current, new_current, noise, _A, n_new, alpha)
     if not check["confirmed"]:
         say("the discovered terms do not close the gap significantly: not added")

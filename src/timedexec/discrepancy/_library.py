@@ -24,6 +24,10 @@ the configuration quantities the table and the robot's own model give:
     around an axis;
   - ``bump`` (a Gaussian in one angle) and ``bump2`` (in two): a local contact, a hose or
     an obstacle touched in one region of the workspace;
+  - ``product`` (the product of two angles about their means): a drag that depends on two
+    angles at once over the whole range (a hose routed across two joints, whose bending
+    follows both) — the first cross term of any smooth dependence on two angles, where a
+    bump is its local form;
 
 * **gates**: both directions, the positive or the negative only (a cable that pulls
   against one direction of motion, a one-way clutch or brake).
@@ -66,6 +70,7 @@ from timedexec.effects import DataTerm, register_term, term_columns
 from timedexec.robots import gravity_torque
 
 __all__ = [
+    "FIXED_SHAPE",
     "Candidate",
     "Found",
     "Library",
@@ -81,7 +86,18 @@ FloatArray = NDArray[np.float64]
 
 #: Complexity of each form for the parsimony rule: its columns plus its fitted shape
 #: parameters (a harmonic's order is chosen from three, like a grid point).
-COMPLEXITY = {"linear": 1, "hinge_up": 2, "hinge_down": 2, "harmonic": 2, "bump": 3, "bump2": 5}
+COMPLEXITY = {
+    "linear": 1,
+    "hinge_up": 2,
+    "hinge_down": 2,
+    "harmonic": 2,
+    "product": 2,
+    "bump": 3,
+    "bump2": 5,
+}
+#: Forms whose shape is not fitted (a slope's and a product's references are the sweep's
+#: means, a harmonic's order is a grid point).
+FIXED_SHAPE = ("linear", "harmonic", "product")
 #: Quantiles of an input (over the distinct configurations) where knots are placed.
 KNOTS = tuple(np.round(np.linspace(0.15, 0.85, 8), 3))
 #: Quantiles where bump centres are placed, and widths as fractions of the input's range.
@@ -256,15 +272,20 @@ class Library:
                                 base.append(
                                     ((a, b), "bump2", (ca, w * np.ptp(da), cb, w * np.ptp(db)))
                                 )
+                    base.append(
+                        (
+                            (a, b),
+                            "product",
+                            (float(np.mean(self.inputs[a])), float(np.mean(self.inputs[b]))),
+                        )
+                    )
             for inputs, form, shape in base:
                 x = np.column_stack([self.inputs[n] for n in inputs])
                 raw = term_columns(form, x, shape)
                 for d in _GATES:
                     mask = rows & (self.gate(d) > 0)
                     cols = raw * mask[:, None]
-                    if not self._support_ok(
-                        cols[:, 0], mask, both_sides=form not in ("linear", "harmonic")
-                    ):
+                    if not self._support_ok(cols[:, 0], mask, both_sides=form not in FIXED_SHAPE):
                         continue
                     yield Candidate(js, inputs, form, shape, d), cols
 
@@ -462,7 +483,7 @@ def refine(lib: Library, cand: Candidate, u0: FloatArray, b: FloatArray) -> Cand
     """The candidate with its knot, centres and widths fitted by nonlinear least squares
     (the coefficients and the nuisance projected out); forms without refinable shape
     (slope, harmonic) unchanged."""
-    if cand.form in ("linear", "harmonic"):
+    if cand.form in FIXED_SHAPE:
         return cand
     from scipy.optimize import least_squares
 
@@ -647,7 +668,7 @@ def merge_terms(
             continue
         joints = tuple(sorted(j for g in members for j in g.candidate.joints))
         shared = dataclasses.replace(c, joints=joints)
-        if c.form in ("linear", "harmonic"):
+        if c.form in FIXED_SHAPE:
             out.append((shared, members))
             continue
         others = [g.columns for g in found if g not in members]
@@ -717,7 +738,7 @@ def term_uncertainty(
     coef, *_ = np.linalg.lstsq(a, b, rcond=None)
     p0 = nuisance.shape[1]
     beta = coef[p0:]
-    refinable = cand.form not in ("linear", "harmonic")
+    refinable = cand.form not in FIXED_SHAPE
     jac_shape = []
     if refinable:
         lo, hi = _shape_bounds(lib, cand)

@@ -24,7 +24,10 @@ their noise floor, and runs the steps, each a function of its own:
    all, the effect enters by its measured shape alone. Confirm that the gap fell
    significantly (else the effect is rejected). Steps 2 and 3 repeat until nothing of the
    vocabulary passes — a held-out criterion, not a count.
-4. :func:`step_shrink`: the gap after, and what remains, reported as unexplained with
+4. :func:`step_recheck` (after discovery): a vocabulary effect named before a discovered
+   term that explains its residuals better is withdrawn when it is no longer significant
+   beside the terms.
+5. :func:`step_shrink`: the gap after, and what remains, reported as unexplained with
    where it sits — never forced onto a name; the order of the repeats within each
    condition is tested on its own (a first-repeat or settling effect no model of
    condition means can show).
@@ -48,6 +51,7 @@ from numpy.typing import NDArray
 from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.discrepancy._candidates import (
     CandidateScore,
+    compare_models,
     refit_candidates,
     score_candidates,
 )
@@ -94,6 +98,7 @@ __all__ = [
     "step_discover",
     "step_locate",
     "step_name",
+    "step_recheck",
     "step_shrink",
 ]
 
@@ -558,6 +563,46 @@ def step_discover(state: Search) -> bool:
     return True
 
 
+def step_recheck(state: Search) -> None:
+    """Recheck: once terms were discovered, each vocabulary effect named on the actuation
+    delay must still be significant beside them. The model is recalibrated without it
+    (the discovered terms and the other effects kept); when the full model is not
+    significantly closer (extra-sum-of-squares F test at ``alpha``), the name is withdrawn
+    and listed under the rejected candidates: it was named before the term that explains
+    its residuals better was found (a one-direction term on two joints, say, first named
+    ``direction`` and ``joint_offset``). Updates ``state``."""
+    s = state
+    if not s.discovered:
+        return
+    a = "actuation_delay"
+    for st in list(s.steps):
+        if st.acts_on != a:
+            continue
+        effects = EffectSet(tuple(e for e in s.fitted.effects if e.name != st.effect))
+        shapes = {k: v for k, v in s.shapes.items() if k != st.effect}
+        fitted = calibrate(s.model, effects)
+        current = with_shapes(s.model, fitted, shapes, s.terms)
+        n_new = max(s.current.n_fitted[a] - current.n_fitted[a], 1)
+        check = compare_models(current, s.current, s.noise, a, n_new, s.alpha)
+        if check["confirmed"]:
+            continue
+        s.say(
+            f"{st.effect} withdrawn: not significant beside the discovered terms "
+            f"(p = {check['p_value']:.2g})"
+        )
+        s.steps.remove(st)
+        s.rejected.append(
+            {
+                **st.evidence,
+                "effect": st.effect,
+                "recheck": check,
+                "rejected_because": "not significant beside the discovered terms "
+                "(named before them; step_recheck)",
+            }
+        )
+        s.fitted, s.current, s.shapes = fitted, current, shapes
+
+
 def step_add(state: Search, prop: Proposal) -> None:
     """Add: put the proposed effect into the model and confirm it.
 
@@ -812,6 +857,7 @@ def analyse_discrepancy(
             step_add(state, prop)
         if not discover or not step_discover(state):
             break
+    step_recheck(state)
     remains = step_shrink(state, min_excess_ms)
 
     after = state.current

@@ -15,6 +15,7 @@ form          basis (x, x1, x2: the inputs)               shape parameters
 ``harmonic``  sin(n x), cos(n x)                          order n
 ``bump``      exp(-(x - c)² / 2w²)                        centre c, width w
 ``bump2``     exp(-((x1 - c1)²/w1² + (x2 - c2)²/w2²)/2)   c1, w1, c2, w2
+``product``   (x1 - r1)(x2 - r2)                          references r1, r2 (not fitted)
 ============  ==========================================  ================================
 
 Because the term is a dead time of the drive (:meth:`Effect.drive_delay_s`), the batch
@@ -63,6 +64,7 @@ TERM_FORMS: dict[str, tuple[int, int, int]] = {
     "harmonic": (1, 2, 1),
     "bump": (1, 1, 2),
     "bump2": (2, 1, 4),
+    "product": (2, 1, 2),
 }
 _INPUT = re.compile(r"^(q|tau)([1-6])$")
 _GATES = {0: "both directions", 1: "positive direction only", -1: "negative direction only"}
@@ -97,6 +99,8 @@ def term_columns(form: str, x: FloatArray, shape: tuple[float, ...]) -> FloatArr
     if form == "bump":
         c, w = shape
         return np.exp(-0.5 * ((x[:, :1] - c) / w) ** 2)
+    if form == "product":
+        return ((x[:, 0] - shape[0]) * (x[:, 1] - shape[1]))[:, None]
     if form == "bump2":
         c1, w1, c2, w2 = shape
         z = ((x[:, 0] - c1) / w1) ** 2 + ((x[:, 1] - c2) / w2) ** 2
@@ -261,6 +265,8 @@ class DataTerm(Effect):
         if self.form == "bump":
             return f"exp(-({minus(x, s[0], u)})² / (2·({s[1]:.2f} {u})²))"
         x2 = self.inputs[1]
+        if self.form == "product":
+            return f"({minus(x, s[0], u)})·({minus(x2, s[1], _unit(x2))})"
         return f"exp(-(({minus(x, s[0])})²/{s[1]:.2f}² + ({minus(x2, s[2])})²/{s[3]:.2f}²)/2), {u}"
 
     def formula(self) -> str:
@@ -276,7 +282,8 @@ class DataTerm(Effect):
             elif self.form.startswith("bump"):
                 text = f"{z['peak']:+.2f} ms · {self.basis_text()}"
             else:
-                text = f"{z['slope']:+.3g} ms/{_unit(self.inputs[0])} · {self.basis_text()}"
+                per = "·".join(_unit(i) for i in self.inputs)
+                text = f"{z['slope']:+.3g} ms/{per} · {self.basis_text()}"
             parts.append(f"joint {j}: {text}")
         gate = "" if self.direction == 0 else f" ({_GATES[self.direction]})"
         return "actuation delay += " + "; ".join(parts) + gate
