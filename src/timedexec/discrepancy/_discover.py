@@ -62,10 +62,10 @@ from timedexec.discrepancy._model import (
     calibrate,
     closed_form_shift_s,
 )
-from timedexec.discrepancy._result import DiscoveredTerm
+from timedexec.discrepancy._result import DiscoveredTerm, DiscrepancyStep
 from timedexec.effects import DataTerm, EffectSet
 
-__all__ = ["add_discovered", "nuisance_columns", "vocabulary_check"]
+__all__ = ["add_discovered", "nuisance_columns", "vocabulary_check", "withdraw_names"]
 
 FloatArray = NDArray[np.float64]
 _A = "actuation_delay"
@@ -411,3 +411,51 @@ def _merged_evidence(cand: Candidate, members: list[Found]) -> dict[str, Any]:
         "merged": f"one shape for joints {', '.join(map(str, cand.joints))}",
         "parts": [m.evidence() for m in members],
     }
+
+
+def withdraw_names(
+    model: SimModel,
+    fitted: FittedModel,
+    current: FittedModel,
+    shapes: dict[str, list[str]],
+    terms: TermContext,
+    noise: NoiseFloor,
+    steps: list[DiscrepancyStep],
+    alpha: float,
+    say: Callable[[str], None],
+) -> tuple[FittedModel, FittedModel, dict[str, list[str]], list[dict[str, Any]]]:
+    """Each vocabulary effect named on the actuation delay (``steps``) must still be
+    significant beside the discovered terms: the model is recalibrated without it (the
+    terms and the other effects kept); when the full model is not significantly closer
+    (extra-sum-of-squares F test at ``alpha``) the name is withdrawn — it was named before
+    the term that explains its residuals better was found (a one-direction term on two
+    joints first named ``direction`` and ``joint_offset``, say).
+
+    Returns the model (without and with the measured shapes) and the shapes after the
+    withdrawals, and the withdrawn names' entries for the rejected candidates."""
+    withdrawn: list[dict[str, Any]] = []
+    for st in steps:
+        if st.acts_on != _A:
+            continue
+        effects = EffectSet(tuple(e for e in fitted.effects if e.name != st.effect))
+        fewer = {k: v for k, v in shapes.items() if k != st.effect}
+        fitted_w = calibrate(model, effects)
+        current_w = with_shapes(model, fitted_w, fewer, terms)
+        n_new = max(current.n_fitted[_A] - current_w.n_fitted[_A], 1)
+        check = compare_models(current_w, current, noise, _A, n_new, alpha)
+        if check["confirmed"]:
+            continue
+        say(
+            f"{st.effect} withdrawn: not significant beside the discovered terms (p = {check['p_value']:.2g})"
+        )
+        withdrawn.append(
+            {
+                **st.evidence,
+                "effect": st.effect,
+                "recheck": check,
+                "rejected_because": "not significant beside the discovered terms "
+                "(named before them; step_recheck)",
+            }
+        )
+        fitted, current, shapes = fitted_w, current_w, fewer
+    return fitted, current, shapes, withdrawn

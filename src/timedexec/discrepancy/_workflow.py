@@ -51,7 +51,6 @@ from numpy.typing import NDArray
 from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.discrepancy._candidates import (
     CandidateScore,
-    compare_models,
     refit_candidates,
     score_candidates,
 )
@@ -61,7 +60,7 @@ from timedexec.discrepancy._conditions import (
     group_conditions,
     replicate_noise,
 )
-from timedexec.discrepancy._discover import add_discovered, vocabulary_check
+from timedexec.discrepancy._discover import add_discovered, vocabulary_check, withdraw_names
 from timedexec.discrepancy._explain import gaps_ms
 from timedexec.discrepancy._grow import (
     Proposal,
@@ -564,43 +563,17 @@ def step_discover(state: Search) -> bool:
 
 
 def step_recheck(state: Search) -> None:
-    """Recheck: once terms were discovered, each vocabulary effect named on the actuation
-    delay must still be significant beside them. The model is recalibrated without it
-    (the discovered terms and the other effects kept); when the full model is not
-    significantly closer (extra-sum-of-squares F test at ``alpha``), the name is withdrawn
-    and listed under the rejected candidates: it was named before the term that explains
-    its residuals better was found (a one-direction term on two joints, say, first named
-    ``direction`` and ``joint_offset``). Updates ``state``."""
+    """Recheck: once terms were discovered, a vocabulary effect named before them is
+    withdrawn when it is no longer significant beside them
+    (:func:`timedexec.discrepancy._discover.withdraw_names`). Updates ``state``."""
     s = state
     if not s.discovered:
         return
-    a = "actuation_delay"
-    for st in list(s.steps):
-        if st.acts_on != a:
-            continue
-        effects = EffectSet(tuple(e for e in s.fitted.effects if e.name != st.effect))
-        shapes = {k: v for k, v in s.shapes.items() if k != st.effect}
-        fitted = calibrate(s.model, effects)
-        current = with_shapes(s.model, fitted, shapes, s.terms)
-        n_new = max(s.current.n_fitted[a] - current.n_fitted[a], 1)
-        check = compare_models(current, s.current, s.noise, a, n_new, s.alpha)
-        if check["confirmed"]:
-            continue
-        s.say(
-            f"{st.effect} withdrawn: not significant beside the discovered terms "
-            f"(p = {check['p_value']:.2g})"
-        )
-        s.steps.remove(st)
-        s.rejected.append(
-            {
-                **st.evidence,
-                "effect": st.effect,
-                "recheck": check,
-                "rejected_because": "not significant beside the discovered terms "
-                "(named before them; step_recheck)",
-            }
-        )
-        s.fitted, s.current, s.shapes = fitted, current, shapes
+    s.fitted, s.current, s.shapes, withdrawn = withdraw_names(
+        s.model, s.fitted, s.current, s.shapes, s.terms, s.noise, s.steps, s.alpha, s.say
+    )
+    s.rejected.extend(withdrawn)
+    s.steps[:] = [st for st in s.steps if st.effect not in {w["effect"] for w in withdrawn}]
 
 
 def step_add(state: Search, prop: Proposal) -> None:
