@@ -304,7 +304,7 @@ def add_discovered(
     found = discover(lib, b, base, pure_ms2=pure, pure_df=df, alpha=alpha, min_share=min_share)
     if not found:
         return None
-    merged = merge_terms(lib, found, b, base, pure_ms2=pure, pure_df=df, alpha=alpha)
+    merged = merge_terms(lib, found, b, base)
     new_terms = [register_found(c) for c, _ in merged]
     say(
         "outside the vocabulary: "

@@ -634,17 +634,12 @@ def merge_terms(
     found: list[Found],
     b_ms: FloatArray,
     nuisance: FloatArray,
-    *,
-    pure_ms2: float,
-    pure_df: float,
-    alpha: float,
 ) -> list[tuple[Candidate, list[Found]]]:
     """Terms of one form, inputs and direction found on different joints, merged into one
-    term of those joints when one shape serves them all: a slope or a harmonic always (no
-    shape is fitted), a hinge or a bump when the shape refitted to all of them is within
+    term of those joints when one shape serves them all: a slope, a harmonic or a product
+    always (no shape is fitted), a hinge or a bump when the shape refitted to all of them is within
     one standard error of the separate shapes, held out. Returns (candidate, the terms it
     merges) in the order found."""
-    del pure_ms2, pure_df, alpha
     out: list[tuple[Candidate, list[Found]]] = []
     done: set[int] = set()
     b = np.asarray(b_ms, dtype=float)
