@@ -39,7 +39,7 @@ After DESIGN.md's table:
     joints that carry it.
 
 Outside the vocabulary, terms found in data (:class:`DataTerm`, ``_term``): a closed-form
-dead time of the drive, ``coef · basis(inputs)`` per joint (linear, hinge, harmonic or bump
+dead time of the drive, ``coef · basis(inputs)`` per joint (linear, hinge, harmonic, product or bump
 in a joint angle or another joint's gravity torque), each registered at run time as a
 class of its own (:func:`register_term`) and then simulated like any effect; never named
 as vocabulary (``EFFECTS.vocabulary``).
