@@ -4,8 +4,9 @@ A "measured" delay table is made by the simulated UR10 with all its default effe
 (2,000 trials: 200 conditions, each repeated 10 times, as a calibration sweep runs them),
 plus a dependence of joint 1's actuation delay on q1 that no effect of the vocabulary can
 express. The analysis starts from a model that lacks gravity_load: it should name
-gravity_load, close the gap to the noise floor, and report the q1 dependence as
-unexplained instead of forcing it onto a name.
+gravity_load, and instead of forcing the q1 dependence onto a name, discover it as a term
+of its own (joint 1, following q1; issue 36), add it to the simulator and close the gap to
+the noise floor.
 
 Runs headless in a few seconds; writes a report (markdown + PNG) into a temporary folder
 unless a folder is given:  python examples/04_discrepancy.py [REPORT_DIR]
@@ -65,13 +66,16 @@ def main() -> None:
         print(f"step {k}: added {step.effect}")
         print(f"  {step.explanation}")
         print(f"  fitted: {step.parameters}")
+    for term in result.discovered:
+        print(f"discovered: {term.description}")
+        print(f"  {term.formula}")
     for entry in result.unexplained:
         print(f"unexplained: {entry['description']}")
     report = result.write_report(out)
     result.write_json(out / "discrepancy.json")
     print(f"report: {report}")
     assert result.added_effects == ["gravity_load"], result.added_effects
-    assert [u["variable"] for u in result.unexplained] == ["q1"]
+    assert [(t.joints, t.inputs) for t in result.discovered] == [([1], ["q1"])]
 
 
 if __name__ == "__main__":

@@ -632,8 +632,8 @@ class Verdict:
         Named effects that were not hidden.
     gap_ok : dict delay -> bool
     outside_ok : bool
-        Every effect outside the vocabulary reported unexplained where it sits (True
-        when there is none).
+        Every effect outside the vocabulary reported unexplained where it sits or
+        discovered as a term on its joint (True when there is none).
     null_ok : bool
         For a null case: nothing named, nothing unexplained (True for other cases).
     reasons : tuple of str
@@ -677,7 +677,14 @@ def judge(case: Case, result: Any) -> Verdict:
             )
     outside_ok = True
     for h in case.outside:
+        # Reported unexplained where it sits, or discovered as a term of its own on its
+        # joint (issue 36: discovery adds what the vocabulary does not explain).
         entries = [u for u in result.unexplained if u["delay"] == h.delay]
+        entries += [
+            {"joints": list(t.joints)}
+            for t in getattr(result, "discovered", [])
+            if t.effect.acts_on == h.delay
+        ]
         if len(h.joints) == 1 and h.variable != "sequence":
             entries = [u for u in entries if h.joints[0] in u["joints"]]
         if not entries:
@@ -685,7 +692,7 @@ def judge(case: Case, result: Any) -> Verdict:
             reasons.append(f"{h.form} on {h.delay} not reported unexplained")
     null_ok = True
     if case.kind == "null":
-        null_ok = not named and not result.unexplained
+        null_ok = not named and not result.unexplained and not getattr(result, "discovered", [])
         if not null_ok:
             reasons.append(
                 f"null case: named {named or 'nothing'}, {len(result.unexplained)} unexplained"

@@ -262,7 +262,10 @@ def test_no_tool_nothing_named():
 
 def test_effect_outside_the_vocabulary_is_reported_where_it_sits():
     """An actuation term the vocabulary cannot express (1.5 ms · sin q1, all joints): no
-    effect is named; the unexplained entry names the actuation delay, the joints and q1."""
+    effect is named. By default it is discovered (issue 36): one periodic term in q1
+    shared by the four joints, each amplitude near 1.5 ms, the gap closed. With the
+    vocabulary only (``discover=False``) the unexplained entry names the actuation delay,
+    the joints and q1."""
     table = make_table(
         "ur10",
         1200,
@@ -270,7 +273,20 @@ def test_effect_outside_the_vocabulary_is_reported_where_it_sits():
         seed=8,
         extra_actuation_s=lambda plan: 1.5e-3 * np.sin(plan.q_start_rad[:, 0]),
     )
-    result = analyse_discrepancy(table, start="base")
+    found = analyse_discrepancy(table, start="base")
+    assert found.added_effects == []
+    assert found.unexplained == []
+    [term] = found.discovered
+    assert term.inputs == ["q1"]
+    assert set(term.joints) == {1, 2, 3, 5}
+    assert term.effect.form == "harmonic"
+    # Each amplitude from ~30 condition means at ~0.7 ms: standard error ~0.2 ms, so
+    # 1.5 ± 0.5 ms is 2.5 standard errors either side.
+    for size in term.parameters["size_per_joint"].values():
+        assert abs(size["value"] - 1.5) < 0.5
+    a = "actuation_delay"
+    assert found.gap_after_ms[a] <= 1.25 * found.noise_floor_ms[a]
+    result = analyse_discrepancy(table, start="base", discover=False)
     assert result.added_effects == []
     assert result.unexplained, "the disagreement must be reported"
     entry = result.unexplained[0]

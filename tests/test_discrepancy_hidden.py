@@ -95,7 +95,9 @@ def test_two_hidden_effects_are_both_named(default_data, first, second):
 
 def test_dependence_on_q5_is_unexplained_and_located():
     """Joint 2's actuation delay grows by 1 ms per rad of q5 (nothing in the vocabulary
-    does that): nothing is named; the unexplained entry sits on joint 2 and follows q5."""
+    does that): nothing is named. By default it is discovered: a slope in q5 on joint 2 of
+    about 1 ms/rad, the gap closed. With the vocabulary only the unexplained entry sits on
+    joint 2 and follows q5."""
     table = make_table(
         "ur10",
         2000,
@@ -103,7 +105,16 @@ def test_dependence_on_q5_is_unexplained_and_located():
         seed=13,
         extra_actuation_s=lambda p: 1e-3 * p.q_start_rad[:, 4] * (p.joint == 2),
     )
-    result = analyse_discrepancy(table, start="default")
+    found = analyse_discrepancy(table, start="default")
+    assert found.added_effects == []
+    assert [(t.joints, t.inputs) for t in found.discovered] == [([2], ["q5"])]
+    [slope] = found.discovered[0].parameters["size_per_joint"].values()
+    # ~50 condition means of joint 2 at ~0.7 ms over q5 in ±2.2 rad: SE ~0.08 ms/rad.
+    assert slope["kind"] == "slope"
+    assert abs(slope["value"] - 1.0) < 0.25
+    a = "actuation_delay"
+    assert found.gap_after_ms[a] <= 1.25 * found.noise_floor_ms[a]
+    result = analyse_discrepancy(table, start="default", discover=False)
     assert result.added_effects == []
     assert len(result.unexplained) == 1
     entry = result.unexplained[0]
@@ -119,8 +130,8 @@ def test_dependence_on_q5_is_unexplained_and_located():
 
 def test_hidden_effect_next_to_an_unknown_one():
     """gravity_load hidden *and* a sinusoid of q1 the vocabulary cannot express: the
-    hidden effect is named, the sinusoid stays unexplained (following q1), and no other
-    effect is forced onto it."""
+    hidden effect is named, the sinusoid is discovered as a term in q1 (with the
+    vocabulary only: unexplained, following q1), and no other effect is forced onto it."""
     effects = default_effects("ur10")
     table = make_table(
         "ur10",
@@ -129,7 +140,11 @@ def test_hidden_effect_next_to_an_unknown_one():
         seed=14,
         extra_actuation_s=lambda p: 1.5e-3 * np.sin(p.q_start_rad[:, 0]),
     )
-    result = analyse_discrepancy(table, start=effects.without("gravity_load"))
+    found = analyse_discrepancy(table, start=effects.without("gravity_load"))
+    assert found.added_effects == ["gravity_load"]
+    assert found.discovered
+    assert all(t.inputs == ["q1"] for t in found.discovered)
+    result = analyse_discrepancy(table, start=effects.without("gravity_load"), discover=False)
     assert result.added_effects == ["gravity_load"]
     assert [u["variable"] for u in result.unexplained] == ["q1"]
 

@@ -36,10 +36,15 @@ def add_parser(sub: Any) -> None:
             "calibrate its parameters, locate the disagreement against the noise floor of "
             "the repeats, score every effect of the vocabulary as the missing explanation "
             "(cross-validated, significance-tested), add the best, recalibrate and repeat. "
-            "What no effect explains is reported as unexplained, with where it sits.\n\n"
+            "A name is given only where no data-driven term explains the residuals better; "
+            "what the vocabulary leaves is searched in a library of candidate terms (slopes, "
+            "hinges, harmonics, bumps in the joint angles or another joint's gravity torque) "
+            "and added to the simulator as a discovered effect (JSON: discovered). What "
+            "nothing explains is reported as unexplained, with where it sits.\n\n"
             f"Effect vocabulary: {', '.join(EFFECTS)}.\n\n"
             "Output: a summary on stdout; the JSON result (--json) is the full result "
-            "(added_effects, gap_before_ms, gap_after_ms, noise_floor_ms, steps, unexplained, "
+            "(added_effects, gap_before_ms, gap_after_ms, noise_floor_ms, steps, discovered, "
+            "unexplained, "
             "...); with --report DIR a markdown report with PNG figures.\n\n"
             "With --scheduler (or $TIMEDEXEC_SCHEDULER) a recording is extracted on a Dask "
             "cluster's workers and the analysis runs there as one task; the result is the "
@@ -58,7 +63,7 @@ def add_parser(sub: Any) -> None:
         "effects) or a comma list of effect names (default,NAME: the defaults plus NAME)",
     )
     add_period(p)
-    add_json(p, "the full result (added_effects, gap_before_ms, steps, unexplained, ...)")
+    add_json(p, "the full result (added_effects, gap_before_ms, steps, discovered, ...)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with figures here")
     p.add_argument(
         "--alpha",

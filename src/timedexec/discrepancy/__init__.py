@@ -10,6 +10,14 @@ The search over structure (:func:`forward_select` over :class:`TermFamily` sets 
 disagreement — main effects and interactions (direction x load, direction x joint, time x
 joint) under a hierarchy rule and a parsimony test, stopped by a held-out criterion.
 
+Beyond the vocabulary (issue 36, ``discover=True``): a name is given only where no
+data-driven term of the library (slopes, hinges, harmonics, products and bumps in the joint
+angles or another joint's gravity torque, per joint or shared) explains the residuals
+better; what the vocabulary leaves is selected from that library (Bonferroni F test,
+leave-one-configuration-out cross-validation, the simplest of the equally good), added to
+the simulator as an effect registered at run time and reported under ``discovered``
+(:attr:`DiscrepancyResult.discovered`, :class:`DiscoveredTerm`).
+
 See docs/discrepancy.md.
 """
 
@@ -29,6 +37,7 @@ from timedexec.discrepancy._model import (
     deterministic_settings,
 )
 from timedexec.discrepancy._report import write_report
+from timedexec.discrepancy._result import DiscoveredTerm
 from timedexec.discrepancy._select import Selection, UnitScore, forward_select
 from timedexec.discrepancy._terms import TermFamily, actuation_families, response_families
 from timedexec.discrepancy._workflow import (
@@ -41,6 +50,7 @@ from timedexec.discrepancy._workflow import (
 __all__ = [
     "CandidateScore",
     "Conditions",
+    "DiscoveredTerm",
     "DiscrepancyResult",
     "DiscrepancyStep",
     "FittedModel",

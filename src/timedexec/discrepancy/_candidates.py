@@ -41,6 +41,7 @@ from timedexec.discrepancy._conditions import NoiseFloor
 from timedexec.discrepancy._model import (
     FittedModel,
     SimModel,
+    actuation_columns,
     calibrate,
     default_effect,
     joint_levels,
@@ -124,11 +125,13 @@ def _nuisance(
     sensitivities. Returns (columns, lower, upper, labels)."""
     m = len(model.cond)
     if delay == "actuation_delay":
+        linear = actuation_columns(model, fitted.effects)
+        cols = list(linear.T)
         if joint_levels(fitted.effects):
-            cols = [mk.astype(float) for mk in model.joint_rows.values()]
             labels = [f"offset joint {j}" for j in model.joint_rows]
         else:
-            cols, labels = [np.ones(m)], ["constant"]
+            labels = ["constant"]
+        labels += [f"data term column {k}" for k in range(len(labels), linear.shape[1])]
         cols += [fitted.jac[:, k] * 1e3 for k in range(fitted.jac.shape[1])]
         labels += [p.label for p in fitted.params]
         a = np.column_stack(cols)
@@ -212,7 +215,7 @@ def score_candidates(
     """
     from scipy import stats
 
-    names = [n for n in EFFECTS if n not in fitted.effects and n not in exclude]
+    names = [n for n in EFFECTS.vocabulary if n not in fitted.effects and n not in exclude]
     m = len(model.cond)
     fold = _folds(m, min(folds, m), seed)
     scores: list[CandidateScore] = []
@@ -346,12 +349,8 @@ def _loo_cv_mse(cols: FloatArray, resid_ms: FloatArray, fold: NDArray[np.int64])
 
 def _act_columns(model: SimModel, fitted: FittedModel) -> FloatArray:
     """All sensitivities of a calibrated model's actuation means (ms per unit)."""
-    m = len(model.cond)
-    if joint_levels(fitted.effects):
-        const = [mk.astype(float) for mk in model.joint_rows.values()]
-    else:
-        const = [np.ones(m)]
-    return np.column_stack([*const, *(fitted.jac[:, k] * 1e3 for k in range(fitted.jac.shape[1]))])
+    const = actuation_columns(model, fitted.effects)
+    return np.column_stack([const, *(fitted.jac[:, k] * 1e3 for k in range(fitted.jac.shape[1]))])
 
 
 def refit_candidates(
@@ -378,8 +377,8 @@ def refit_candidates(
     """
     names = [
         n
-        for n, cls in EFFECTS.items()
-        if cls.closed_form is None and n not in fitted.effects and n not in exclude
+        for n in EFFECTS.vocabulary
+        if EFFECTS[n].closed_form is None and n not in fitted.effects and n not in exclude
     ]
     by_name = {s.name: s for s in screened}
     delay = "actuation_delay"

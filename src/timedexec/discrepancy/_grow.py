@@ -30,10 +30,10 @@ from timedexec.discrepancy._explain import describe_parameters, gaps_ms, observe
 from timedexec.discrepancy._model import (
     FittedModel,
     SimModel,
+    actuation_columns,
     calibrate,
     default_effect,
     get_values,
-    joint_levels,
 )
 from timedexec.discrepancy._result import DiscrepancyStep
 from timedexec.discrepancy._select import Selection, forward_select, score_unit
@@ -135,11 +135,9 @@ class TermContext:
 
 
 def model_constants(model: SimModel, fitted: FittedModel) -> FloatArray:
-    """The actuation constants of a model: one, or one per joint with per-joint levels."""
-    m = len(model.cond)
-    if joint_levels(fitted.effects):
-        return np.column_stack([mk.astype(float) for mk in model.joint_rows.values()])
-    return np.ones((m, 1))
+    """The actuation constants of a model (one, or one per joint with per-joint levels)
+    and its data-driven terms' bases (:func:`timedexec.discrepancy._model.actuation_columns`)."""
+    return actuation_columns(model, fitted.effects)
 
 
 def shape_columns(shapes: dict[str, list[str]], terms: TermContext) -> list[tuple[str, FloatArray]]:

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._conditions import Conditions
-from timedexec.effects import Effect, EffectSet, Pose, effect_type
+from timedexec.effects import DataTerm, Effect, EffectSet, Pose, effect_type
 from timedexec.robots import RobotSpec
 from timedexec.sim import SimSettings, default_settings, simulate_delays
 
@@ -48,8 +48,10 @@ __all__ = [
     "FittedModel",
     "Param",
     "SimModel",
+    "actuation_columns",
     "calibrate",
     "closed_form_shift_s",
+    "data_terms",
     "default_effect",
     "joint_levels",
     "model_params",
@@ -146,13 +148,19 @@ class SimModel:
         return -self.phase_s, self.period_s - self.phase_s
 
     def simulate(
-        self, effects: EffectSet, rows: NDArray[np.bool_] | None = None
+        self,
+        effects: EffectSet,
+        rows: NDArray[np.bool_] | None = None,
+        *,
+        closed_form: bool = False,
     ) -> dict[str, FloatArray]:
         """Simulated condition means for the simulated part of ``effects`` (closed-form
-        effects are ignored here). With ``rows``, only those conditions are simulated (the
-        others are NaN). Returns ``actuation_delay``, ``response_delay`` (s) and
-        ``gravity_torque_nm`` of every condition, arrays (m,)."""
-        physical = EffectSet(tuple(e for e in effects if e.simulated))
+        effects are ignored here; ``closed_form``: the simulator runs them too, as it does
+        for a sweep — the check that the closed form is what the simulator applies). With
+        ``rows``, only those conditions are simulated (the others are NaN). Returns
+        ``actuation_delay``, ``response_delay`` (s) and ``gravity_torque_nm`` of every
+        condition, arrays (m,)."""
+        physical = effects if closed_form else EffectSet(tuple(e for e in effects if e.simulated))
         key = json.dumps(physical.to_dict(), sort_keys=True)
         cached = self._cache.get(key)
         if cached is not None:
@@ -277,6 +285,28 @@ def joint_levels(effects: EffectSet) -> bool:
     return any(e.closed_form == "joint_levels" for e in effects)
 
 
+def data_terms(effects: EffectSet) -> list[DataTerm]:
+    """The data-driven terms of ``effects`` (closed form ``"term"``), in order."""
+    return [e for e in effects if isinstance(e, DataTerm)]
+
+
+def actuation_columns(model: SimModel, effects: EffectSet) -> FloatArray:
+    """The linear part of the actuation model, (m, k): its constant (one, or one per joint
+    with per-joint levels) and the basis of each data-driven term (each column scaled to
+    unit RMS; the terms' coefficients are fitted with the constants)."""
+    m = len(model.cond)
+    if joint_levels(effects):
+        cols = [mk.astype(float) for mk in model.joint_rows.values()]
+    else:
+        cols = [np.ones(m)]
+    for term in data_terms(effects):
+        for c in term.basis(model.pose).T:
+            rms = float(np.sqrt(np.mean(c**2)))
+            if rms > 0:
+                cols.append(c / rms)
+    return np.column_stack(cols)
+
+
 def closed_form_shift_s(effect: Effect, model: SimModel) -> FloatArray:
     """What a closed-form effect adds to its delay in every condition, s (m,): its timing
     hooks, exactly as the simulator applies them."""
@@ -337,7 +367,16 @@ class FittedModel:
 
 def _act_centre(model: SimModel, effects: EffectSet) -> Callable[[FloatArray], FloatArray]:
     """The projection that removes the linear actuation parameters from residuals: the
-    mean (one constant) or the per-joint means (with per-joint levels)."""
+    mean (one constant) or the per-joint means (with per-joint levels), and the
+    data-driven terms' bases (:func:`actuation_columns`)."""
+    if data_terms(effects):
+        q, _ = np.linalg.qr(actuation_columns(model, effects))
+
+        def project(r: FloatArray) -> FloatArray:
+            out: FloatArray = r - q @ (q.T @ r)
+            return out
+
+        return project
     if not joint_levels(effects):
         return lambda r: r - r.mean(axis=0)
     masks = list(model.joint_rows.values())
@@ -366,9 +405,27 @@ def _linear_fit(
     offsets: dict[str, float] = {}
     for delay in DELAY_COLUMNS:
         y = cond.mean_s[delay] - sim[delay]
+        term_shift = np.zeros(len(cond))
+        terms = [t for t in data_terms(effects) if t.acts_on == delay]
+        if terms:
+            # The terms' coefficients with the actuation constants (one, or per joint):
+            # least squares; what they leave goes to the other closed forms below.
+            others = EffectSet(tuple(e for e in effects if not isinstance(e, DataTerm)))
+            consts = actuation_columns(model, others)
+            bases = [t.basis(model.pose) for t in terms]
+            coef, *_ = np.linalg.lstsq(np.column_stack([consts, *bases]), y, rcond=None)
+            col = consts.shape[1]
+            for t, b in zip(terms, bases, strict=True):
+                fitted_t = t.with_coefficients(
+                    np.asarray(coef[col : col + b.shape[1]], dtype=np.float64)
+                )
+                effects = effects.with_effect(fitted_t)
+                term_shift = term_shift + closed_form_shift_s(fitted_t, model)
+                col += b.shape[1]
+            y = y - term_shift
         shift: FloatArray | None = None
         for e in effects:
-            if e.closed_form is not None and e.acts_on == delay:
+            if e.closed_form is not None and e.closed_form != "term" and e.acts_on == delay:
                 fitted, offsets[delay] = type(e).fit_closed_form(
                     y, model.pose, model.period_s, bounds[delay]
                 )
@@ -378,7 +435,7 @@ def _linear_fit(
             offsets[delay] = float(np.clip(y.mean(), *bounds[delay]))
         if shift is None:
             shift = np.zeros(len(cond))
-        pred[delay] = sim[delay] + offsets[delay] + shift
+        pred[delay] = sim[delay] + offsets[delay] + shift + term_shift
     return effects, offsets["actuation_delay"], offsets["response_delay"], pred
 
 
@@ -496,6 +553,7 @@ def calibrate(
     effects, act_offset, resp_offset, pred = _linear_fit(model, effects, sim)
     resid = {d: model.cond.mean_s[d] - pred[d] for d in DELAY_COLUMNS}
     n_act = len(params) + (len(model.cond.joints) if joint_levels(effects) else 1)
+    n_act += sum(t.n_columns for t in data_terms(effects))
     n_resp = 1 + sum(1 for e in effects if e.closed_form == "response_periods")
     return FittedModel(
         effects=effects,

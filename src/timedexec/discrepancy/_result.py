@@ -19,7 +19,7 @@ from timedexec.discrepancy._model import FittedModel
 from timedexec.discrepancy._report import write_report
 from timedexec.effects import Variable, effect_type
 
-__all__ = ["DiscrepancyResult", "DiscrepancyStep"]
+__all__ = ["DiscoveredTerm", "DiscrepancyResult", "DiscrepancyStep"]
 
 FloatArray = NDArray[np.float64]
 
@@ -72,6 +72,96 @@ class DiscrepancyStep:
 
 
 @dataclass(eq=False)
+class DiscoveredTerm:
+    """A term outside the vocabulary that discovery added to the model (a data-driven
+    effect registered at run time, :class:`timedexec.effects.DataTerm`).
+
+    Attributes
+    ----------
+    effect : DataTerm
+        The registered effect with its fitted coefficients (simulate it with
+        ``EffectSet((*effects, term.effect))``).
+    description : str
+        The term in words, with its uncertainty and the gap it closes.
+    parameters : dict
+        Its coefficients and shape parameters in physical units, each with a standard
+        error.
+    gap_closed_ms : float
+        How much of the actuation gap the term closes with the rest of the final model
+        in place (gap without it, the other linear parts refitted, minus the final gap), ms.
+    gap_before_ms, gap_after_ms : dict delay -> ms
+        The gaps of the model before and after the discovery step that added it.
+    gap_after_resimulated_ms : dict delay -> ms
+        The gaps after that step with every effect, the discovered ones included, run
+        through the batch simulator (not the closed form): the re-run.
+    share_of_excess_explained : float
+        Share of the excess actuation gap (above the floor) the step removed.
+    evidence : dict
+        The selection's evidence (F test against the library's Bonferroni threshold,
+        held-out errors, runners-up) and the confirmation test of the step.
+    resid_before_s, resid_after_s : ndarray (m,)
+        Actuation residuals, s, of the model after the step that added the term, without
+        the term's contribution (the partial residual: what the term explains, on top of
+        what it leaves) and with it (for the figure).
+    input_values : dict name -> ndarray (m,)
+        Its inputs at the conditions (for the figure).
+    mask : ndarray of bool (m,)
+        The conditions it acts on (its joints and direction).
+    """
+
+    effect: Any
+    description: str
+    parameters: dict[str, Any]
+    gap_closed_ms: float
+    gap_before_ms: dict[str, float]
+    gap_after_ms: dict[str, float]
+    gap_after_resimulated_ms: dict[str, float]
+    share_of_excess_explained: float
+    evidence: dict[str, Any]
+    resid_before_s: FloatArray
+    resid_after_s: FloatArray
+    input_values: dict[str, FloatArray]
+    mask: NDArray[np.bool_]
+
+    @property
+    def joints(self) -> list[int]:
+        """The joints it acts on."""
+        return list(self.effect.joints)
+
+    @property
+    def inputs(self) -> list[str]:
+        """What it depends on (``qK`` rad, ``tauK`` N·m)."""
+        return list(self.effect.inputs)
+
+    @property
+    def formula(self) -> str:
+        """The term as a formula in ms."""
+        return str(self.effect.formula())
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe form (an entry of ``"discovered"``)."""
+        e = self.effect
+        return {
+            "effect": e.name,
+            "joints": self.joints,
+            "inputs": self.inputs,
+            "form": e.form,
+            "direction": {0: "both", 1: "positive", -1: "negative"}[e.direction],
+            "formula": self.formula,
+            "description": self.description,
+            "parameters": self.parameters,
+            "size_per_joint": self.parameters.get("size_per_joint", {}),
+            "gap_closed_ms": self.gap_closed_ms,
+            "gap_before_ms": self.gap_before_ms,
+            "gap_after_ms": self.gap_after_ms,
+            "gap_after_resimulated_ms": self.gap_after_resimulated_ms,
+            "share_of_excess_gap_explained": self.share_of_excess_explained,
+            "evidence": self.evidence,
+            "definition": e.to_dict(),
+        }
+
+
+@dataclass(eq=False)
 class DiscrepancyResult:
     """What :func:`analyse_discrepancy` found. ``to_dict()`` is the OUT.json content."""
 
@@ -111,6 +201,8 @@ class DiscrepancyResult:
     #: Shapes added to effects the model already had (the simulator's form of them does
     #: not reproduce the measured dependence): effect, family, gaps before/after, evidence.
     refined_effects: list[dict[str, Any]] = field(default_factory=list)
+    #: Terms outside the vocabulary that discovery added (each a registered data term).
+    discovered: list[DiscoveredTerm] = field(default_factory=list)
 
     @property
     def noise_floor_ms(self) -> dict[str, float]:
@@ -142,6 +234,7 @@ class DiscrepancyResult:
             "final_candidates": self.final_candidates,
             "final_structure": self.final_structure,
             "refined_effects": self.refined_effects,
+            "discovered": [t.to_dict() for t in self.discovered],
             "calibration_before": self.calibration_before,
             "calibration_after": self.calibration_after,
             "warnings": self.warnings,
@@ -176,6 +269,9 @@ class DiscrepancyResult:
                 lines.append(f"  step {k}: added {s.effect}: {s.explanation}")
         else:
             lines.append("  no effect of the vocabulary is missing (none significant)")
+        for t in self.discovered:
+            lines.append(f"  discovered (outside the vocabulary): {t.description}")
+            lines.append(f"    {t.formula}")
         for u in self.unexplained:
             lines.append(f"  unexplained: {u['description']}")
         for w in self.warnings:

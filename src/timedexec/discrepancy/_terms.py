@@ -162,7 +162,8 @@ def _effect_families(
     the vocabulary's order, each marked one with its simulator signature appended."""
     m = len(x)
     fams: dict[str, TermFamily] = {}
-    for name, cls in EFFECTS.items():
+    for name in EFFECTS.vocabulary:
+        cls = EFFECTS[name]
         if cls.acts_on != delay or name in present:
             continue
         for spec in cls.term_families(x):

@@ -24,7 +24,10 @@ their noise floor, and runs the steps, each a function of its own:
    all, the effect enters by its measured shape alone. Confirm that the gap fell
    significantly (else the effect is rejected). Steps 2 and 3 repeat until nothing of the
    vocabulary passes — a held-out criterion, not a count.
-4. :func:`step_shrink`: the gap after, and what remains, reported as unexplained with
+4. :func:`step_recheck` (after discovery): a vocabulary effect named before a discovered
+   term that explains its residuals better is withdrawn when it is no longer significant
+   beside the terms.
+5. :func:`step_shrink`: the gap after, and what remains, reported as unexplained with
    where it sits — never forced onto a name; the order of the repeats within each
    condition is tested on its own (a first-repeat or settling effect no model of
    condition means can show).
@@ -57,6 +60,7 @@ from timedexec.discrepancy._conditions import (
     group_conditions,
     replicate_noise,
 )
+from timedexec.discrepancy._discover import add_discovered, vocabulary_check, withdraw_names
 from timedexec.discrepancy._explain import gaps_ms
 from timedexec.discrepancy._grow import (
     Proposal,
@@ -67,6 +71,7 @@ from timedexec.discrepancy._grow import (
     shape_summary,
     with_shapes,
 )
+from timedexec.discrepancy._library import Library
 from timedexec.discrepancy._locate import (
     condition_variables,
     locate,
@@ -75,7 +80,7 @@ from timedexec.discrepancy._locate import (
     variable_fit,
 )
 from timedexec.discrepancy._model import FittedModel, SimModel, calibrate
-from timedexec.discrepancy._result import DiscrepancyResult, DiscrepancyStep
+from timedexec.discrepancy._result import DiscoveredTerm, DiscrepancyResult, DiscrepancyStep
 from timedexec.discrepancy._select import Selection, UnitScore
 from timedexec.effects import EFFECTS, EffectSet, Variable, parse_effects
 from timedexec.errors import ConfigError, RecordingError
@@ -89,10 +94,15 @@ __all__ = [
     "analyse_discrepancy",
     "load_measured",
     "step_add",
+    "step_discover",
     "step_locate",
     "step_name",
+    "step_recheck",
     "step_shrink",
 ]
+
+#: Most rounds of discovery (each followed by a new search of the vocabulary).
+MAX_DISCOVERY_ROUNDS = 3
 
 FloatArray = NDArray[np.float64]
 
@@ -296,6 +306,14 @@ class Search:
         it ran).
     refinements : int
         Shapes attached to effects the model had.
+    discover : bool
+        Search beyond the vocabulary: test every name against the data-driven terms
+        before giving it, and add the terms the vocabulary leaves.
+    explained_away : list of str
+        Effects whose proposal a data-driven term explained away (not proposed again
+        until a discovery changes the model).
+    discovered : list of DiscoveredTerm
+        Terms outside the vocabulary added to the model.
     """
 
     model: SimModel
@@ -319,6 +337,17 @@ class Search:
     scores: list[CandidateScore] = field(default_factory=list)
     final_scores: list[CandidateScore] = field(default_factory=list)
     refinements: int = 0
+    discover: bool = True
+    explained_away: list[str] = field(default_factory=list)
+    discovered: list[DiscoveredTerm] = field(default_factory=list)
+    _library: Library | None = None
+
+    @property
+    def library(self) -> Library:
+        """The candidate terms over the measured conditions (built on first use)."""
+        if self._library is None:
+            self._library = Library(self.model)
+        return self._library
 
 
 def step_locate(
@@ -391,7 +420,10 @@ def step_name(state: Search, min_excess_ms: float) -> Proposal | None:
     first proposal (best evidence first).
     """
     s = state
-    exclude = (*s.excluded, *s.shapes)  # named by their measured shape alone: in the model
+    # Named by their measured shape alone: in the model. Explained away by a data term:
+    # not this round.
+    exclude = (*s.excluded, *s.explained_away, *s.shapes)
+    excluded = [*s.excluded, *s.explained_away]
     scores = score_candidates(
         s.model,
         s.fitted,
@@ -404,18 +436,18 @@ def step_name(state: Search, min_excess_ms: float) -> Proposal | None:
     s.scores = s.final_scores = scores
     args = (s.model, s.fitted, s.shapes, s.terms, scores, s.noise, s.alpha, s.min_share)
     s.selections = search(*args, "name")
-    proposals = find_proposals(s.selections, s.terms.families, s.excluded)
+    proposals = find_proposals(s.selections, s.terms.families, excluded)
     if proposals and EFFECTS[proposals[0].effect].named_after_shapes:
         # Its signature looks like a reshaped effect of the model's: named only when it
         # explains the residuals better (held out) than the best such shape.
         refine = search(*args, "refine")
-        shaped = find_proposals(refine, s.terms.families, s.excluded)
+        shaped = find_proposals(refine, s.terms.families, excluded)
         held_out = "cv_mse_with_ms2"
         if shaped and shaped[0].evidence[held_out] <= proposals[0].evidence[held_out]:
             proposals, s.selections = shaped, refine
     if not proposals:
         refine = search(*args, "refine")
-        proposals = find_proposals(refine, s.terms.families, s.excluded)
+        proposals = find_proposals(refine, s.terms.families, excluded)
         if proposals or not any(sel.accepted for sel in s.selections.values()):
             s.selections = refine
     lof = _lack_of_fit(s.current, s.noise, "actuation_delay")
@@ -447,7 +479,101 @@ def step_name(state: Search, min_excess_ms: float) -> Proposal | None:
             for sc in refit
             if sc.significant
         ]
-    return proposals[0] if proposals else None
+    for prop in proposals:
+        if _accepted(s, prop):
+            return prop
+    return None
+
+
+def _accepted(state: Search, prop: Proposal) -> bool:
+    """The acceptance test of a vocabulary proposal (:mod:`timedexec.discrepancy._discover`):
+    False, and the proposal listed under the rejected candidates, when a data-driven term
+    explains what it would explain and more."""
+    s = state
+    if not s.discover or prop.delay != "actuation_delay":
+        return True
+    keys = [k for k in prop.evidence.get("kept", []) or [prop.family] if k in s.terms.families]
+    if keys:
+        cols = np.column_stack([s.terms.families[k].columns for k in keys])
+    else:
+        sc = next((c for c in s.scores if c.name == prop.effect), None)
+        if sc is None or not sc.signature.size:
+            return True
+        cols = sc.signature
+    check = vocabulary_check(
+        s.library,
+        s.model,
+        s.fitted,
+        s.shapes,
+        s.terms,
+        s.noise,
+        cols,
+        alpha=s.alpha,
+        min_share=s.min_share,
+    )
+    if check is None:
+        return True
+    prop.evidence["vocabulary_check"] = check
+    if not check["explained_away"]:
+        return True
+    s.say(
+        f"{prop.effect} not named: the data-driven terms {'; '.join(check['terms'])} explain "
+        f"what it would (p = {check['vocabulary_beyond_terms']['p_value']:.2g} for "
+        f"{prop.effect} beyond them)"
+    )
+    s.rejected.append(
+        {
+            **prop.evidence,
+            "effect": prop.effect,
+            "rejected_because": "a data-driven term explains the residuals it would explain, "
+            "and more (vocabulary_check)",
+        }
+    )
+    s.explained_away.append(prop.effect)
+    return False
+
+
+def step_discover(state: Search) -> bool:
+    """Discover: search the library of data-driven terms on what the model leaves and add
+    the terms found (:func:`timedexec.discrepancy._discover.add_discovered`): each becomes
+    an effect registered at run time, the model is recalibrated with them and re-run
+    through the simulator. Returns True when terms were added."""
+    s = state
+    added = add_discovered(
+        s.library,
+        s.model,
+        s.fitted,
+        s.current,
+        s.shapes,
+        s.terms,
+        s.noise,
+        alpha=s.alpha,
+        min_share=s.min_share,
+        say=s.say,
+    )
+    if added is None:
+        return False
+    s.fitted, s.current, found, rejected = added
+    if rejected is not None:
+        s.rejected.append(rejected)
+        return False
+    s.discovered.extend(found)
+    s.explained_away.clear()
+    return True
+
+
+def step_recheck(state: Search) -> None:
+    """Recheck: once terms were discovered, a vocabulary effect named before them is
+    withdrawn when it is no longer significant beside them
+    (:func:`timedexec.discrepancy._discover.withdraw_names`). Updates ``state``."""
+    s = state
+    if not s.discovered:
+        return
+    s.fitted, s.current, s.shapes, withdrawn = withdraw_names(
+        s.model, s.fitted, s.current, s.shapes, s.terms, s.noise, s.steps, s.alpha, s.say
+    )
+    s.rejected.extend(withdrawn)
+    s.steps[:] = [st for st in s.steps if st.effect not in {w["effect"] for w in withdrawn}]
 
 
 def step_add(state: Search, prop: Proposal) -> None:
@@ -608,6 +734,7 @@ def analyse_discrepancy(
     min_excess_ms: float = 0.1,
     max_steps: int | None = None,
     seed: int = 0,
+    discover: bool = True,
     progress: bool = False,
 ) -> DiscrepancyResult:
     """Find where the simulator disagrees with measured delays and name what is missing.
@@ -634,6 +761,11 @@ def analyse_discrepancy(
         Most effects to add (default: the size of the vocabulary).
     seed : int
         Seeds the cross-validation folds and the fallback noise simulation.
+    discover : bool
+        Look beyond the vocabulary (default): a name is given only where no data-driven
+        term explains the residuals better, and terms the vocabulary leaves are searched
+        in a library of forms, added to the model as effects registered at run time and
+        reported under ``discovered``. False: the vocabulary only.
     progress : bool
         Status lines on stderr.
 
@@ -687,13 +819,18 @@ def analyse_discrepancy(
         model, noise, start_effects, alpha=alpha, min_share=min_share, seed=seed, say=say
     )
     before = state.current
-    limit = max_steps if max_steps is not None else len(EFFECTS)
-    while len(state.steps) < limit and state.refinements <= 2 * len(EFFECTS):
-        prop = step_name(state, min_excess_ms)
-        if prop is None:
-            say("no candidate effect is significant")
+    state.discover = discover
+    limit = max_steps if max_steps is not None else len(EFFECTS.vocabulary)
+    for _ in range(MAX_DISCOVERY_ROUNDS + 1):
+        while len(state.steps) < limit and state.refinements <= 2 * len(EFFECTS.vocabulary):
+            prop = step_name(state, min_excess_ms)
+            if prop is None:
+                say("no candidate effect is significant")
+                break
+            step_add(state, prop)
+        if not discover or not step_discover(state):
             break
-        step_add(state, prop)
+    step_recheck(state)
     remains = step_shrink(state, min_excess_ms)
 
     after = state.current
@@ -752,4 +889,5 @@ def analyse_discrepancy(
         final_candidates=[s.to_dict() for s in state.final_scores],
         final_structure=final_structure,
         refined_effects=state.refined,
+        discovered=state.discovered,
     )

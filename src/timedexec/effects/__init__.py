@@ -37,6 +37,12 @@ After DESIGN.md's table:
 ``payload``
     A tool on the flange the robot model lacks: its gravity torque and inertia load the
     joints that carry it.
+
+Outside the vocabulary, terms found in data (:class:`DataTerm`, ``_term``): a closed-form
+dead time of the drive, ``coef · basis(inputs)`` per joint (linear, hinge, harmonic, product or bump
+in a joint angle or another joint's gravity torque), each registered at run time as a
+class of its own (:func:`register_term`) and then simulated like any effect; never named
+as vocabulary (``EFFECTS.vocabulary``).
 """
 
 from __future__ import annotations
@@ -67,6 +73,7 @@ from timedexec.effects._registry import (
     register_effect,
 )
 from timedexec.effects._response_extra_cycle import ResponseExtraCycle
+from timedexec.effects._term import TERM_FORMS, DataTerm, register_term, term_columns
 from timedexec.effects._thermal_drift import ThermalDrift
 
 #: The names of the effects registered when the package was imported (the built-in
@@ -76,7 +83,9 @@ EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 __all__ = [
     "EFFECTS",
     "EFFECT_NAMES",
+    "TERM_FORMS",
     "ClosedForm",
+    "DataTerm",
     "Direction",
     "Effect",
     "EffectRegistry",
@@ -98,4 +107,6 @@ __all__ = [
     "make_effect",
     "parse_effects",
     "register_effect",
+    "register_term",
+    "term_columns",
 ]

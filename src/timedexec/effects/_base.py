@@ -47,7 +47,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 #: How the discrepancy workflow's model holds a closed-form effect (:attr:`Effect.closed_form`).
-ClosedForm = Literal["joint_levels", "response_periods"]
+ClosedForm = Literal["joint_levels", "response_periods", "term"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,6 +249,9 @@ class Effect:
     #: Its place in the vocabulary's order (DESIGN.md's table: 1, 2, ...; effects built
     #: at run time: after those, in the order they were registered).
     order: ClassVar[float] = math.inf
+    #: A term found in data (:class:`timedexec.effects.DataTerm`), registered at run time:
+    #: simulated like any effect, but not part of the vocabulary the workflow names.
+    data_driven: ClassVar[bool] = False
 
     # -- the discrepancy workflow ---------------------------------------------------------
     #: Key of the condition variable its residual plots and its explanation use (``q1``..
@@ -258,7 +261,9 @@ class Effect:
     #: How the workflow's model holds it: None, the simulator runs it (its parameters are
     #: calibrated with the simulator in the loop); ``"joint_levels"``, a constant per
     #: joint on the actuation delay; ``"response_periods"``, whole controller periods on
-    #: the response delay. A closed-form effect must be an exact additive shift of the
+    #: the response delay; ``"term"``, a data-driven term whose coefficients are fitted
+    #: with the model's constants (:class:`timedexec.effects.DataTerm`: its ``basis`` and
+    #: ``with_coefficients``). A closed-form effect must be an exact additive shift of the
     #: simulator's output through its timing hooks (:meth:`drive_delay_s`,
     #: :meth:`response_delay_s`), which the workflow applies without simulating.
     closed_form: ClassVar[ClosedForm | None] = None

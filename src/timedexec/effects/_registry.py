@@ -105,6 +105,12 @@ class EffectRegistry(Mapping[str, type[Effect]]):
         """Position of ``name`` in the vocabulary's order."""
         return self._rank[name]
 
+    @property
+    def vocabulary(self) -> tuple[str, ...]:
+        """The names the discrepancy workflow may give, in order: every registered effect
+        but the data-driven terms (:attr:`Effect.data_driven`) it found itself."""
+        return tuple(n for n, cls in self._types.items() if not cls.data_driven)
+
 
 #: The registry: every effect of the vocabulary by name, in order.
 EFFECTS = EffectRegistry()
