@@ -16,6 +16,8 @@ response_delay            float, s
 true_actuation_delay      optional, simulated sweeps only, s
 true_response_delay       optional, simulated sweeps only, s
 flag                      optional str: why a trial could not be measured ("" when fine)
+t_since_power_on          optional float, s since the robot was powered on (its thermal
+                          clock), where the recorder knows it (the simulators do)
 ========================  ==================================================================
 
 Extra columns are kept as they are. Delays are in seconds; human-facing tables show ms.

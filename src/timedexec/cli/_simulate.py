@@ -55,6 +55,14 @@ def add_parser(sub: Any) -> None:
         help="effect set: default, base, a comma list of effect names, or default,NAME,... "
         f"(the robot's defaults plus those named); the vocabulary: {', '.join(EFFECTS)}",
     )
+    p.add_argument(
+        "--warm",
+        action="store_true",
+        help="a warm robot: powered on 4 h before the sweep (as one taken out of production; "
+        "thermal_drift has settled); default cold, powered on as the sweep starts. The "
+        "recording's power_on_s says which, and models trained on it say which thermal "
+        "state they answer for",
+    )
     add_period(p)
     add_jobs(p, help="worker processes (output does not depend on it)")
     add_scheduler(p, what="the simulation blocks (the recording is written here)")
@@ -96,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
                 resume=args.resume,
                 jobs=cluster_jobs("simulate", args, client),
                 progress=not args.quiet,
+                warm=args.warm,
             )
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("simulate", exc, args.out, resume_command(args))
@@ -119,6 +128,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--trials", args.trials),
             ("--seed", args.seed),
             ("--effects", None if args.effects == "default" else args.effects),
+            ("--warm", args.warm),
             ("--period", args.period),
             ("--jobs", None if args.jobs == 1 else args.jobs),
             ("--scheduler", args.scheduler),
