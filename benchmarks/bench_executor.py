@@ -29,7 +29,7 @@ import numpy as np
 
 from timedexec._realtime import try_realtime
 from timedexec.drivers import URDriver
-from timedexec.execution import FixedDelays, TimedExecutor
+from timedexec.execution import ExecutorSettings, FixedDelays, StalenessLimits, TimedExecutor
 from timedexec.twins import URTwin
 
 PERIOD_S = 0.002
@@ -52,7 +52,8 @@ def register_view(send_s: np.ndarray, t0: float) -> dict[str, float]:
 
 def run_executor(host: str, seconds: float, t0: float, coast: bool) -> dict[str, object]:
     model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuation_std_s=6e-4)
-    with TimedExecutor(URDriver(host), model, stale_periods=100, coast=coast) as ex:
+    settings = ExecutorSettings(staleness=StalenessLimits.from_stale_periods(100), coast=coast)
+    with TimedExecutor(URDriver(host), model, settings) as ex:
         ex.log.clear()
         q0 = ex.estimate().q_rad.copy()
         end = ex.now() + seconds

@@ -87,7 +87,12 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     from timedexec.drivers import URDriver
     from timedexec.effects import EffectSet, default_effects
     from timedexec.errors import ConfigError
-    from timedexec.execution import TimedExecutor, predict_delays
+    from timedexec.execution import (
+        ExecutorSettings,
+        StalenessLimits,
+        TimedExecutor,
+        predict_delays,
+    )
     from timedexec.learning import DelayModel
     from timedexec.monitoring import DelayMonitor
     from timedexec.robots import get_robot
@@ -107,12 +112,16 @@ def one_run(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     for d in (1, -1):  # build the GP predictors before connecting (the watchdog)
         predict_delays(model, [1, 2, 3], [d] * 3, np.tile(q0, (3, 1)))
     mon = DelayMonitor(model, warmup_moves=args.warmup_moves, reference_k=args.k)
+    # Tolerant limits (200 periods) and watchdog (1 s): the monitor, not the faults.
+    settings = ExecutorSettings(
+        staleness=StalenessLimits.from_stale_periods(200), watchdog_timeout_s=1.0
+    )
     moves_at_step: dict[int, int] = {}
     tally = Tally()
     rows_at_step = 0
     with (
         URTwin("ur10e", host, seed=seed, effects=effects, q0_rad=q0, sim_factory=stepped_sim),
-        TimedExecutor(URDriver(host), model, stale_periods=200, watchdog_timeout_s=1.0) as ex,
+        TimedExecutor(URDriver(host), model, settings) as ex,
     ):
         start = ex.estimate().q_rad
         for k in range(args.warmup + args.after):

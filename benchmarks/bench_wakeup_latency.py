@@ -9,7 +9,7 @@ the machine at hand, in the same run, two ways, quiet and beside two busy proces
   ``clock_nanosleep`` to absolute deadlines every 2 ms, memory locked) at SCHED_FIFO
   ``--priority``. Skipped, with a note, when it is not installed (``apt-get install
   rt-tests``).
-* **python**: the executor's own wait (``timedexec.execution.wait_until``: sleep to
+* **python**: the executor's own wait (``timedexec._realtime.wait_until``: sleep to
   just before the deadline, spin the rest) to absolute deadlines every 2 ms, same priority,
   without the PM QoS request;
 * **python+qos**: the same while holding the request (``timedexec._realtime.fast_wakeup``),
@@ -38,8 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from timedexec._realtime import fast_wakeup, realtime
-from timedexec.execution import wait_until
+from timedexec._realtime import fast_wakeup, realtime, wait_until
 
 PERIOD_S = 0.002
 LATE_S = 0.0005  # the p99 target

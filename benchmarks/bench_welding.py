@@ -4,7 +4,7 @@ Issue 19 target: the work of one 500 Hz cycle (UR10e) — the inverse kinematics
 seam point, a delay-model query for the current configuration and an online Ruckig update
 towards the IK state — at p99 <= 0.5 ms.
 
-What one cycle does here (the online variant of :func:`timedexec.execution.plan_seam`, for
+What one cycle does here (the online variant of :func:`timedexec.tasks.plan_seam`, for
 a seam not known in advance):
 
 1. ``solve_ik`` of the torch pose at the cycle's time, warm-started from the previous
@@ -39,8 +39,9 @@ import time
 
 import numpy as np
 
-from timedexec.execution import FrictionFeed, Seam, default_cell, load_delay_model, plan_seam
+from timedexec.execution import FrictionFeed, load_delay_model
 from timedexec.robots import ROBOT_NAMES, get_robot_entry, solve_ik
+from timedexec.tasks import Seam, default_cell, plan_seam
 
 
 def pct(x: np.ndarray) -> str:

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import argparse
 
+from timedexec.evaluation import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
 from timedexec.robots import ROBOT_NAMES, get_robot_entry
-from timedexec.welding import ConveyorEvaluation, evaluate_conveyor, weld_on_twin
 
 
 def main() -> None:

@@ -17,8 +17,10 @@ import numpy as np
 
 from timedexec.drivers import open_driver
 from timedexec.effects import default_effects
-from timedexec.execution import TimedExecutor, UnreachableError, intercept, load_delay_model
+from timedexec.errors import UnreachableError
+from timedexec.execution import TimedExecutor, load_delay_model
 from timedexec.robots import ROBOT_NAMES, forward_kinematics, get_robot, get_robot_entry
+from timedexec.tasks import intercept
 
 
 def main() -> None:

@@ -943,3 +943,20 @@ def test_all_send_times_nan_is_a_clean_error(work: Path, capsys: pytest.CaptureF
     err = capsys.readouterr().err
     assert "field 'cmd_send_time_s' is not finite in any of its 8 trials" in err
     assert "Traceback" not in err
+
+
+def test_executor_refuses_what_it_cannot_answer_with_meaning() -> None:
+    """`predict` at q1 = 100 rad (outside the joint limits) and `execute(until_s=...)` before
+    the plan's start are ConfigErrors naming the value; before issue 40 the first answered
+    (a model answers anywhere) and the second returned at once having done nothing."""
+    from timedexec.execution import TimedExecutor
+
+    with TimedExecutor(open_driver("sim://ur10"), MODEL) as ex:
+        with pytest.raises(ConfigError, match=r"joint 1 = 100 rad .* outside the allowed range"):
+            ex.predict([100.0, 0, 0, 0, 0, 0])
+        with pytest.raises(ConfigError, match="each \\+1 or -1"):
+            ex.predict([0.3, -1.2, 1.4, -1.6, -1.6, 0.0], [2, 1, 1, 1, 1, 1])
+        plan = ex.plan([0.3, -1.2, 1.4, -1.6, -1.6, 0.0])
+        start = ex.now() + 0.3
+        with pytest.raises(ConfigError, match="is not after the plan's start"):
+            ex.execute(plan, start_time_s=start, until_s=start - 1.0)

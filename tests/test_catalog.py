@@ -20,7 +20,6 @@ import pytest
 from timedexec.drivers import ur_robot_named
 from timedexec.effects import EFFECT_NAMES, default_effects
 from timedexec.errors import ConfigError
-from timedexec.execution import Seam, default_cell, plan_seam
 from timedexec.learning import PAPER_TABLES, DelayModel, bundled_model_dir, paper_family
 from timedexec.recording import SweepPlan, calibration_ranges
 from timedexec.robots import (
@@ -33,6 +32,7 @@ from timedexec.robots import (
     get_robot_entry,
 )
 from timedexec.sim import default_settings, simulate_delays
+from timedexec.tasks import Seam, default_cell, plan_seam
 from timedexec.twins import UR_CONTROLLER_VERSIONS, RSITwinConfig
 
 #: RTDE rate the ur_rtde client asks for by the controller's software major (3: CB3, 5:

@@ -388,10 +388,11 @@ def test_driver_timeout_inside_calibrate_is_a_fault_not_bad_input(
 def test_config_error_from_a_real_command_exits_2(
     fakes: dict[str, Call], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A ConfigError raised by the command itself (--trials 0) exits 2 with its message,
-    before the library is called."""
-    assert main(["simulate", "--robot", "ur10", "--trials", "0", "--out", "x.h5"]) == 2
-    assert "--trials 0: the number of trials must be >= 1" in capsys.readouterr().err
+    """A ConfigError raised by the command itself (an effect outside the vocabulary) exits 2
+    with its message, before the library is called."""
+    argv = ["simulate", "--robot", "ur10", "--trials", "4", "--effects", "friction", "--out", "x.h5"]
+    assert main(argv) == 2
+    assert "the vocabulary is" in capsys.readouterr().err
     assert fakes["simulate_sweep"].calls == []
 
 

@@ -50,8 +50,9 @@ def test_truth_table_follows_the_delay_table_contract(tmp_path):
     ("args", "message"),
     [
         (["--robot", "ur5", "--trials", "10"], f"unknown robot 'ur5'; choose one of {', '.join(ROBOT_NAMES)}"),
-        (["--robot", "ur10", "--trials", "0"], "--trials 0: the number of trials must be >= 1"),
-        (["--robot", "ur10", "--trials", "-3"], "must be >= 1"),
+        (["--robot", "ur10", "--trials", "0"], "argument --trials: 0 is out of range; use an integer from 1 to 10000000"),
+        (["--robot", "ur10", "--trials", "-3"], "-3 is out of range"),
+        (["--robot", "ur10", "--trials", "20000000"], "20000000 is out of range"),
         (["--robot", "kr5", "--trials", "10", "--period", "0.005"], "0.012, 0.004"),
         (["--robot", "ur10", "--trials", "10", "--effects", "friction"], "the vocabulary is"),
     ],

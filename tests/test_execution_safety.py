@@ -25,11 +25,11 @@ import numpy as np
 import pytest
 
 from timedexec.drivers import RobotDriver, RobotState, SimDriver
-from timedexec.errors import ConfigError, DriverError, DriverTimeout
+from timedexec.errors import ConfigError, DriverError, DriverTimeout, StaleStateError
 from timedexec.execution import (
+    ExecutorSettings,
     FixedDelays,
     StalenessLimits,
-    StaleStateError,
     TimedExecutor,
 )
 from timedexec.robots import get_robot
@@ -158,13 +158,14 @@ def test_idle_reads_kick_and_an_idle_trip_is_rearmed_before_the_next_motion() ->
 
 def test_no_watchdog_when_disabled_or_unsupported() -> None:
     """watchdog_timeout_s=None arms nothing; a driver without a watchdog returns None;
-    a timeout outside (0, 10] s is a ConfigError naming the value."""
+    a timeout outside (0, 10] s is a ConfigError naming the value (when the settings are
+    built, before any executor)."""
     drv = sim(3)
-    with TimedExecutor(drv, MODEL, watchdog_timeout_s=None) as ex:
+    with TimedExecutor(drv, MODEL, ExecutorSettings(watchdog_timeout_s=None)) as ex:
         assert ex.watchdog.armed_s is None
         assert not drv.watchdog_tripped()
-    with pytest.raises(ConfigError, match=r"watchdog_timeout_s=0.*\(0, 10\]"):
-        TimedExecutor(sim(3), MODEL, watchdog_timeout_s=0.0)
+    with pytest.raises(ConfigError, match=r"watchdog_timeout_s=0.0 outside \(0, 10\] s"):
+        ExecutorSettings(watchdog_timeout_s=0.0)
     plain = PlainDriver(sim(3))
     with TimedExecutor(plain, MODEL) as ex:
         assert ex.watchdog.armed_s is None
@@ -239,8 +240,8 @@ def test_adaptive_limits_follow_the_measured_gaps() -> None:
     assert legacy.late_limit_s(PERIOD_S, wild) == pytest.approx(0.006)
     with pytest.raises(ConfigError, match=r"floor_s=0.2.*ceiling_s=0.08"):
         StalenessLimits(floor_s=0.2)
-    with pytest.raises(ConfigError, match="not both"):
-        TimedExecutor(sim(), MODEL, staleness=StalenessLimits(), stale_periods=3)
+    with pytest.raises(ConfigError, match=r"staleness=3 is not a StalenessLimits.*from_stale"):
+        ExecutorSettings(staleness=3)  # type: ignore[arg-type]
 
 
 class PlainDriver(RobotDriver):
@@ -398,7 +399,8 @@ def test_jittery_stream_runs_without_false_stop_and_a_dead_one_is_caught(seconds
     assert -1e-6 <= late_s <= 0.001, late_s
     assert 0.05 <= ex.stall_limit_s <= 0.08, ex.stall_limit_s
     legacy = GappyDriver(sim(6), seed=6)
-    with TimedExecutor(legacy, MODEL, stale_periods=3) as ex3, pytest.raises(StaleStateError):
+    fixed = ExecutorSettings(staleness=StalenessLimits.from_stale_periods(3))
+    with TimedExecutor(legacy, MODEL, fixed) as ex3, pytest.raises(StaleStateError):
         back_and_forth(ex3, 1.0)
 
 
@@ -468,7 +470,7 @@ def test_coasting_commands_a_late_packages_cycle_on_time_and_a_dead_stream_still
     for coast in (True, False):
         inner = SimDriver("ur10e", seed=1, q0_rad=start_pose(), physics_rate_hz=2000, virtual=False)
         drv = LateDriver(inner, every=10, late_s=0.0015)
-        with TimedExecutor(drv, MODEL, cycle_lock=True, coast=coast) as ex:
+        with TimedExecutor(drv, MODEL, ExecutorSettings(cycle_lock=True, coast=coast)) as ex:
             drv.held_cycles.clear()
             back_and_forth(ex, 1.0)
             held = list(drv.held_cycles)
@@ -503,15 +505,15 @@ CHILD = r"""
 import sys, time
 import numpy as np
 from timedexec.drivers import URDriver
-from timedexec.execution import FixedDelays, StalenessLimits, TimedExecutor
+from timedexec.execution import ExecutorSettings, FixedDelays, StalenessLimits, TimedExecutor
 host, speed = sys.argv[1], float(sys.argv[2])
 # argv[3], if given: the pendant program holding the External Control URCap's node
 program = sys.argv[3] if len(sys.argv) > 3 else None
 model = FixedDelays(robot="ur10e", actuation_s=0.019, response_s=0.0011, actuation_std_s=6e-4)
 # The ceiling's tolerance from the start: this test is about the watchdog, and a test
 # process on a loaded two-core machine sees 50 ms stalls now and then.
-limits = StalenessLimits(floor_s=0.08)
-with TimedExecutor(URDriver(host, robot="ur10e", program=program), model, staleness=limits) as ex:
+settings = ExecutorSettings(staleness=StalenessLimits(floor_s=0.08))
+with TimedExecutor(URDriver(host, robot="ur10e", program=program), model, settings) as ex:
     ex.idle(ex.now() + 0.2)
     q0 = ex.estimate().q_rad
     target = q0.copy(); target[0] += 0.1
@@ -813,8 +815,9 @@ def test_boundary_line_finds_the_cycle_under_a_wandering_publisher(shape: str) -
 def test_send_phase_aims_at_the_middle_of_the_intake_window() -> None:
     """The cycle-locked sender leaves half a period minus the round trip after the earliest
     package arrival (0.6 ms at 500 Hz with the default 0.4 ms); a round trip outside
-    [0, period) is a ConfigError naming it; a virtual-time driver without ``wait_until``
-    cannot be waited on, so the lock is off."""
+    [0, period) is a ConfigError naming it (at connect, when the period is known; the
+    driver is closed again); a virtual-time driver without ``wait_until`` cannot be waited
+    on, so the lock is off."""
     from timedexec.execution import SendPhase
 
     phase = SendPhase(PERIOD_S)
@@ -822,5 +825,12 @@ def test_send_phase_aims_at_the_middle_of_the_intake_window() -> None:
     assert phase.target_s(10.0) == pytest.approx(10.0006)
     with pytest.raises(ConfigError, match=r"round_trip_s=0.003 outside \[0, 0.002\)"):
         SendPhase(PERIOD_S, 0.003)
-    assert TimedExecutor(sim(), MODEL, cycle_lock=True).cycle_lock is True
-    assert TimedExecutor(PlainDriver(sim()), MODEL, cycle_lock=True).cycle_lock is False
+    locked = ExecutorSettings(cycle_lock=True)
+    with TimedExecutor(sim(), MODEL, locked) as ex:
+        assert ex.send_phase is not None
+    with TimedExecutor(PlainDriver(sim()), MODEL, locked) as ex:
+        assert ex.send_phase is None
+    drv = sim()
+    with pytest.raises(ConfigError, match=r"round_trip_s=0.003 outside \[0, 0.002\)"):
+        TimedExecutor(drv, MODEL, locked.replace(round_trip_s=0.003)).connect()
+    assert drv._sim is None  # closed again

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from timedexec.effects import EffectSet, default_effects
-from timedexec.errors import ModelError
+from timedexec.errors import ModelError, StaleStateError
 from timedexec.evaluation import SimulatedOracle
 from timedexec.execution import (
     DelayPredictions,
+    ExecutorSettings,
     FixedDelays,
     StalenessLimits,
-    StaleStateError,
     TimedExecutor,
 )
 from timedexec.robots import get_robot
@@ -91,7 +91,8 @@ def test_moves_a_joint_on_a_deadline_through_ur_rtde(twin: URTwin) -> None:
     # machine (load 4.5) sees the stream stall for up to ~60-80 ms; this test is about
     # timing (the stall test and tests/test_execution_safety.py check the defaults).
     limits = StalenessLimits(floor_s=0.1, ceiling_s=0.1)
-    with TimedExecutor(URDriver(HOST), model, staleness=limits, watchdog_timeout_s=0.2) as ex:
+    settings = ExecutorSettings(staleness=limits, watchdog_timeout_s=0.2)
+    with TimedExecutor(URDriver(HOST), model, settings) as ex:
         q0 = ex.estimate().q_rad
         target = q0.copy()
         target[1] += 0.3

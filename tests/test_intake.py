@@ -16,40 +16,19 @@ import numpy as np
 import pytest
 
 from timedexec.execution import (
+    CycleLog,
+    ExecutorSettings,
     FixedDelays,
     IntakeFix,
     SendPhase,
     TimedExecutor,
-    find_intake_step,
     intake_echo,
-    sampling_times_s,
+    probe_intake,
 )
+from timedexec.tasks import fit_joint_lags, sampling_times_s
 
 PERIOD_S = 0.002
 PHASES = [m * PERIOD_S / 16 for m in range(16)]
-
-
-def test_the_step_is_found_between_the_last_early_and_the_first_late_send() -> None:
-    """Sends before the deadline (0.9 ms here) are echoed 1 cycle after the reference
-    package, later ones 2: the deadline is the middle of the pair around the step."""
-    lat = [1 if p < 0.0009 else 2 for p in PHASES]
-    phase, miss, trials = find_intake_step(PHASES, lat, PERIOD_S)
-    assert (miss, trials) == (0, 16)
-    assert phase == pytest.approx(0.5 * (PHASES[7] + PHASES[8]))
-
-
-def test_a_step_past_the_last_phase_wraps_and_lost_or_stray_trials_are_counted() -> None:
-    """Every trial on the same side: the deadline lies between the last phase and the
-    period. A lost trial (None) is left out; one on the wrong side (host jitter at the
-    deadline) is a mismatch, not a moved step."""
-    phase, miss, trials = find_intake_step(PHASES, [3] * 16, PERIOD_S)
-    assert (miss, trials) == (0, 16)
-    assert phase == pytest.approx(0.5 * (PHASES[-1] + PERIOD_S))
-    lat: list[int | None] = [1 if p < 0.0012 else 2 for p in PHASES]
-    lat[3], lat[12] = None, 1
-    phase, miss, trials = find_intake_step(PHASES, lat, PERIOD_S)
-    assert (miss, trials) == (1, 15)
-    assert phase == pytest.approx(0.5 * (PHASES[9] + PHASES[10]))
 
 
 def fix(deadline_offset_s: float = 0.0013) -> IntakeFix:
@@ -84,7 +63,6 @@ def test_the_echo_counts_cycles_that_took_no_command_or_two() -> None:
     cycle k + 2, except that cycle 5 shows command 2 again (no new command taken) and
     command 6 never shows (overwritten by 7 within one cycle)."""
     from timedexec.drivers import RobotState
-    from timedexec.execution import CycleLog
 
     log = CycleLog()
     shown = [None, None, 0, 1, 2, 2, 3, 4, 5, 7, 8]
@@ -107,9 +85,19 @@ class FakeController:
     ``k * period`` arrive ``offset + stamp + publish_s + wire_s``; a command sent before
     ``offset + stamp + deadline_s`` is taken by that cycle and shows in ``target_qd`` two
     packages later (a pipeline). ``echo``: "exact", "smoothed" (a first-order filter on
-    the target), "frozen" (always zero) or "none" (no target_qd)."""
+    the target), "frozen" (always zero) or "none" (no target_qd). The sends numbered in
+    ``hide`` never show (the target reads zero while they are the newest: a lost echo);
+    those in ``stray`` are taken one cycle late (host jitter right at the deadline)."""
 
-    def __init__(self, deadline_s: float, publish_s: float, *, echo: str = "exact") -> None:
+    def __init__(
+        self,
+        deadline_s: float,
+        publish_s: float,
+        *,
+        echo: str = "exact",
+        hide: frozenset[int] = frozenset(),
+        stray: frozenset[int] = frozenset(),
+    ) -> None:
         self.offset, self.deadline_s, self.publish_s, self.wire_s = (
             100.0,
             deadline_s,
@@ -120,6 +108,7 @@ class FakeController:
         self.k = 0
         self.sent: list[tuple[float, np.ndarray]] = []
         self.echo = echo
+        self.hide, self.stray = hide, stray
         self.target = np.zeros(6)
 
     def clock(self) -> float:
@@ -134,10 +123,13 @@ class FakeController:
 
         self.k += 1
         self.t = max(self.t, self.arrival(self.k))
+        cutoff = self.offset + (self.k - 2) * PERIOD_S + self.deadline_s
         taken = [
-            v for s, v in self.sent if s < self.offset + (self.k - 2) * PERIOD_S + self.deadline_s
+            (n, v)
+            for n, (s, v) in enumerate(self.sent)
+            if s + (PERIOD_S if n in self.stray else 0.0) < cutoff
         ]
-        newest = taken[-1] if taken else np.zeros(6)
+        newest = taken[-1][1] if taken and taken[-1][0] not in self.hide else np.zeros(6)
         if self.echo == "smoothed":
             self.target = 0.5 * (self.target + newest)
         elif self.echo == "exact":
@@ -152,17 +144,18 @@ class FakeController:
 
 
 @pytest.mark.parametrize(
-    ("deadline_s", "echo"), [(0.0003, "exact"), (0.0011, "exact"), (0.0019, "smoothed")]
+    ("deadline_s", "echo"),
+    [(0.0003, "exact"), (0.0011, "exact"), (0.0019, "smoothed"), (0.00197, "exact")],
 )
 def test_probe_finds_the_deadline_wherever_the_packages_arrive(
     deadline_s: float, echo: str
 ) -> None:
     """On a virtual controller whose package leaves 1.2 ms into its 2 ms cycle, the probe
-    finds the command deadline to within its resolution (period / 32) wherever in the
-    cycle it lies, also where the target is smoothed (a constant extra delay of the echo
-    moves no step); the packages' lead says where they arrive after it."""
-    from timedexec.execution import probe_intake
-
+    finds the command deadline to within its resolution (period / 32: the middle of the
+    last send before it and the first after it) wherever in the cycle it lies, also where
+    the target is smoothed (a constant extra delay of the echo moves no step) and past the
+    last phase tried (1.97 ms: every send is early, the step wraps into the period's last
+    sixteenth); the packages' lead says where they arrive after it."""
     ctl = FakeController(deadline_s, 0.0012, echo=echo)
     ctl.read()
     ref = ctl.arrival(1) - PERIOD_S  # earliest arrival minus controller time
@@ -184,11 +177,27 @@ def test_probe_refuses_a_controller_whose_target_does_not_answer(echo: str, mess
     """No echo (a target that never shows the probes, or none reported): a DriverError
     saying so, not a guessed deadline."""
     from timedexec.errors import DriverError
-    from timedexec.execution import probe_intake
 
     ctl = FakeController(0.0011, 0.0012, echo=echo)
     with pytest.raises(DriverError, match=message):
         probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ctl.arrival(1) - PERIOD_S)
+
+
+def test_a_lost_echo_is_left_out_and_a_stray_trial_counted_not_followed() -> None:
+    """One probe whose echo never shows is left out (one trial fewer); one taken a cycle
+    late (host jitter right at the deadline) counts as a mismatch, and the deadline found
+    stays where the other trials put it (the step does not move to follow a stray)."""
+    ref = FakeController(0.0011, 0.0012).arrival(1) - PERIOD_S
+    clean_ctl = FakeController(0.0011, 0.0012)
+    clean_ctl.read()
+    clean = probe_intake(clean_ctl.read, clean_ctl.send, clean_ctl.clock, PERIOD_S, ref)
+    ctl = FakeController(0.0011, 0.0012, hide=frozenset({4}), stray=frozenset({10}))
+    ctl.read()
+    fix = probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ref)
+    assert (clean.mismatches, fix.mismatches) == (0, 1)
+    assert fix.trials == clean.trials - 1
+    # The virtual clock moves by µs as it is read: the same deadline within 2 µs.
+    assert fix.deadline_offset_s == pytest.approx(clean.deadline_offset_s, abs=2e-6)
 
 
 # ------------------------------------------------------------------ against the peer
@@ -233,7 +242,8 @@ def run_on_late_publisher(host: str, *, probed: bool) -> LateRun:
     )
     with peer_mod.run_peer(host, model="UR10", version="5.11.1", extra_args=extra) as peer:
         driver = URDriver(host, robot="ur10e")
-        with TimedExecutor(driver, MODEL, cycle_lock=True, coast=True, realtime_priority=5) as ex:
+        settings = ExecutorSettings(cycle_lock=True, coast=True, realtime_priority=5)
+        with TimedExecutor(driver, MODEL, settings) as ex:
             if not probed:
                 assert ex.send_phase is not None
                 ex.send_phase.intake = None  # aim by the package arrivals
@@ -255,8 +265,6 @@ def run_on_late_publisher(host: str, *, probed: bool) -> LateRun:
 def residual_after_lag_rad(run: LateRun) -> float:
     """Largest RMS over joints of the peer's arm against the plan once each joint's lag is
     fitted out, rad: what the arm did that no delay explains."""
-    from timedexec.execution import fit_joint_lags
-
     truth, plan = run.truth, run.plan
     keep = (truth.t > run.span[0]) & (truth.t < run.span[1] + 0.05)
     host_t = run.truth_host_s[keep]

@@ -491,13 +491,12 @@ def test_ur_twin_run_without_drift(tmp_path) -> None:  # type: ignore[no-untyped
     commanded speed reached the onset level) is a constant of the method (ramp inversion
     vs the 10 % level; -3 .. +1 ms on the simulator) with a spread below 1.5 ms for 80 %
     of the moves (the executor's send times wander on a loaded machine)."""
-    import inspect
     import time
 
     pytest.importorskip("rtde_receive")
     pytest.importorskip("rtde_control")
     from timedexec.drivers import URDriver
-    from timedexec.execution import TimedExecutor
+    from timedexec.execution import ExecutorSettings, StalenessLimits, TimedExecutor
     from timedexec.twins import URTwin, read_truth
 
     host = "127.0.0.43"
@@ -512,12 +511,13 @@ def test_ur_twin_run_without_drift(tmp_path) -> None:  # type: ignore[no-untyped
     model = DelayModel.load("ur10e-sim")
     for d in (1, -1):
         predict_delays(model, [1, 2, 3], [d] * 3, np.tile(q0, (3, 1)))
-    extra = {}
-    if "watchdog_timeout_s" in inspect.signature(TimedExecutor).parameters:
-        extra["watchdog_timeout_s"] = 1.0  # a test process on a loaded two-core VM
+    settings = ExecutorSettings(
+        staleness=StalenessLimits.from_stale_periods(50),
+        watchdog_timeout_s=1.0,  # a test process on a loaded two-core VM
+    )
     mon = DelayMonitor(model, warmup_moves=20)
     with URTwin("ur10e", host, seed=4, effects=effects, q0_rad=q0, truth_path=truth_path):
-        with TimedExecutor(URDriver(host), model, stale_periods=50, **extra) as ex:
+        with TimedExecutor(URDriver(host), model, settings) as ex:
             start = ex.estimate().q_rad
             for k in range(24):
                 if time.monotonic() > t_end - 8:

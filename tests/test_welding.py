@@ -14,24 +14,32 @@ from conftest import full_or_bounded
 from timedexec.drivers import SimDriver
 from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
+from timedexec.evaluation import (
+    evaluate_conveyor,
+    phase_seeds,
+    physical_tracking_delays,
+    run_weld,
+)
 from timedexec.execution import (
-    Conveyor,
+    ExecutorSettings,
     FixedDelays,
     FrictionFeed,
-    Seam,
+    StalenessLimits,
     TimedExecutor,
+)
+from timedexec.robots import forward_kinematics, get_robot, solve_ik, tool_jacobian, tool_pose
+from timedexec.tasks import (
+    Conveyor,
+    Seam,
     TrackingDelays,
     default_cell,
     fit_dead_time_and_friction,
     fit_joint_lags,
-    friction_sign,
     measure_tracking_delays,
     plan_seam,
     prepare_shifted,
     track_conveyor_seam,
 )
-from timedexec.robots import forward_kinematics, get_robot, solve_ik, tool_jacobian, tool_pose
-from timedexec.welding import evaluate_conveyor, phase_seeds, physical_tracking_delays, run_weld
 
 TOOL = (0.0, 0.0, 0.15)
 
@@ -53,7 +61,8 @@ def weld(seam_plan, seed: int, **kw):  # type: ignore[no-untyped-def]
     )
     compensate = kw.pop("compensate", True)
     lock = kw.pop("cycle_lock", True)
-    with TimedExecutor(drv, model, compensate=compensate, cycle_lock=lock) as ex:
+    settings = ExecutorSettings(compensate=compensate, cycle_lock=lock)
+    with TimedExecutor(drv, model, settings) as ex:
         return track_conveyor_seam(ex, seam_plan.cell, seam_plan=seam_plan, **kw)
 
 
@@ -234,7 +243,7 @@ def test_dead_time_and_friction_recovered_from_cruising_positions(kr5_plan) -> N
             q = np.empty((len(t), 6))
             for j in range(6):
                 qp, vp = plan.sample_many(t - start + shift[j] - dead[j])
-                sgn = friction_sign(vp[:, j])
+                sgn = FrictionFeed.sign(vp[:, j])
                 q[:, j] = qp[:, j] - np.where(sgn >= 0, fric[0, j], fric[1, j]) * sgn
                 reverses[j] &= np.ptp(np.sign(vp[:, j])) == 2
             samples.append((plan, t, q, shift))
@@ -300,7 +309,7 @@ def test_friction_feed_builds_the_offset_and_keeps_what_the_limits_clipped(kr5_p
     v_end = plan.velocity_per_joint(np.full(6, 40 * period))
     # After the build, the offset sent is the offset due at the last command's end: each
     # command sends what is due minus what was sent (nothing clipped), so equal to rounding.
-    np.testing.assert_allclose(feed.sent_rad, fric * friction_sign(v_end), atol=1e-12)
+    np.testing.assert_allclose(feed.sent_rad, fric * FrictionFeed.sign(v_end), atol=1e-12)
     clipped = FrictionFeed(fric)
     t = np.full(6, 0.1)
     v = clipped.speed(plan, t, period)
@@ -405,7 +414,8 @@ def test_prepare_shifted_checks_the_shift(kr5_plan) -> None:  # type: ignore[no-
         out = prepare_shifted(ex, kr5_plan.plan, [0.08] * 6)
         np.testing.assert_allclose(out.meta["actuation_s"], 0.08)
     drv = SimDriver("kr5", q0_rad=kr5_plan.plan.q_start_rad)
-    with TimedExecutor(drv, FixedDelays(robot="kr5", actuation_s=0.09), compensate=False) as ex:
+    model = FixedDelays(robot="kr5", actuation_s=0.09)
+    with TimedExecutor(drv, model, ExecutorSettings(compensate=False)) as ex:
         assert np.all(prepare_shifted(ex, kr5_plan.plan, [0.08] * 6).meta["actuation_s"] == 0)
     # A tracking model's friction offsets ride on its own shift only, never on a plain one.
     fric = ((0.001,) * 6, (0.002,) * 6)
@@ -517,7 +527,7 @@ def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
     CI run that failed: 5.5 mm); with the lock but positions dated by the mean response,
     the publisher phase's floor: 1.3-1.9 mm over ten pairs."""
     pytest.importorskip("rtde_control")
-    from timedexec.welding import weld_on_twin
+    from timedexec.evaluation import weld_on_twin
 
     sp = plan_seam(default_cell("ur10"), Seam(), weld_s=0.8)
     none = weld_on_twin(sp, "ur10-sim", {"none": None}, host="127.0.0.62")["none"]
@@ -551,7 +561,7 @@ def test_weld_through_rsi_against_the_rsi_twin() -> None:
     taking packages adds its delay on top, without limit; so this asserts that the RSI
     weld removes most of the lag, not a precision (that is the speedj welds' with the
     intake probe). It had 4 mm, then 7 mm: both tighter than the dating allows."""
-    from timedexec.welding import weld_on_twin
+    from timedexec.evaluation import weld_on_twin
 
     sp = plan_seam(default_cell("kr5"), Seam(), weld_s=0.8)
     none = weld_on_twin(sp, "kr5-sim", {"none": None})["none"]
@@ -573,9 +583,11 @@ def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim
     args = ("--publish-delay", str(publish_delay_s), "--rt-priority", "10", f"--q0={q0}", *extra)
     compensate = shift is not None or model != "ur10-sim"
     with peer_mod.run_peer(host, model="UR10", version="3.15.7", extra_args=args) as peer:
-        with TimedExecutor(URDriver(host, robot="ur10"), model, cycle_lock=True,
-                           compensate=compensate, coast=True, realtime_priority=5,
-                           stale_periods=25) as ex:  # fmt: skip
+        settings = ExecutorSettings(
+            cycle_lock=True, compensate=compensate, coast=True, realtime_priority=5,
+            staleness=StalenessLimits.from_stale_periods(25),
+        )  # fmt: skip
+        with TimedExecutor(URDriver(host, robot="ur10"), model, settings) as ex:
             run = track_conveyor_seam(ex, sp.cell, sp.seam, seam_plan=sp, shift_s=shift)
             end = peer.to_peer_time(ex.now())
         truth = peer.wait_truth_until(end)

@@ -22,7 +22,7 @@ from timedexec.errors import (
 )
 
 if TYPE_CHECKING:
-    from timedexec.execution import TimedExecutor
+    from timedexec.execution import ExecutorSettings, TimedExecutor
     from timedexec.learning import DelayModel, DelayPrediction
 
 __all__ = [
@@ -31,6 +31,7 @@ __all__ = [
     "DelayPrediction",
     "DriverError",
     "DriverTimeout",
+    "ExecutorSettings",
     "ModelError",
     "ProtocolError",
     "RecordingError",
@@ -47,8 +48,8 @@ def __getattr__(name: str) -> Any:
         from timedexec import learning
 
         return getattr(learning, name)
-    if name == "TimedExecutor":
-        from timedexec.execution import TimedExecutor
+    if name in ("TimedExecutor", "ExecutorSettings"):
+        from timedexec import execution
 
-        return TimedExecutor
+        return getattr(execution, name)
     raise AttributeError(f"module 'timedexec' has no attribute {name!r}")

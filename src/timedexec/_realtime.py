@@ -8,10 +8,23 @@ import gc
 import os
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
-__all__ = ["CPU_DMA_LATENCY", "GcPauses", "fast_wakeup", "quiet_gc", "realtime", "try_realtime"]
+__all__ = [
+    "CPU_DMA_LATENCY",
+    "SPIN_S",
+    "GcPauses",
+    "fast_wakeup",
+    "quiet_gc",
+    "realtime",
+    "try_realtime",
+    "wait_until",
+]
+
+#: The last part of a :func:`wait_until` is spun, s (``time.sleep`` alone overshoots by
+#: 50-100 µs).
+SPIN_S = 1.5e-4
 
 
 def try_realtime(priority: int | None) -> bool:
@@ -112,3 +125,17 @@ def quiet_gc() -> Iterator[GcPauses]:
         with contextlib.suppress(ValueError):
             gc.callbacks.remove(pauses.callback)
         gc.unfreeze()
+
+
+def wait_until(t_s: float, clock: Callable[[], float] = time.monotonic) -> float:
+    """Sleep, then spin (the last :data:`SPIN_S`), until ``clock()`` reaches ``t_s``;
+    return the clock then. The executor's cycle lock waits for its send time with it
+    (``benchmarks/bench_wakeup_latency.py`` measures how late it wakes)."""
+    now = clock()
+    rest = t_s - now - SPIN_S
+    if rest > 0:
+        time.sleep(rest)
+    now = clock()
+    while now < t_s:
+        now = clock()
+    return now

@@ -20,6 +20,7 @@ __all__ = [
     "DictMixin",
     "check_joint_array",
     "check_joint_tuple",
+    "check_known_keys",
     "check_non_negative",
     "check_positive",
 ]
@@ -60,6 +61,17 @@ def check_joint_array(name: str, value: ArrayLike) -> NDArray[np.float64]:
     if not np.all(np.isfinite(arr)):
         raise ConfigError(f"{name}: values must be finite, got {arr.tolist()}")
     return arr
+
+
+def check_known_keys(cls: type, data: Iterable[str]) -> None:
+    """Raise :class:`ConfigError` when ``data`` (a mapping's keys) names a field the
+    dataclass ``cls`` does not have (a misspelt setting in a dict or JSON file)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(
+            f"unknown {cls.__name__} keys {unknown}; expected some of {sorted(names)}"
+        )
 
 
 class DictMixin:

@@ -27,6 +27,7 @@ __all__ = [
     "EXIT_INTERRUPTED",
     "JSON_CONVENTION",
     "MAX_SEED",
+    "MAX_TRIALS",
     "Formatter",
     "StdoutClosed",
     "add_command",
@@ -107,6 +108,10 @@ def add_robot(
         metavar="ROBOT",
         help=f"{help}: {', '.join(ROBOT_NAMES)}",
     )
+
+
+#: The most trials a sweep may plan: 300 times the paper's 33,500 (a fleet's worth).
+MAX_TRIALS = 10_000_000
 
 
 def int_arg(
@@ -222,7 +227,7 @@ def add_jobs(parser: argparse.ArgumentParser, *, help: str = "worker processes (
 
 
 def _jobs(text: str) -> int:
-    value = int_arg(-1)(text)
+    value = int_arg(-1, 4096)(text)
     if value == 0:
         raise argparse.ArgumentTypeError(
             "0 is out of range; use a worker count >= 1, or -1 for one per CPU"

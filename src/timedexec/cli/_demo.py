@@ -51,7 +51,7 @@ def add_parser(sub: Any) -> None:
         help="calibration trials (>= 160; overrides --quick)",
     )
     p.add_argument(  # tests: a tiny evaluation
-        "--eval-configs", type=int_arg(1), help=argparse.SUPPRESS
+        "--eval-configs", type=int_arg(1, 100_000), help=argparse.SUPPRESS
     )
     add_json(p, "the summary (summary, extraction_rmse_ms, cv_ms, evaluation, conveyor, ...)")
     p.set_defaults(func=run)

@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         model = worker_model(args.model, client)
         progress = not args.quiet and client is None
         if args.task == "conveyor":
-            from timedexec.welding import evaluate_conveyor
+            from timedexec.evaluation import evaluate_conveyor
 
             weld = submit(
                 client,

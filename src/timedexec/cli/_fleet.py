@@ -71,16 +71,21 @@ def add_parser(sub: Any) -> None:
         default=",".join(DEFAULT_METHODS),
         help=f"comma list of {', '.join(METHODS)} (`timedexec train --help` describes them)",
     )
-    p.add_argument("--folds", type=int_arg(2), default=10, help="cross-validation folds (>= 2)")
+    p.add_argument(
+        "--folds", type=int_arg(2, 100), default=10, help="cross-validation folds (2 .. 100)"
+    )
     add_seed(p, help="seed of the folds and the estimators")
     p.add_argument(
         "--configs",
-        type=int_arg(0, fix=" (0 skips the evaluation)"),
+        type=int_arg(0, 100_000, fix=" (0 skips the evaluation)"),
         default=300,
         help="held-out simulated configurations of each robot's evaluation (0: skip it)",
     )
     p.add_argument(
-        "--draws", type=int_arg(2), default=20, help="simulated trials behind the oracle (>= 2)"
+        "--draws",
+        type=int_arg(2, 1000),
+        default=20,
+        help="simulated trials behind the oracle (2 .. 1000)",
     )
     p.add_argument(
         "--drift",

@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from timedexec.cli._common import (
+    MAX_TRIALS,
     add_command,
     add_jobs,
     add_json,
@@ -15,12 +16,12 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
+    int_arg,
     shell_command,
     sweep_stopped,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
 from timedexec.effects import EFFECTS
-from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "resume_command", "run"]
 
@@ -44,7 +45,10 @@ def add_parser(sub: Any) -> None:
     )
     add_robot(p, required=True)
     p.add_argument(
-        "--trials", type=int, required=True, help="number of trials (>= 1; the paper: 33500)"
+        "--trials",
+        type=int_arg(1, MAX_TRIALS, fix=" (the paper's sweep: 33500)"),
+        required=True,
+        help=f"number of trials (1 .. {MAX_TRIALS:,}; the paper: 33500)",
     )
     add_seed(p)
     p.add_argument("--out", required=True, help="recording to write (HDF5)")
@@ -78,10 +82,6 @@ def run(args: argparse.Namespace) -> int:
     from timedexec.robots import get_robot
     from timedexec.sim import default_settings, simulate_sweep
 
-    if args.trials < 1:
-        raise ConfigError(
-            f"--trials {args.trials}: the number of trials must be >= 1 (the paper's sweep: 33500)"
-        )
     check_files(
         args,
         "simulate",

@@ -28,6 +28,7 @@ from timedexec.cli._common import (
     add_seed,
     check_files,
     emit,
+    int_arg,
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
 from timedexec.errors import ConfigError
@@ -63,7 +64,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument("delays", metavar="DELAYS.csv", help="delay table (CSV)")
     p.add_argument("--out", required=True, metavar="DIR", help="bundle directory to write")
     p.add_argument(
-        "--folds", type=int, default=10, help="cross-validation folds (0: train without CV)"
+        "--folds",
+        type=int_arg(0, 100, fix=" (0 trains without cross-validation)"),
+        default=10,
+        help="cross-validation folds (0: train without CV; 2 .. 100)",
     )
     p.add_argument(
         "--methods",

@@ -1,29 +1,35 @@
-"""One cycle's speed command: the position correction and the limits.
+"""One cycle's speed command: the shifted feed-forward, the position correction, the limits.
 
+:class:`CommandStream` is the command side of the executor's loop: per cycle, joint ``j``
+gets the active plan's speed where its command acts (its shift ``tau_j`` plus the ramp
+later), the position correction, inside the limits; it keeps the previous command.
 :class:`SmithPredictor` is the optional position correction: the back-dated reported
 position is compared with the plan at the instant the package describes, and the
 corrections already sent whose action is not yet visible in that package are subtracted, so
 the loop's delay does not make the correction oscillate (the executor adds ``gain · error``
-to the speed command, ``TimedExecutor(position_gain_1_s=...)``). :func:`limit_command`
+to the speed command, ``ExecutorSettings(position_gain_1_s=...)``). :func:`limit_command`
 keeps a command inside the speed, acceleration and position limits;
 :class:`FrictionFeed` is the feed-forward: the plan's speed plus what carries a tracking
-model's friction offsets (:class:`~timedexec.execution.TrackingDelays`);
+model's friction offsets (:class:`~timedexec.tasks.TrackingDelays`);
 :func:`ramp_acceleration` is the ``speedj`` acceleration that ramps it over one period.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.execution._plan import ExecutionLimits, JointPlan
+from timedexec.execution._state import StateTracker
 from timedexec.robots import RobotSpec
 
 __all__ = [
     "FRICTION_BUILD_S",
     "FRICTION_SPEED_RAD_S",
+    "CommandStream",
     "FrictionFeed",
     "SmithPredictor",
     "friction_sign",
@@ -63,6 +69,10 @@ class FrictionFeed:
         Offset per direction (positive, negative) and joint, rad; (6,): the same both
         ways (zeros: the planned speed alone).
     """
+
+    #: The smooth sign of a joint speed that scales its friction offset (-1..1):
+    #: ``tanh(v / FRICTION_SPEED_RAD_S)``; a fit of the offsets uses the same one.
+    sign = staticmethod(friction_sign)
 
     def __init__(self, friction_rad: ArrayLike) -> None:
         self.friction_rad = np.broadcast_to(np.asarray(friction_rad, dtype=float), (2, 6))
@@ -218,3 +228,106 @@ def ramp_acceleration(
     need = float(np.max(np.abs(v_rad_s - v_prev_rad_s))) / period_s
     floor = 0.5 * float(np.min(amax_rad_s2))
     return float(min(max(need, floor), float(np.max(amax_rad_s2))))
+
+
+class CommandStream:
+    """The command side of the loop: the active plan's speed at each joint's shifted
+    instant, the optional position correction, the limits, the previous command.
+
+    Parameters
+    ----------
+    limits : ExecutionLimits
+        Fractions of the spec's limits to command with.
+    gain_1_s : float
+        Position-correction gain, 1/s (0: feed-forward only; :class:`SmithPredictor`).
+
+    Attributes
+    ----------
+    tau_s, tau_std_s : ndarray (6,)
+        The active plan's per-joint shift (predicted actuation delay) and its
+        single-trial std, s.
+    v_prev_rad_s : ndarray (6,)
+        The last command sent, rad/s (zeros: nothing moving is commanded).
+    last_send_s : float
+        Host time it left, s (NaN before the first).
+    clip_count : int
+        Commands a limit clipped.
+    """
+
+    def __init__(self, limits: ExecutionLimits, gain_1_s: float) -> None:
+        self.limits, self.gain_1_s = limits, gain_1_s
+        self.tau_s, self.tau_std_s, self.v_prev_rad_s = np.zeros(6), np.zeros(6), np.zeros(6)
+        self.last_send_s = math.nan
+        self.clip_count = 0
+        self._feed = FrictionFeed(np.zeros(6))
+        self._correction = SmithPredictor()
+
+    @property
+    def moving(self) -> bool:
+        """Whether the last command asked any joint to move."""
+        return bool(np.any(self.v_prev_rad_s != 0))
+
+    def begin(self, plan: JointPlan, *, new: bool) -> None:
+        """Stream the prepared ``plan`` from now on (its ``meta``: the shifts; a ``new``
+        plan also starts its own feed, with its friction offsets, and correction)."""
+        if new:
+            self._correction.clear()
+            self._feed = FrictionFeed(plan.meta.get("friction_rad", np.zeros(6)))
+        self.tau_s = np.asarray(plan.meta["actuation_s"], float)
+        self.tau_std_s = np.asarray(plan.meta["actuation_std_s"], float)
+
+    def command(
+        self,
+        plan: JointPlan | None,
+        now: float,
+        state: StateTracker,
+        last_plan: JointPlan | None,
+        spec: RobotSpec,
+        period: float,
+    ) -> tuple[FloatArray, float, bool]:
+        """This cycle's speed command (6,), rad/s, its ``speedj`` acceleration, rad/s², and
+        whether a limit clipped it, for a command leaving at host time ``now`` (``plan``
+        None: hold still; ``last_plan``: what the state estimate follows)."""
+        tau = self.tau_s
+        target = feed_forward = np.zeros(6)
+        correcting = False
+        if plan is not None:
+            # Joint j gets the plan's speed where its command acts: tau_j plus the ramp later.
+            t_act = now - plan.start_time_s + tau + period
+            target = feed_forward = self._feed.speed(plan, t_act, period)
+            sample = state.sample
+            if self.gain_1_s > 0 and sample is not None:
+                correcting = True
+                t_phys, q, _ = sample
+                error = self._correction.predicted_error(plan, t_phys, q, tau, now)
+                target = feed_forward + self.gain_1_s * error
+        since = now - self.last_send_s if math.isfinite(self.last_send_s) else period
+        # Where this command acts (after each joint's delay) the joint must be able to stop.
+        q_act = state.q_per_joint(now + tau + period, plan or last_plan)
+        v = limit_command(
+            target,
+            v_prev_rad_s=self.v_prev_rad_s,
+            since_s=since,
+            q_act_rad=q_act,
+            spec=spec,
+            limits=self.limits,
+            period_s=period,
+        )
+        if plan is not None:  # what a limit clipped is owed once: to the correction if any
+            self._feed.commanded(feed_forward if correcting else v, period)
+        clipped = bool(np.any(np.abs(v - target) > 1e-12))
+        if clipped:
+            self.clip_count += 1
+        if correcting:
+            self._correction.record(now, v - feed_forward)
+        amax = self.limits.acceleration(spec)
+        return v, ramp_acceleration(v, self.v_prev_rad_s, amax, period), clipped
+
+    def sent(self, v_rad_s: FloatArray, now_s: float) -> None:
+        """The command ``v_rad_s`` left at host time ``now_s``."""
+        self.v_prev_rad_s = v_rad_s
+        self.last_send_s = now_s
+
+    def halt(self) -> None:
+        """Nothing moving is commanded any more (a stop, a fault)."""
+        self.v_prev_rad_s = np.zeros(6)

@@ -15,8 +15,8 @@ every command at the middle of the intake window: it leaves at that earliest arr
 half a period minus the round trip the command and the package need together (the
 shortest publish + wire time up, wire time down; ``round_trip_s``, default
 :data:`DEFAULT_ROUND_TRIP_S` as measured on the loopback twin). The command's content is
-computed for the instant it leaves. :func:`wait_until` sleeps to just before the target and
-spins the rest (``time.sleep`` alone overshoots by 50-100 µs).
+computed for the instant it leaves; :func:`timedexec._realtime.wait_until` sleeps to just
+before the target and spins the rest (``time.sleep`` alone overshoots by 50-100 µs).
 
 Where the controller has told where its intake is (:class:`IntakeFix`, found by
 :func:`~timedexec.execution._intake.probe_intake`), :meth:`SendPhase.aim_s` aims by that
@@ -26,9 +26,7 @@ deadline instead of by the arrivals.
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from timedexec.errors import ConfigError
@@ -38,11 +36,9 @@ __all__ = [
     "DEFAULT_ROUND_TRIP_S",
     "LINE_MIN_SPAN_S",
     "LINE_WINDOW_S",
-    "SPIN_S",
     "BoundaryLine",
     "IntakeFix",
     "SendPhase",
-    "wait_until",
 ]
 
 #: Shortest publish + wire-up + wire-down time of the loopback UR twin, s: the earliest
@@ -53,8 +49,6 @@ DEFAULT_ROUND_TRIP_S = 4e-4
 #: loopback twin's shortest round trip (a host cannot split a round trip; a wrong split
 #: moves every sampling instant found by :meth:`IntakeFix.sampled_s` by the same amount).
 COMMAND_UPLINK_S = 0.5 * DEFAULT_ROUND_TRIP_S
-#: The last part of a wait is spun, s.
-SPIN_S = 1.5e-4
 #: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
 #: a publisher whose phase wanders like the twin's (47 s).
 LINE_WINDOW_S = 120.0
@@ -346,15 +340,3 @@ class SendPhase:
         ):
             lead = self._lead = math.ceil((earliest_arrival_s - base) / period)
         return base + lead * period
-
-
-def wait_until(t_s: float, clock: Callable[[], float] = time.monotonic) -> float:
-    """Sleep, then spin, until ``clock()`` reaches ``t_s``; return the clock then."""
-    now = clock()
-    rest = t_s - now - SPIN_S
-    if rest > 0:
-        time.sleep(rest)
-    now = clock()
-    while now < t_s:
-        now = clock()
-    return now

@@ -28,9 +28,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from timedexec._realtime import wait_until
 from timedexec.drivers import RobotState
 from timedexec.errors import DriverError
-from timedexec.execution._cycle import IntakeFix, wait_until
+from timedexec.execution._cycle import IntakeFix
 
 __all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "find_intake_step", "probe_intake"]
 

@@ -23,11 +23,9 @@ from timedexec.learning import BUNDLED_MODELS, bundled_model_dir
 from timedexec.robots import get_robot
 
 __all__ = [
-    "BUNDLED_MODELS",
     "DelayPredictions",
     "DelayPredictor",
     "FixedDelays",
-    "bundled_model_dir",
     "check_model_robot",
     "load_delay_model",
     "model_period_s",

@@ -10,13 +10,14 @@ extrapolated at the end velocity: a conveyor cruise).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from timedexec._validation import check_joint_array
+from timedexec._validation import check_joint_array, check_known_keys
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec
 
@@ -70,6 +71,14 @@ class ExecutionLimits:
                 "must be > 0"
             )
 
+    def position_range(self, spec: RobotSpec) -> tuple[FloatArray, FloatArray]:
+        """Joint positions planned motions keep within, rad, (6,) each: the spec's limits
+        less :data:`POSITION_MARGIN_RAD` (Ruckig ignores position limits; a planner checks
+        its trajectory's extrema against these)."""
+        lo = np.asarray(spec.q_min_rad) + POSITION_MARGIN_RAD
+        hi = np.asarray(spec.q_max_rad) - POSITION_MARGIN_RAD
+        return lo, hi
+
     def velocity(self, spec: RobotSpec) -> FloatArray:
         """Joint speed limits to plan with, rad/s, shape (6,)."""
         return np.asarray(spec.qd_max_rad_s) * self.velocity_fraction
@@ -94,8 +103,9 @@ class ExecutionLimits:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ExecutionLimits:
-        """Inverse of :meth:`to_dict`."""
+    def from_dict(cls, d: Mapping[str, Any]) -> ExecutionLimits:
+        """Inverse of :meth:`to_dict` (unknown keys: :class:`ConfigError`)."""
+        check_known_keys(cls, d)
         return cls(**d)
 
 
@@ -347,8 +357,7 @@ def plan_motion(
         result = Ruckig(6).calculate(inp, traj)
         if result not in (Result.Working, Result.Finished):
             raise ConfigError(f"Ruckig cannot plan this motion (result {result})")
-    lo = np.asarray(spec.q_min_rad) + POSITION_MARGIN_RAD
-    hi = np.asarray(spec.q_max_rad) - POSITION_MARGIN_RAD
+    lo, hi = limits.position_range(spec)
     for j, ext in enumerate(traj.position_extrema):
         if ext.min < lo[j] - 1e-9 or ext.max > hi[j] + 1e-9:
             bad = ext.min if ext.min < lo[j] else ext.max

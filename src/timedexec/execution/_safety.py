@@ -16,6 +16,7 @@ packages, within a timeout derived from the current speed and the deceleration.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -24,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
-from timedexec.errors import ConfigError, DriverError, DriverTimeout
+from timedexec.errors import DriverError, DriverTimeout
 
 __all__ = [
     "DEFAULT_WATCHDOG_TIMEOUT_S",
@@ -33,6 +34,7 @@ __all__ = [
     "REST_SPEED_RAD_S",
     "STOP_MARGIN_S",
     "ControllerWatchdog",
+    "fault_stop",
     "rest_timeout_s",
     "wait_for_rest",
 ]
@@ -64,7 +66,8 @@ class ControllerWatchdog:
     driver : RobotDriver
         The driver (a controller without a watchdog makes every method a no-op).
     timeout_s : float or None
-        Timeout to arm, s; None: never arm.
+        Timeout to arm, s (validated by
+        :class:`~timedexec.execution.ExecutorSettings`); None: never arm.
 
     Attributes
     ----------
@@ -79,11 +82,6 @@ class ControllerWatchdog:
     """
 
     def __init__(self, driver: RobotDriver, timeout_s: float | None) -> None:
-        if timeout_s is not None and not 0 < timeout_s <= 10:
-            raise ConfigError(
-                f"watchdog_timeout_s={timeout_s!r} outside (0, 10] s; e.g. "
-                f"{DEFAULT_WATCHDOG_TIMEOUT_S}, or None to leave the controller's watchdog off"
-            )
         self.driver = driver
         self.timeout_s = None if timeout_s is None else float(timeout_s)
         self.armed_s: float | None = None
@@ -144,6 +142,27 @@ class ControllerWatchdog:
         return True
 
 
+def fault_stop(driver: RobotDriver, deceleration_rad_s2: float, message: str) -> None:
+    """Stop the arm after a fault: a zero-speed ``speedj`` at once (a realtime command; the
+    drivers' ``stop()`` may first wait for the controller's acknowledgement of the previous
+    command: ur_rtde's speedStop, ~30 ms when the stream has stalled), then ``stop()``.
+
+    Raises
+    ------
+    DriverError
+        The controller refused the zero speed (``"<message>; <why>"``): its watchdog had
+        already stopped the program (the host was paused past the timeout), which stopped
+        the arm.
+    """
+    try:
+        driver.speedj(np.zeros(6), deceleration_rad_s2, 0.0)
+    except DriverError as exc:
+        raise DriverError(f"{message}; {exc}") from exc
+    finally:
+        with contextlib.suppress(DriverError):
+            driver.stop(deceleration_rad_s2)
+
+
 def rest_timeout_s(speed_rad_s: float, deceleration_rad_s2: float, period_s: float) -> float:
     """How long a stop from ``speed_rad_s`` may take before it is a failure, s: the ramp
     (speed / deceleration) plus :data:`STOP_MARGIN_S` plus the rest packages."""
@@ -162,8 +181,10 @@ def wait_for_rest(
     rest_speed_rad_s: float = REST_SPEED_RAD_S,
     rest_packages: int = REST_PACKAGES,
     on_state: Callable[[RobotState], None] | None = None,
+    watchdog: ControllerWatchdog | None = None,
 ) -> RobotState:
-    """Decelerate to rest and return the first package of the rest run.
+    """Decelerate to rest, end speed mode (the driver's ``stop()``) and return the first
+    package of the rest run.
 
     Parameters
     ----------
@@ -188,6 +209,8 @@ def wait_for_rest(
         For this many consecutive packages.
     on_state : callable, optional
         Called with every package read.
+    watchdog : ControllerWatchdog, optional
+        Fed by the last zero ``speedj``.
 
     Raises
     ------
@@ -225,6 +248,9 @@ def wait_for_rest(
             if first_at_rest is None:
                 first_at_rest = state
             if run >= rest_packages:
+                if watchdog is not None:
+                    watchdog.fed(clock())
+                driver.stop(deceleration_rad_s2)
                 return first_at_rest
         else:
             run = 0

@@ -31,16 +31,17 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._validation import DictMixin, check_known_keys
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
-from timedexec.execution._cycle import BoundaryLine, IntakeFix
+from timedexec.execution._cycle import BoundaryLine, IntakeFix, SendPhase
 from timedexec.execution._plan import JointPlan
 
 __all__ = [
@@ -220,6 +221,24 @@ class StateTracker:
         line = self.boundary.offset_s(t + self.offset_min_s)
         return t + (line if line < self.offset_min_s else self.offset_min_s)
 
+    def send_target_s(self, phase: SendPhase, cycle: int, period_s: float) -> float:
+        """Host send time of the command answering the package of ``cycle`` (cycle lock:
+        :meth:`SendPhase.aim_s` by the clock model and the clock line's drift), s."""
+        line = self.boundary.line
+        return phase.aim_s(
+            self.controller_time_of(cycle, period_s),
+            self.earliest_arrival_s(cycle, period_s),
+            line[2] if line is not None else 0.0,
+        )
+
+    def coast_at_s(self, phase: SendPhase | None, cycle: int, period_s: float) -> float:
+        """Host time after which a coasting loop stops waiting for the package of
+        ``cycle`` and commands that cycle from the estimate, s: its send time less the
+        command's recent work (cycle lock), else half a period after its earliest arrival."""
+        if phase is not None:
+            return self.send_target_s(phase, cycle, period_s) - phase.coast_lead_s
+        return self.earliest_arrival_s(cycle, period_s) + 0.5 * period_s
+
     # ------------------------------------------------------------------ back-dated state
     def newest(self) -> tuple[float, FloatArray, FloatArray]:
         """``(t_phys, q, qd)`` of the newest package (see :attr:`sample`).
@@ -344,7 +363,7 @@ class StreamJitter:
 
 
 @dataclass(frozen=True, kw_only=True)
-class StalenessLimits:
+class StalenessLimits(DictMixin):
     """When the reported state is too old to command from (see the module docstring).
 
     By default the limits adapt to the stream: the stall limit (no package for that long
@@ -371,7 +390,7 @@ class StalenessLimits:
         Packages the quantiles look back over (default 1000: 2 s at 500 Hz).
     stall_periods, late_periods : float, optional
         Legacy fixed limits in controller periods (>= 1); when given they replace the
-        adaptive stall / late limit (``TimedExecutor(stale_periods=...)``).
+        adaptive stall / late limit (:meth:`from_stale_periods`).
     """
 
     floor_s: float = STALL_FLOOR_S
@@ -414,6 +433,18 @@ class StalenessLimits:
             stall_periods=stale if stall_periods is None else stall_periods,
             late_periods=stale if late_periods is None else late_periods,
         )
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> StalenessLimits:
+        """Inverse of :meth:`to_dict` (missing keys take their defaults).
+
+        Raises
+        ------
+        ConfigError
+            On unknown keys or invalid values.
+        """
+        check_known_keys(cls, data)
+        return cls(**data)
 
     def jitter(self) -> StreamJitter:
         """A jitter tracker with this window and quantile."""

@@ -29,6 +29,7 @@ __all__ = [
     "PredictionCache",
     "arrival_bounds",
     "check_start",
+    "execution_end_s",
     "meet_deadline",
     "onset_bounds",
     "plan_lead_s",
@@ -212,6 +213,32 @@ def plan_lead_s(plan: JointPlan) -> float:
     """How long before a prepared plan's start its first command must leave (the largest
     shift), s."""
     return float(np.max(plan.meta["actuation_s"]))
+
+
+def execution_end_s(
+    plan: JointPlan, *, until_s: float | None, settle_s: float | None, period_s: float
+) -> float:
+    """Host time an execution of a prepared, scheduled plan streams until, s: ``until_s``,
+    else the plan's end plus ``settle_s`` (default: the largest shift plus three periods).
+
+    Raises
+    ------
+    ConfigError
+        No ``until_s`` for a plan that ends moving (a conveyor cruise), or an ``until_s``
+        not after the plan's start (it used to return at once, having done nothing).
+    """
+    if until_s is not None:
+        if until_s <= plan.start_time_s:
+            raise ConfigError(
+                f"until_s={until_s!r} is not after the plan's start at {plan.start_time_s!r} "
+                "(host time, s): nothing would run; give a later until_s, or None to run "
+                "until the plan has settled"
+            )
+        return until_s
+    if np.any(plan.qd_end_rad_s != 0):
+        raise ConfigError("this plan ends moving (a cruise); give until_s")
+    settle = plan_lead_s(plan) + 3 * period_s if settle_s is None else settle_s
+    return plan.end_time_s + settle
 
 
 def check_start(plan: JointPlan, *, now_s: float, period_s: float) -> None:

@@ -129,11 +129,11 @@ def run_demo(
         step, and the paths written.
     """
     from timedexec.evaluation import evaluate, held_out_capacity
-    from timedexec.execution import compare_seam_tracking
     from timedexec.extraction import extract_recording
     from timedexec.learning import train_delay_models
     from timedexec.report._report import build_report, delay_summary
     from timedexec.sim import simulate_sweep
+    from timedexec.tasks import compare_seam_tracking
 
     spec = get_robot(robot)
     if trials < 160:

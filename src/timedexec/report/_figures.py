@@ -268,7 +268,7 @@ def fig_seam(result: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     """The conveyor runs: tool-to-seam distance over the cruise, without compensation, with
     it, and with it plus position feedback.
 
-    ``result`` is :func:`timedexec.execution.compare_seam_tracking`'s output (or its JSON).
+    ``result`` is :func:`timedexec.tasks.compare_seam_tracking`'s output (or its JSON).
     Solid: the physical distance (simulator truth); dashed: what the executor believes from
     its back-dated state.
     """
@@ -309,7 +309,7 @@ _WELD_COLORS = {
 def fig_welding(data: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     """The welder's figure: the torch over the seam on a straight conveyor, per strategy.
 
-    ``data`` is :meth:`timedexec.welding.ConveyorEvaluation.figure_data` (or its JSON): one
+    ``data`` is :meth:`timedexec.evaluation.ConveyorEvaluation.figure_data` (or its JSON): one
     run per strategy. Left: top view *on the part* (the belt's motion removed, so the seam
     stands still): the seam and each strategy's torch tip, in mm from the seam start.
     Right: the torch's error across the seam (top) and along it (bottom) over time, mm;

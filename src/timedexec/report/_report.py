@@ -202,7 +202,7 @@ def build_report(
         per-joint statistics), ``train --json`` output (Tables I-II beside the paper),
         ``evaluate --json`` output (strategy table), model bundle folders (Fig. 6, with the
         dots from the last delay table given before it), conveyor results
-        (:func:`timedexec.execution.compare_seam_tracking` as JSON), ``monitor --json``
+        (:func:`timedexec.tasks.compare_seam_tracking` as JSON), ``monitor --json``
         output (per-joint state, alarms and the CUSUM figure).
     out_dir : path
         Created if missing.

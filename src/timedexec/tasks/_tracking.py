@@ -37,7 +37,7 @@ time lag ``D + e / |v|`` changes with its speed, so one constant shift per joint
 speed only (the "median" strategy's limit, and the oracle's). :class:`TrackingDelays`
 holds ``D`` per joint and ``e`` per direction and joint, fitted jointly on the cruises of
 calibration runs (:func:`fit_dead_time_and_friction`, :meth:`TrackingDelays.calibrate_runs`);
-the executor shifts each joint's stream by ``D`` and adds ``e * friction_sign(v)`` to it
+the executor shifts each joint's stream by ``D`` and adds ``e * FrictionFeed.sign(v)`` to it
 (:class:`~timedexec.execution.FrictionFeed`). On the uncompensated UR10 weld (straight
 seam) the fit leaves 0.0004-0.003 mrad RMS on joints 1-3, 5 and 6 where the best constant
 shift leaves 0.07-0.33 mrad (0.25-0.33 on joints 1-3 and 6).
@@ -59,14 +59,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.execution._command import friction_sign
-from timedexec.execution._model import (
+from timedexec.execution import (
     DelayPredictions,
     DelayPredictor,
+    FrictionFeed,
+    JointPlan,
     load_delay_model,
     predict_delays,
 )
-from timedexec.execution._plan import JointPlan
 
 __all__ = [
     "TrackingDelays",
@@ -142,7 +142,7 @@ def fit_dead_time_and_friction(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per joint, the dead time ``D`` (s) and the friction offsets ``e+``, ``e-`` (rad,
     >= 0; moving in the positive and in the negative direction) that best explain cruising
-    positions over one or more runs: ``q(t) ≈ plan(t + s - D) - e± · friction_sign(v)``,
+    positions over one or more runs: ``q(t) ≈ plan(t + s - D) - e± · FrictionFeed.sign(v)``,
     ``s`` the shift the run's commands carried.
 
     A joint that trails its command by a position (kinetic friction over the velocity
@@ -184,7 +184,7 @@ def fit_dead_time_and_friction(
             res, cols = [], []
             for plan, tp, q, shift in runs:
                 qp, vp = plan.sample_many(tp + shift[j] - d)
-                sgn = friction_sign(vp[:, j])
+                sgn = FrictionFeed.sign(vp[:, j])
                 split = np.c_[np.maximum(sgn, 0.0), np.minimum(sgn, 0.0)]
                 res.append(q[:, j] - qp[:, j] + split @ e)
                 cols.append(np.c_[-vp[:, j], -split])
@@ -244,7 +244,7 @@ def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> Flo
     Parameters
     ----------
     run : ConveyorRun
-        From :func:`~timedexec.execution.track_conveyor_seam` (any driver).
+        From :func:`~timedexec.tasks.track_conveyor_seam` (any driver).
     response_s : float, optional
         Response delay to back-date by, s (instead of the probed intake's dating).
     """
@@ -268,7 +268,7 @@ class TrackingDelays:
     ``predict_many`` answers as the base (onset) model for the response delay and the
     uncertainties, with ``actuation_mean`` replaced by the joint's dead time: the shift a
     velocity stream needs once the arm moves. The friction offsets go into the command
-    stream itself (:func:`~timedexec.execution.prepare_shifted`,
+    stream itself (:func:`~timedexec.tasks.prepare_shifted`,
     :class:`~timedexec.execution.FrictionFeed`). A joint the base model does not cover
     (a sweep of joints 1, 2, 3, 5) gets the covered joints' mean uncertainty and response.
     Hand it to :class:`~timedexec.execution.TimedExecutor` for tracking tasks.

@@ -1,6 +1,6 @@
 """Conveyor welding through the executor: run a seam plan, measure the torch against the seam.
 
-:func:`track_conveyor_seam` plans the seam (:func:`~timedexec.execution.plan_seam`),
+:func:`track_conveyor_seam` plans the seam (:func:`~timedexec.tasks.plan_seam`),
 schedules it so that the torch meets the seam ``lead_s`` from now, streams it through a
 :class:`~timedexec.execution.TimedExecutor` and returns a :class:`ConveyorRun`: per state
 package the host time, the reported joint angles and the executor's estimate, and for a
@@ -13,7 +13,7 @@ The command shift
 -----------------
 By default the executor shifts joint ``j``'s command stream by the delay model's predicted
 *actuation* (onset) delay at the plan's start configuration. ``shift_s`` replaces it by any
-per-joint shift (s): the *tracking* delays of :mod:`timedexec.execution._tracking`, which
+per-joint shift (s): the *tracking* delays (:class:`~timedexec.tasks.TrackingDelays`), which
 is what a velocity stream needs once the arm moves (docs/welding.md).
 
 What is physical here
@@ -36,12 +36,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec.drivers import RobotState
 from timedexec.errors import ConfigError
-from timedexec.execution._conveyor import Seam, SeamPlan, WeldCell, plan_seam
-from timedexec.execution._cycle import IntakeFix
-from timedexec.execution._executor import TimedExecutor
-from timedexec.execution._log import ExecutionResult
-from timedexec.execution._plan import JointPlan
-from timedexec.execution._safety import REST_PACKAGES, REST_SPEED_RAD_S
+from timedexec.execution import ExecutionResult, IntakeFix, JointPlan, TimedExecutor
+from timedexec.tasks._conveyor import Seam, SeamPlan, WeldCell, plan_seam
+from timedexec.tasks._truth import physical_probe
 
 __all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
 
@@ -220,19 +217,6 @@ class ConveyorRun:
         }
 
 
-def _physical_q(executor: TimedExecutor) -> Any:
-    """``() -> (host time, physical q)`` for a simulated driver, else None."""
-    driver: Any = executor.driver
-    if not hasattr(driver, "controller") or not getattr(driver, "virtual", False):
-        return None
-
-    def probe() -> tuple[float, FloatArray]:
-        sim = driver.controller
-        return float(sim.time_s), np.asarray(sim.q_rad, dtype=float)
-
-    return probe
-
-
 def prepare_shifted(
     executor: TimedExecutor, plan: JointPlan, shift_s: ArrayLike | None = None
 ) -> JointPlan:
@@ -240,10 +224,10 @@ def prepare_shifted(
 
     None keeps the executor's own shift (the delay model's predicted actuation delay) and,
     when the model is a tracking model with friction offsets
-    (:class:`~timedexec.execution.TrackingDelays`), carries them on the moving joints
+    (:class:`~timedexec.tasks.TrackingDelays`), carries them on the moving joints
     (``meta["friction_rad"]``, :class:`~timedexec.execution.FrictionFeed`): a tracking
     stream only, never a point-to-point move, which the offset would leave off its end
-    (a UR10e's start move ended 6.9 mrad off on joint 1). An executor built with
+    (a UR10e's start move ended 6.9 mrad off on joint 1). An executor whose settings say
     ``compensate=False`` never shifts. The predictions (bounds, response delay) are the
     executor's either way.
 
@@ -253,7 +237,7 @@ def prepare_shifted(
         If ``shift_s`` is not 6 finite shifts >= 0 s.
     """
     prepared = executor.prepare(plan)
-    if not executor.compensate:
+    if not executor.settings.compensate:
         return prepared
     out = prepared.at(prepared.start_time_s)
     if shift_s is None:
@@ -271,16 +255,6 @@ def prepare_shifted(
     # The onset bounds then describe the shifted stream: the expected onset moves by what
     # the shift leaves of the predicted actuation delay.
     return out
-
-
-def _wait_for_rest(executor: TimedExecutor, timeout_s: float = 2.0) -> None:
-    """Read packages until :data:`REST_PACKAGES` in a row report every joint below
-    :data:`REST_SPEED_RAD_S` (or ``timeout_s`` passes: the approach then starts anyway)."""
-    give_up = executor.now() + timeout_s
-    still = 0
-    while still < REST_PACKAGES and executor.now() < give_up:
-        state = executor.step()
-        still = still + 1 if float(np.max(np.abs(state.qd))) < REST_SPEED_RAD_S else 0
 
 
 def track_conveyor_seam(
@@ -306,7 +280,7 @@ def track_conveyor_seam(
     executor : TimedExecutor
         Connected, robot at rest.
     cell : WeldCell
-        Robot, belt and torch (:func:`~timedexec.execution.default_cell`).
+        Robot, belt and torch (:func:`~timedexec.tasks.default_cell`).
     seam : Seam, optional
         Default: a straight seam across the belt, welded at 0.05 m/s.
     settle_s, cruise_s : float
@@ -333,7 +307,7 @@ def track_conveyor_seam(
             raise ConfigError(f"{name}={value!r} must be a duration >= 0 s")
     seam = seam or Seam()
     weld_s = settle_s + cruise_s + 0.05
-    sp = seam_plan or plan_seam(cell, seam, weld_s=weld_s, limits=executor.limits)
+    sp = seam_plan or plan_seam(cell, seam, weld_s=weld_s, limits=executor.settings.limits)
     if sp.weld_s < weld_s - 1e-9:
         raise ConfigError(
             f"seam_plan covers {sp.weld_s:.3f} s of seam; settle_s + cruise_s + 0.05 = "
@@ -343,7 +317,7 @@ def track_conveyor_seam(
     # pipeline has not: a KR 5's is 72 ms): a speed stream cannot correct where the arm
     # ends up, so wait (reading, not commanding: a stop command would still be braking
     # when the approach's first commands arrive) until it is at rest.
-    _wait_for_rest(executor)
+    executor.idle(executor.now() + 2.0, until_rest=True)
     # Go to the approach's start (at rest), then let the state settle.
     q_now = executor.estimate().q_rad
     if np.max(np.abs(q_now - sp.plan.q_start_rad)) > 1e-4:
@@ -363,7 +337,7 @@ def track_conveyor_seam(
     start = executor.now() + max(lead_s - sp.sync_s, lead)
     scheduled = prepared.at(start)
     sync = start + sp.sync_s
-    probe = _physical_q(executor)
+    probe = physical_probe(executor)
     rows: list[tuple[float, float, FloatArray, float, FloatArray, FloatArray]] = []
 
     def record(state: RobotState) -> None:

@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec.errors import ConfigError
-from timedexec.execution._plan import POSITION_MARGIN_RAD, ExecutionLimits, JointPlan
+from timedexec.execution import ExecutionLimits, JointPlan
 from timedexec.robots import RobotSpec, get_robot, get_robot_entry, solve_ik, tool_pose
 
 __all__ = [
@@ -526,8 +526,7 @@ def plan_seam(
     stop = _ruckig_stop(spec, lim, q_e, qd_e, qdd_e)
     traj = _SeamTrajectory(approach, spline, 0.0, weld_s, stop)
     q_end = np.asarray(stop.at_time(float(stop.duration))[0])
-    lo = np.asarray(spec.q_min_rad) + POSITION_MARGIN_RAD
-    hi = np.asarray(spec.q_max_rad) - POSITION_MARGIN_RAD
+    lo, hi = lim.position_range(spec)
     for j, ext in enumerate(traj.position_extrema):
         if ext.min < lo[j] or ext.max > hi[j]:
             raise ConfigError(

@@ -1,6 +1,9 @@
 """Conveyor welding on the simulator: the physical torch error of each compensation strategy.
 
-The task (:func:`timedexec.execution.track_conveyor_seam`): a straight belt at
+Here, beside the onset evaluation, and not in :mod:`timedexec.tasks`: it runs the simulator
+(its physical joint angles are the truth at the torch), which real-robot code never imports.
+
+The task (:func:`timedexec.tasks.track_conveyor_seam`): a straight belt at
 ``speed_m_s`` carries a part; the torch, orientation held, meets a seam on it (straight or
 curved, across the belt), welds along it at 0.05 m/s relative to the part, every joint
 moving, streamed through the :class:`~timedexec.execution.TimedExecutor` on ``sim://``. The
@@ -9,7 +12,7 @@ the same instant, over the cruise (from ``settle_s`` after the meeting, ``cruise
 mean, RMS and max of the distance, and along / across the seam.
 
 What each strategy shifts joint ``j``'s command stream by — the **tracking delay**, the
-lag a moving arm keeps (:mod:`timedexec.execution._tracking`):
+lag a moving arm keeps (:class:`timedexec.tasks.TrackingDelays`):
 
 ``none``      0 (no compensation);
 ``constant``  one latency for all joints: the median of every joint's measured tracking
@@ -17,7 +20,7 @@ lag a moving arm keeps (:mod:`timedexec.execution._tracking`):
 ``median``    per joint, the median over the calibration runs;
 ``model``     the tracking model fitted on the calibration runs: a dead time per joint
               and a friction offset per direction and joint, the offsets added to the
-              command stream (:class:`~timedexec.execution.TrackingDelays`);
+              command stream (:class:`~timedexec.tasks.TrackingDelays`);
 ``oracle``    the true mean tracking delay of each joint *on this very path*: the shift that
               best aligns the physical joint with its command (least squares over the
               cruise), averaged over ``oracle_draws`` runs with fresh publisher phases (none
@@ -51,28 +54,32 @@ from numpy.typing import NDArray
 from timedexec._progress import Progress
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
-from timedexec.evaluation import STRATEGIES, SimulatedOracle
+from timedexec.evaluation._onset import STRATEGIES, SimulatedOracle
 from timedexec.execution import (
-    SEAM_KINDS,
-    SEAM_POSITION_GAIN_1_S,
-    ConveyorRun,
     DelayPredictor,
-    Seam,
-    SeamPlan,
+    ExecutorSettings,
+    StalenessLimits,
     TimedExecutor,
-    TrackingDelays,
-    WeldCell,
     check_model_robot,
-    default_cell,
-    fit_joint_lags,
     load_delay_model,
-    measure_tracking_delays,
-    plan_seam,
-    track_conveyor_seam,
 )
 from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import simulate_delays
+from timedexec.tasks import (
+    SEAM_KINDS,
+    SEAM_POSITION_GAIN_1_S,
+    ConveyorRun,
+    Seam,
+    SeamPlan,
+    TrackingDelays,
+    WeldCell,
+    default_cell,
+    fit_joint_lags,
+    measure_tracking_delays,
+    plan_seam,
+    track_conveyor_seam,
+)
 
 __all__ = [
     "ConveyorEvaluation",
@@ -209,13 +216,10 @@ def run_weld(
         effects=effects if effects is not None else warm(cell.robot),
         seed=seed,
     )
-    with TimedExecutor(
-        drv,
-        model,
-        compensate=compensate,
-        position_gain_1_s=position_gain_1_s,
-        cycle_lock=True,
-    ) as ex:
+    settings = ExecutorSettings(
+        compensate=compensate, position_gain_1_s=position_gain_1_s, cycle_lock=True
+    )
+    with TimedExecutor(drv, model, settings) as ex:
         return _weld_in_turn(ex, seam_plan, shift_s, settle_s, cruise_s, previous_welds)
 
 
@@ -417,7 +421,7 @@ def evaluate_conveyor(
         Also run the strategies with onset-delay shifts (``onset_strategies``).
     feedback : bool
         Also run ``model + feedback`` (tracking shift and the Smith-predictor position
-        correction at :data:`~timedexec.execution.SEAM_POSITION_GAIN_1_S`).
+        correction at :data:`~timedexec.tasks.SEAM_POSITION_GAIN_1_S`).
     previous_welds : int
         Parts welded the same way before each measured weld (:func:`run_weld`).
 
@@ -584,7 +588,7 @@ def weld_on_twin(
     :class:`~timedexec.twins.RSITwin` (own process) sending RSI XML to a
     :class:`~timedexec.drivers.KukaRSIDriver` on ``rsi_port`` (default: a free port). One
     weld per strategy in ``shifts_s`` (name -> per-joint shift (6,), s; a delay model that
-    compensates by itself, e.g. a :class:`~timedexec.execution.TrackingDelays` with its
+    compensates by itself, e.g. a :class:`~timedexec.tasks.TrackingDelays` with its
     friction offsets; or None for no compensation), a fresh twin (same ``seed``) for each,
     started where the weld ends: every weld begins with the move to the approach's start,
     and the measured one follows ``previous_welds`` of the same strategy, as in
@@ -605,7 +609,10 @@ def weld_on_twin(
     check_model_robot(model, spec.name, spec.controller_period_s)
     model.predict_many(np.array([1]), np.array([1]), q0.reshape(1, 6))
     # A fault stop's deceleration must suit every joint (the RSI driver checks each joint).
-    decel = float(min(spec.qdd_max_rad_s2))
+    settings = ExecutorSettings(
+        staleness=StalenessLimits.from_stale_periods(stale_periods),
+        stop_deceleration_rad_s2=float(min(spec.qdd_max_rad_s2)),
+    )
     if get_robot_entry(spec.name).twin.interface == "ur_rtde":
         from timedexec.drivers import URDriver
         from timedexec.twins import URTwin
@@ -616,9 +623,8 @@ def weld_on_twin(
             with URTwin(
                 spec.name, host, seed=seed, effects=effects, q0_rad=q0, truth_path=truth
             ) as twin, TimedExecutor(URDriver(host, robot=spec.name), by,
-                                     compensate=value is not None, stale_periods=stale_periods,
-                                     stop_deceleration_rad_s2=decel, cycle_lock=True,
-                                     coast=True) as ex:  # fmt: skip
+                                     settings.replace(compensate=value is not None,
+                                                      cycle_lock=True, coast=True)) as ex:  # fmt: skip
                 run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
                 out[name] = run.with_truth(twin.t0_monotonic_s)
         return out
@@ -632,8 +638,7 @@ def weld_on_twin(
             drv.port, robot=spec.name, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
             timeout_packets=2000,
         ) as twin:  # fmt: skip
-            ex = TimedExecutor(drv, by, compensate=value is not None,
-                               stale_periods=stale_periods, stop_deceleration_rad_s2=decel)  # fmt: skip
+            ex = TimedExecutor(drv, by, settings.replace(compensate=value is not None))
             ex.connect()
             run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
             last: Any = ex.last_state

@@ -17,8 +17,8 @@ Reported per strategy: the RMS of (true - predicted) onset timing (ms) and the s
 ``speed_m_s``: a velocity-interface stream that starts ``δ`` late leaves the tool ``speed ·
 δ`` behind a moving seam, so the error is ``speed · RMS δ`` (cm). ``coverage_95`` is the
 fraction of trials whose true onset lies in the model's 95 % bounds. Optionally the seam
-error is verified by running the stepped physics (:func:`track_seam` on ``sim://``) on a
-subset of held-out configurations with each strategy's shift.
+error is verified by running the stepped physics (:func:`timedexec.tasks.track_seam` on
+``sim://``) on a subset of held-out configurations with each strategy's shift.
 """
 
 from __future__ import annotations
@@ -239,7 +239,8 @@ def _seam_physics(
 ) -> dict[str, FloatArray]:
     """Mean physical seam distance (m) per strategy and configuration (stepped simulator)."""
     from timedexec.drivers import SimDriver
-    from timedexec.execution import TimedExecutor, track_seam
+    from timedexec.execution import ExecutorSettings, TimedExecutor
+    from timedexec.tasks import track_seam
 
     out: dict[str, list[float]] = {name: [] for name in predictors}
     for i, (qi, ti) in enumerate(zip(q, t_start, strict=True)):
@@ -250,7 +251,8 @@ def _seam_physics(
                     robot, draws=model.draws, t_start_s=float(ti), effects=effects, seed=model.seed
                 )
             drv = SimDriver(robot, q0_rad=qi, effects=eff, seed=seed + i)
-            with TimedExecutor(drv, model, compensate=name != "none") as ex:
+            settings = ExecutorSettings(compensate=name != "none")
+            with TimedExecutor(drv, model, settings) as ex:
                 res = track_seam(ex, speed_m_s=speed_m_s, cruise_s=0.3)
             out[name].append(res.mean_error_m)
             bar.update(1)
@@ -261,7 +263,7 @@ def _physics_configs(
     robot: str, q: FloatArray, joint: NDArray[np.int64], t0: FloatArray, n: int, speed_m_s: float
 ) -> tuple[FloatArray, FloatArray]:
     """Up to ``n`` held-out configurations where the tool can follow the seam."""
-    from timedexec.execution import tool_radius_m
+    from timedexec.tasks import tool_radius_m
 
     spec = get_robot(robot)
     picked_q: list[FloatArray] = []

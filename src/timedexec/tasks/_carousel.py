@@ -1,23 +1,18 @@
-"""Applications of the timed executor: conveyor (seam) tracking and interception.
+"""Seam tracking on a round conveyor (a carousel) with the base joint.
 
-**Seam tracking.** A seam rides a round conveyor (a carousel) around the robot's base at
+A seam rides a round conveyor (a carousel) around the robot's base at
 ``speed_m_s``; the robot's base joint turns so the tool centre follows it (the tool stays
 at its radius ``r`` from the base axis, the joint speed is ``speed / r``). The plan
 accelerates joint 1 from rest, jerk-limited, to the belt speed and meets the seam at the
 end of the ramp; afterwards it cruises with the belt. With a velocity interface (speedj) a
 timing error ``δ`` of the motion's start leaves the tool ``speed · δ`` behind (or ahead of)
 the seam for the rest of the cruise: the welding error the published work measured.
-
-**Interception.** An object moves on a known trajectory; the robot must have its tool at the
-object's position at a chosen time. :func:`intercept` solves the position inverse
-kinematics for the meeting point, asks :meth:`TimedExecutor.plan_to_meet` for the latest
-plan that arrives by the meeting time with the requested probability, and runs it.
+(Welding on a straight belt, every joint moving: :mod:`._welding`.)
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,19 +22,19 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec.drivers import RobotState, open_driver
 from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
-from timedexec.execution._executor import TimedExecutor
-from timedexec.execution._log import ExecutionResult
-from timedexec.execution._model import load_delay_model
-from timedexec.execution._timing import MeetPlan
-from timedexec.robots import RobotSpec, check_configuration, forward_kinematics, get_robot
+from timedexec.execution import (
+    ExecutionResult,
+    ExecutorSettings,
+    TimedExecutor,
+    load_delay_model,
+)
+from timedexec.robots import RobotSpec, forward_kinematics, get_robot
+from timedexec.tasks._truth import physical_probe
 
 __all__ = [
     "SEAM_POSITION_GAIN_1_S",
-    "InterceptResult",
     "SeamResult",
     "compare_seam_tracking",
-    "intercept",
-    "solve_position_ik",
     "tool_radius_m",
     "track_seam",
 ]
@@ -51,19 +46,6 @@ def tool_radius_m(spec: RobotSpec, q_rad: ArrayLike) -> float:
     """Horizontal distance of the flange from the base axis, m."""
     p = forward_kinematics(spec, np.asarray(q_rad, dtype=float))[6, :3, 3]
     return float(math.hypot(p[0], p[1]))
-
-
-def _physical_probe(executor: TimedExecutor) -> Callable[[], tuple[float, FloatArray]] | None:
-    """(host time, physical q) of a simulated driver's controller, or None."""
-    driver: Any = executor.driver
-    if not hasattr(driver, "controller") or not getattr(driver, "virtual", False):
-        return None
-
-    def probe() -> tuple[float, FloatArray]:
-        sim = driver.controller
-        return float(sim.time_s), np.asarray(sim.q_rad, dtype=float)
-
-    return probe
 
 
 @dataclass(frozen=True)
@@ -159,7 +141,7 @@ def track_seam(
     est = executor.estimate()
     q0 = est.q_rad.copy()
     r = tool_radius_m(spec, q0)
-    vmax = float(executor.limits.velocity(spec)[0])
+    vmax = float(executor.settings.limits.velocity(spec)[0])
     omega = speed_m_s / r if r > 0 else math.inf
     if not omega <= 0.9 * vmax:
         raise ConfigError(
@@ -173,7 +155,7 @@ def track_seam(
         direction = 1 if room_hi >= room_lo else -1
     if direction not in (1, -1):
         raise ConfigError(f"direction={direction!r} must be +1 or -1")
-    a = float(executor.limits.acceleration(spec)[0])
+    a = float(executor.settings.limits.acceleration(spec)[0])
     target = q0.copy()
     target[0] += direction * (omega**2 / (2 * a) + omega * 0.02)
     qd_end = np.zeros(6)
@@ -187,7 +169,7 @@ def track_seam(
         )
     start = executor.now() + max(lead_s, executor.lead_time_s(plan) + 3 * executor.period_s)
     sync = start + plan.duration_s
-    probe = _physical_probe(executor)
+    probe = physical_probe(executor)
     times: list[float] = []
     q_phys: list[float] = []
     q_est: list[float] = []
@@ -278,7 +260,8 @@ def compare_seam_tracking(
         ("compensated + feedback", True, position_gain_1_s),
     ):
         driver = open_driver(f"sim://{spec.name}", q0_rad=q0, effects=effects, seed=seed)
-        with TimedExecutor(driver, predictor, compensate=compensate, position_gain_1_s=gain) as ex:
+        settings = ExecutorSettings(compensate=compensate, position_gain_1_s=gain)
+        with TimedExecutor(driver, predictor, settings) as ex:
             seam = track_seam(ex, speed_m_s=speed_m_s, cruise_s=cruise_s)
         t = seam.times_s
         end = t >= t[-1] - 0.1 if len(t) else np.zeros(0, dtype=bool)
@@ -291,147 +274,3 @@ def compare_seam_tracking(
             "estimated_lag_cm": (seam.estimated_lag_m * 100).round(5).tolist(),
         }
     return {"kind": "conveyor", "robot": spec.name, "speed_m_s": float(speed_m_s), "runs": runs}
-
-
-def solve_position_ik(
-    spec: RobotSpec,
-    target_m: ArrayLike,
-    q_seed_rad: ArrayLike,
-    *,
-    joints: tuple[int, ...] = (1, 2, 3),
-    tol_m: float = 1e-5,
-) -> FloatArray:
-    """Joint angles that put the flange origin at ``target_m`` (base frame, m).
-
-    Damped least squares on ``joints`` (others stay at the seed), inside the joint limits.
-
-    Raises
-    ------
-    ConfigError
-        If no solution within ``tol_m`` is found from this seed (target out of reach).
-    """
-    from scipy.optimize import least_squares
-
-    target = np.asarray(target_m, dtype=float).reshape(3)
-    seed = check_configuration(spec, q_seed_rad).astype(float)
-    idx = np.asarray(joints) - 1
-
-    def residual(x: FloatArray) -> FloatArray:
-        q = seed.copy()
-        q[idx] = x
-        return np.asarray(forward_kinematics(spec, q)[6, :3, 3] - target)
-
-    lo = np.asarray(spec.q_min_rad)[idx]
-    hi = np.asarray(spec.q_max_rad)[idx]
-    sol = least_squares(residual, np.clip(seed[idx], lo, hi), bounds=(lo, hi), xtol=1e-12)
-    err = float(np.linalg.norm(sol.fun))
-    if err > tol_m:
-        raise ConfigError(
-            f"no joint configuration puts the flange at {target.round(4).tolist()} m from this "
-            f"seed (closest {err * 1e3:.1f} mm away); the point is out of reach"
-        )
-    q = seed.copy()
-    q[idx] = sol.x
-    return q
-
-
-@dataclass(frozen=True)
-class InterceptResult:
-    """Outcome of :func:`intercept`.
-
-    Attributes
-    ----------
-    meet_time_s : float
-        Chosen meeting time (host clock), s.
-    meet : MeetPlan
-        The plan (arrival bounds, probability, first send time).
-    target_q_rad : ndarray (6,)
-        Meeting configuration.
-    distance_m : float
-        Tool-object distance at the meeting time, m (physical for ``sim://`` drivers, else
-        from the executor's estimate).
-    arrival_s : float
-        When the tool came within ``arrival_tol_m`` of the meeting point and stayed, s
-        (NaN: never).
-    physical : bool
-        Whether the figures are the simulator's physical truth.
-    """
-
-    meet_time_s: float
-    meet: MeetPlan
-    target_q_rad: FloatArray
-    distance_m: float
-    arrival_s: float
-    physical: bool
-    execution: ExecutionResult = field(repr=False)
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-safe summary."""
-        return {
-            "meet_time_s": self.meet_time_s,
-            "distance_mm": self.distance_m * 1e3,
-            "arrival_before_meet_ms": (self.meet_time_s - self.arrival_s) * 1e3,
-            "probability": self.meet.probability,
-            "physical": self.physical,
-        }
-
-
-def intercept(
-    executor: TimedExecutor,
-    object_position: Callable[[float], ArrayLike],
-    meet_time_s: float,
-    *,
-    confidence: float = 0.95,
-    arrival_tol_m: float = 0.002,
-) -> InterceptResult:
-    """Put the tool where the object will be at ``meet_time_s`` (host clock), by then.
-
-    ``object_position(t)`` gives the object's position (m, base frame) at host time ``t``.
-
-    Raises
-    ------
-    ConfigError, UnreachableError
-        Before any motion, if the point is out of reach, outside the limits or cannot be
-        reached in time at ``confidence`` (the message says by how much it misses).
-    """
-    spec = executor.spec
-    point = np.asarray(object_position(meet_time_s), dtype=float)
-    q0 = executor.estimate().q_rad
-    q_target = solve_position_ik(spec, point, q0)
-    meet = executor.plan_to_meet(q_target, meet_time_s, confidence)
-    probe = _physical_probe(executor)
-    samples: list[tuple[float, FloatArray]] = []
-
-    def record(state: RobotState) -> None:
-        if probe is not None:
-            samples.append(probe())
-        else:
-            t = executor.now()
-            samples.append((t, executor.estimate(t).q_rad))
-
-    result = executor.execute(meet, until_s=meet_time_s + 0.05, on_step=record)
-    t = np.asarray([s[0] for s in samples])
-    q = np.asarray([s[1] for s in samples])
-    tool = forward_kinematics(spec, q)[:, 6, :3, 3]
-    dist = np.linalg.norm(tool - point, axis=1)
-    k = int(np.searchsorted(t, meet_time_s))
-    k = min(max(k, 0), len(t) - 1)
-    if k > 0 and t[k] != meet_time_s:
-        f = (meet_time_s - t[k - 1]) / (t[k] - t[k - 1])
-        tool_at = (1 - f) * tool[k - 1] + f * tool[k]
-    else:
-        tool_at = tool[k]
-    obj_at = point
-    far = np.flatnonzero(dist > arrival_tol_m)
-    arrival = float(t[far[-1] + 1]) if len(far) and far[-1] + 1 < len(t) else math.nan
-    if not len(far):
-        arrival = float(t[0])
-    return InterceptResult(
-        meet_time_s=float(meet_time_s),
-        meet=meet,
-        target_q_rad=q_target,
-        distance_m=float(np.linalg.norm(tool_at - obj_at)),
-        arrival_s=arrival,
-        physical=probe is not None,
-        execution=result,
-    )

@@ -9,8 +9,9 @@ from timedexec.drivers import SimDriver
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
 from timedexec.evaluation import SimulatedOracle
-from timedexec.execution import TimedExecutor, intercept, solve_position_ik, track_seam
+from timedexec.execution import ExecutorSettings, TimedExecutor
 from timedexec.robots import forward_kinematics, get_robot
+from timedexec.tasks import intercept, solve_position_ik, track_seam
 
 
 def warm(robot: str) -> EffectSet:
@@ -31,7 +32,8 @@ def kr5_oracle() -> SimulatedOracle:
 
 def seam(compensate: bool, model: SimulatedOracle, seed: int = 1, gain: float = 0.0, cruise_s: float = 0.3):  # type: ignore[no-untyped-def]  # fmt: skip
     drv = SimDriver("kr5", q0_rad=pose("kr5"), effects=warm("kr5"), seed=seed)
-    with TimedExecutor(drv, model, compensate=compensate, position_gain_1_s=gain) as ex:
+    settings = ExecutorSettings(compensate=compensate, position_gain_1_s=gain)
+    with TimedExecutor(drv, model, settings) as ex:
         return track_seam(ex, speed_m_s=0.5, direction=1, cruise_s=cruise_s)
 
 
@@ -101,7 +103,7 @@ def test_interception_arrives_before_the_object(kr5_oracle: SimulatedOracle) -> 
     speed = np.array([0.0, 0.3, 0.0])
     for compensate in (True, False):
         drv = SimDriver("kr5", q0_rad=pose("kr5"), effects=warm("kr5"), seed=3)
-        with TimedExecutor(drv, kr5_oracle, compensate=compensate) as ex:
+        with TimedExecutor(drv, kr5_oracle, ExecutorSettings(compensate=compensate)) as ex:
             start = forward_kinematics(spec, pose("kr5"))[6, :3, 3]
             t_meet = ex.now() + 0.9
 
