@@ -24,6 +24,7 @@ from timedexec.calibration._adaptive import (
     run_adaptive,
 )
 from timedexec.calibration._design import AdaptiveSettings, Workspace, design_pool
+from timedexec.calibration._figure import plot_design_log
 from timedexec.calibration._preflight import PreflightReport
 from timedexec.calibration._runner import CalibrationResult, DriverRunner, run_calibration
 from timedexec.calibration._session import GyroSource
@@ -39,6 +40,7 @@ __all__ = [
     "TrialRunner",
     "Workspace",
     "design_pool",
+    "plot_design_log",
     "read_design_log",
     "run_adaptive",
     "run_calibration",

@@ -55,7 +55,8 @@ from timedexec.calibration._design import (
     unit_rows,
 )
 from timedexec.delays import DelayTable
-from timedexec.errors import ConfigError, RecordingError
+from timedexec.errors import RecordingError
+from timedexec.learning import single_threaded_blas
 from timedexec.recording import Field, RecordingReader, RecordingWriter, SweepPlan
 
 __all__ = ["NOTE_FIELDS", "AdaptiveResult", "TrialRunner", "read_design_log", "run_adaptive"]
@@ -180,7 +181,7 @@ def read_design_log(reader: RecordingReader) -> list[dict[str, float]]:
     while reader.has_static(f"{_BATCH}{k:04d}"):
         rows = reader.static(f"{_BATCH}{k:04d}")
         note = reader.static(f"{_NOTE}{k:04d}")
-        entry: dict[str, float] = {"batch": k, "trials_planned": int(len(rows))}
+        entry: dict[str, float] = {"batch": k, "trials_planned": len(rows)}
         entry.update({name: float(v) for name, v in zip(NOTE_FIELDS, note, strict=True)})
         out.append(entry)
         k += 1
@@ -285,12 +286,25 @@ class _Designer:
         return self.models[k]
 
     def choose(self, n: int, batches: Sequence[Sequence[Unit]]) -> tuple[BatchChoice, FloatArray]:
-        """Batch ``n`` from the model of batches 0..n-2, batch n-1 pending; and its note."""
+        """Batch ``n`` from the model of batches 0..n-2, batch n-1 pending; and its note.
+        BLAS on one thread throughout (extraction too): the same sums in the same order on
+        every run, so a resumed sweep chooses what an uninterrupted one chose."""
+        with single_threaded_blas():
+            return self._choose(n, batches)
+
+    def _choose(self, n: int, batches: Sequence[Sequence[Unit]]) -> tuple[BatchChoice, FloatArray]:
         start = time.perf_counter()
         model = self.model(n - 2, batches)
         done = {u for b in batches[: n - 1] for u in b}
         pending = list(batches[n - 1])
         last = pending[-1][0] if pending else batches[n - 2][-1][0]
+        recent = [self.held[i] for i in sorted(self.held) if i <= n - 2][
+            -self.settings.calibration_batches :
+        ]
+        pooled = [r for h in recent for r, _ in h.values()]
+        pooled_rmse = (
+            float(np.sqrt(np.mean(np.concatenate(pooled) ** 2))) if pooled else math.nan
+        )
         choice = choose_batch(
             model,
             self.pool_q,
@@ -302,6 +316,7 @@ class _Designer:
             rng=np.random.default_rng([self.settings.seed, 0xC4, n]),
             reference=self.reference,
             start_q=self.pool_q[last],
+            held_out_rmse_s=pooled_rmse,
         )
         data = [t for i in range(n - 1) if (t := self.tables.get(i)) is not None]
         t_end = max(float(np.max(t["t_start"])) for t in data) + self.trial_s
@@ -369,6 +384,14 @@ def _check_resumable(out: Path, header: dict[str, Any], resume: bool) -> bool:
 
 def _progress(robot: str, k: int, units: int, rows: int, note: FloatArray) -> str:
     n = dict(zip(NOTE_FIELDS, note.tolist(), strict=True))
+    if n["stop"]:
+        return (
+            f"adaptive {robot}: converged at {n['robot_time_s'] / 60:.1f} min of robot time "
+            f"({int(n['trials'])} trials): estimated error {1e3 * n['error_s']:.2f} ms, "
+            f"{1e3 * n['error_horizon_s']:.2f} ms with 10 more minutes (floor "
+            f"{1e3 * n['floor_s']:.2f} ms), on the newest measured batch "
+            f"{1e3 * n['held_out_rmse_s']:.2f} ms"
+        )
     held = (
         f"; on the newest measured batch {1e3 * n['held_out_rmse_s']:.2f} ms"
         if math.isfinite(n["held_out_rmse_s"])

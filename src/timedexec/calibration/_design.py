@@ -33,11 +33,17 @@ squared error where the newest batches were); its floor ``sqrt(mean_j σ²_j)`` 
 noise, pinned by the repeats) is what no model can beat.
 
 **Stopping rule.** Before a batch is chosen, the greedy continues (as a plan, nothing is
-run) for ``stop_horizon_s`` of robot time; if that would lower ``E`` by less than
-``stop_fraction`` of the floor, the sweep stops: another 10 minutes (default) would
-improve the model by less than a tenth of the trial noise (default). A GP fitted on a few
-configurations is sure of itself where it is wrong, so the rule waits until
-``calibration_batches`` held-out batches have calibrated the variances.
+run) for ``stop_horizon_s`` of robot time; the sweep stops when both
+
+* that would lower ``E`` by less than ``stop_fraction`` of the floor: another 10 minutes
+  (default) would improve the model by less than a tenth of the trial noise (default), and
+* the estimate is borne out: the RMS error on the newest ``calibration_batches`` measured
+  batches, each predicted before the model saw it, is at most ``E`` plus that tenth.
+
+A GP fitted on a few configurations is sure of itself where it is wrong (it then predicts
+small gains everywhere), so the rule waits until ``calibration_batches`` held-out batches
+have calibrated the variances, and the held-out check keeps it from stopping on a model
+whose own estimate is not confirmed. The budget (``budget_s``) ends the sweep otherwise.
 """
 
 from __future__ import annotations
@@ -539,6 +545,7 @@ def choose_batch(
     rng: np.random.Generator,
     reference: NDArray[np.intp],
     start_q: FloatArray | None = None,
+    held_out_rmse_s: float = math.nan,
 ) -> BatchChoice:
     """The next batch by greedy IMSE (module docstring), and the stopping rule.
 
@@ -561,6 +568,10 @@ def choose_batch(
         Pool indices of the reference configurations.
     start_q : array (6,), optional
         Where the robot will be when the batch starts (the tour starts there).
+    held_out_rmse_s : float
+        RMS error of the model's predictions on the newest measured batches, each predicted
+        before the model saw it, s (pooled over the ``calibration_batches`` newest); NaN
+        when none (the stopping rule then waits).
     """
     joints = list(model.gps)
     taken = set(done) | set(pending)
@@ -632,8 +643,15 @@ def choose_batch(
         error_horizon = error() if error_horizon is None else error_horizon
     floor = math.sqrt(noise)
     # The horizon starts where the running batch ends: the next stop_horizon_s of robot time.
+    # Held-out check: the model's estimate must have been borne out on trials it had not
+    # seen (the newest batches, each predicted before it was measured); a GP that is sure of
+    # itself where it is wrong predicts small gains everywhere.
+    confirmed = math.isfinite(held_out_rmse_s) and held_out_rmse_s <= error_now + (
+        settings.stop_fraction * floor
+    )
     converged = (
         model.calibrated_by >= settings.calibration_batches
+        and confirmed
         and (error_now - error_horizon) < settings.stop_fraction * floor
     )
     stop = converged or not chosen

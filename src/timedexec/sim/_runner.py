@@ -30,7 +30,7 @@ from timedexec.recording import (
     trial_fields,
 )
 from timedexec.robots import RobotSpec, get_robot
-from timedexec.sim._batch import sweep_clock, simulate_block
+from timedexec.sim._batch import simulate_block, sweep_clock
 from timedexec.sim._settings import SimSettings, default_settings
 from timedexec.sim._sweep import _still_recording
 
