@@ -492,11 +492,11 @@ class _JointState:
         for U, Minv in self.taken:
             S -= U @ (Minv @ U[rows].T)
         M = S[rows] + self.noise * np.eye(2)
-        Minv = np.linalg.inv(M)
-        self.Scr -= S @ (Minv @ self.Scr[rows])
+        M_inv: FloatArray = np.asarray(np.linalg.inv(M), dtype=np.float64)
+        self.Scr -= S @ (M_inv @ self.Scr[rows])
         U3 = S.reshape(-1, 2, 2)
-        self.Vcc -= np.einsum("cij,jk,clk->cil", U3, Minv, U3)
-        self.taken.append((S, Minv))
+        self.Vcc -= np.einsum("cij,jk,clk->cil", U3, M_inv, U3)
+        self.taken.append((S, M_inv))
 
 
 def _mean_ref_var(model: DesignModel, j: int, Xr: FloatArray) -> float:

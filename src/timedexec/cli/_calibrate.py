@@ -126,6 +126,15 @@ def add_adaptive_options(p: Any) -> None:
         help="robot time of one adaptive batch, min: the next is chosen while it runs",
     )
     g.add_argument(
+        "--stop-fraction",
+        metavar="F",
+        type=float_arg(0.0, 0.99),
+        default=0.1,
+        help="the stopping rule: stop when another 10 minutes would lower the estimated "
+        "error by less than F times the noise floor (and the newest batches, predicted "
+        "before they were measured, bear the estimate out); 0: run to --budget-min",
+    )
+    g.add_argument(
         "--workspace",
         metavar="FILE",
         help="where the robot works (the adaptive sweep samples there): a JSON file with "
@@ -149,7 +158,10 @@ def adaptive_settings(args: argparse.Namespace) -> tuple[Any, Any]:
     if getattr(args, "plan", None) is not None:
         raise ConfigError("--adaptive chooses its own trials: drop --plan")
     settings = AdaptiveSettings(
-        budget_s=args.budget_min * 60.0, batch_s=args.batch_min * 60.0, seed=args.seed
+        budget_s=args.budget_min * 60.0,
+        batch_s=args.batch_min * 60.0,
+        stop_fraction=args.stop_fraction,
+        seed=args.seed,
     )
     if args.workspace is None:
         return settings, Workspace()
@@ -332,6 +344,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--adaptive", args.adaptive),
             ("--budget-min", args.budget_min if args.adaptive else None),
             ("--batch-min", args.batch_min if args.adaptive else None),
+            ("--stop-fraction", args.stop_fraction if args.adaptive else None),
             ("--workspace", args.workspace),
             ("--sensor-profile", args.sensor_profile),
             ("--gyro-group-delay", args.gyro_group_delay),

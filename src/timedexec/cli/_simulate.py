@@ -170,6 +170,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--adaptive", args.adaptive),
             ("--budget-min", args.budget_min if args.adaptive else None),
             ("--batch-min", args.batch_min if args.adaptive else None),
+            ("--stop-fraction", args.stop_fraction if args.adaptive else None),
             ("--workspace", args.workspace),
             ("--jobs", None if args.jobs == 1 else args.jobs),
             ("--scheduler", args.scheduler),
