@@ -18,6 +18,7 @@ are counted): RMSE (ms) and the share of trials inside the bundle's 95 % bounds
         --heldout warm=ur10e-heldout-warm.csv --heldout cold=ur10e-heldout-cold.csv \\
         --times-min 10,20,30,45 --fixed-times-min 10,20,45,90,180,360,full \\
         --json ur10e-curves.json --figure ur10e-curves.png
+    python benchmarks/bench_adaptive.py --robot ur10e --merge a.json,b.json --figure f.png
 
 ``--fixed-table`` / ``--adaptive-table``: an extraction made before (``timedexec extract``),
 to skip extracting again. Each held-out table is a ground-truth CSV (``simulate --truth``).
@@ -133,9 +134,16 @@ def main() -> None:
     ap.add_argument("--fixed-times-min", default="10,20,45,90,180,full")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--time-input", action="store_true", help="train with the time input")
-    ap.add_argument("--json", required=True)
+    ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--figure")
+    ap.add_argument("--merge", help="comma list of --json outputs: plot them together, run nothing")
     args = ap.parse_args()
+    if args.merge:
+        docs = [json.loads(Path(p).read_text()) for p in args.merge.split(",")]
+        rows_all = [r for d in docs for r in d["rows"]]
+        names = [k for k in rows_all[0] if isinstance(rows_all[0][k], dict) and "rmse_ms" in rows_all[0][k]]
+        plot(args.robot, rows_all, names, args.figure)
+        return
     held = {}
     for item in args.heldout:
         name, path = item.split("=", 1)
@@ -149,7 +157,8 @@ def main() -> None:
         f = table_of(args.fixed, args.fixed_table)
         rows += curve(f, times_of(args.fixed_times_min, f), held, folds=args.folds,
                       time_input=args.time_input, label="fixed")  # fmt: skip
-    Path(args.json).write_text(json.dumps({"robot": args.robot, "rows": rows}, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"robot": args.robot, "rows": rows}, indent=1))
     if args.figure:
         plot(args.robot, rows, list(held), args.figure)
 

@@ -186,6 +186,9 @@ def test_model_warns_when_asked_about_another_thermal_state(tmp_path: Path) -> N
         model.predict(joint=1, direction=1, q=q, t_s=WARM_START_S + 100.0, method="median")
     with pytest.warns(ThermalStateWarning, match="10 min after power-on"):
         model.predict(joint=1, direction=1, q=q, t_s=600.0, method="median")
+    assert model.check_thermal_state(WARM_START_S) is None
+    with pytest.warns(ThermalStateWarning):
+        assert model.check_thermal_state(300.0) is not None
 
 
 @pytest.mark.slow
@@ -217,3 +220,20 @@ def test_cli_refuses_trials_with_adaptive(tmp_path: Path) -> None:
                  "--out", str(tmp_path / "x.h5")])  # fmt: skip
     assert code != 0
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_listed_workspace_is_measured_in_minutes(tmp_path: Path) -> None:
+    """A workspace of three listed configurations (a task's cell) is measured whole, every
+    joint of every configuration, and the sweep ends there ("workspace") within minutes of
+    robot time."""
+    configs = ((0.1, -1.2, 1.0, -1.0, 0.5, 0.0), (0.4, -1.5, 1.2, -1.2, 0.6, 0.0),
+               (0.7, -1.0, 0.8, -1.4, 0.4, 0.0))  # fmt: skip
+    res = run_adaptive(SimulatedRunner("ur10e", seed=1, warm=True), tmp_path / "w.h5",
+                       settings=AdaptiveSettings(seed=1),
+                       workspace=Workspace(configurations_rad=configs), progress=False)  # fmt: skip
+    assert res.stopped == "workspace"
+    assert res.trials == 3 * 4 * 2 * 2  # configurations x joints x directions x repeats
+    assert res.robot_time_s < 5 * 60.0  # 48 trials of ~1.04 s, three moves, the still recording
+    with RecordingReader(tmp_path / "w.h5") as r:
+        q = r.read("trial")
+        assert len(np.unique(q)) == res.trials

@@ -660,6 +660,17 @@ class DelayModel:
         """
         return BLAS_PIN
 
+    def check_thermal_state(self, t_since_power_on_s: float) -> str | None:
+        """Whether this model answers for a robot ``t_since_power_on_s`` after power-on:
+        None if so (or the bundle does not know its thermal state), else why not, also
+        warned as a :class:`~timedexec.errors.ThermalStateWarning` (every call: this is the
+        check a caller makes once, e.g. before an executor starts; ``predict`` warns once
+        per model by itself)."""
+        why = thermal_mismatch(self.thermal_state, [float(t_since_power_on_s)])
+        if why is not None:
+            warnings.warn(why, ThermalStateWarning, stacklevel=2)
+        return why
+
     @property
     def thermal_clock(self) -> bool:
         """Whether ``t_s`` is the time since the robot's power-on (the bundle knows the
