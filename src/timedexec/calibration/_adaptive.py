@@ -25,6 +25,7 @@ the batch simulator has its own (``timedexec.sim.SimulatedRunner``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -475,6 +476,12 @@ def run_adaptive(
     worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="adaptive-design")
     futures: dict[int, Future[tuple[BatchChoice, FloatArray]]] = {}
     designer = _Designer(out, plan, settings, runner.trial_s, runner.move_s, work)
+    # BLAS on one thread for the whole sweep, entered here, in the robot's thread: the
+    # designer's fits enter the same pin in their thread, and a thread count changed while
+    # another thread runs BLAS corrupts OpenBLAS's buffers (a sweep died with "malloc():
+    # invalid size" when the worker pinned and unpinned around each fit).
+    pin = contextlib.ExitStack()
+    pin.enter_context(single_threaded_blas())
     try:
         with RecordingWriter(out, header=header, fields=runner.fields(), resume=existed) as w:
             for name, arr in plan.to_arrays().items():
@@ -516,7 +523,8 @@ def run_adaptive(
             runner.finish()
             n_total = w.n_trials
     finally:
-        worker.shutdown(wait=False, cancel_futures=True)
+        worker.shutdown(wait=True, cancel_futures=True)  # no fit outlives the pin
+        pin.close()
         shutil.rmtree(work, ignore_errors=True)
     with RecordingReader(out) as r:
         notes = read_design_log(r)
