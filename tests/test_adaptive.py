@@ -237,3 +237,36 @@ def test_a_listed_workspace_is_measured_in_minutes(tmp_path: Path) -> None:
     with RecordingReader(tmp_path / "w.h5") as r:
         q = r.read("trial")
         assert len(np.unique(q)) == res.trials
+
+
+class _Interrupted(SimulatedRunner):
+    """The batch simulator, interrupted (Ctrl-C) before its ``stop_at``-th unit."""
+
+    def __init__(self, *args: object, stop_at: int, **kw: object) -> None:
+        super().__init__(*args, **kw)  # type: ignore[arg-type]
+        self.units = 0
+        self.stop_at = stop_at
+
+    def run(self, plan, rows, until_s):  # type: ignore[no-untyped-def]
+        self.units += 1
+        if self.units == self.stop_at:
+            raise KeyboardInterrupt
+        yield from super().run(plan, rows, until_s)
+
+
+@pytest.mark.parametrize("stop_at", [3, 25])
+def test_resume_in_any_batch_gives_the_same_recording(tmp_path: Path, stop_at: int) -> None:
+    """Interrupted in the first batches (chosen without a model, their notes NaN: the WIP
+    took NaN for "the stopping rule fired" and a resumed sweep stopped at once) or later,
+    and resumed, an adaptive sweep records what an uninterrupted one records."""
+    settings = AdaptiveSettings(**{**SMALL, "budget_s": 240.0, "joints": (1, 2)})
+    run_adaptive(SimulatedRunner("ur10e", seed=3, warm=True), tmp_path / "whole.h5",
+                 settings=settings, progress=False)  # fmt: skip
+    cut = tmp_path / "cut.h5"
+    with pytest.raises(KeyboardInterrupt):
+        run_adaptive(_Interrupted("ur10e", seed=3, warm=True, stop_at=stop_at), cut,
+                     settings=settings, progress=False)  # fmt: skip
+    res = run_adaptive(SimulatedRunner("ur10e", seed=3, warm=True), cut, settings=settings,
+                       resume=True, progress=False)  # fmt: skip
+    assert res.stopped == "budget"
+    _assert_same(_contents(tmp_path / "whole.h5"), _contents(cut))

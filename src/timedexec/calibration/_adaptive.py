@@ -357,7 +357,8 @@ def _read_state(out: Path, plan: SweepPlan) -> _State:
             k += 1
     batches = [rows_units(plan, rows) for rows, _ in log]
     notes = [np.asarray(note, dtype=float) for _, note in log]
-    stop = bool(notes) and bool(notes[-1][NOTE_FIELDS.index("stop")])
+    # 1 where the stopping rule fired; NaN for the first two batches (chosen without a model)
+    stop = bool(notes) and notes[-1][NOTE_FIELDS.index("stop")] == 1.0
     if stop:
         batches.pop()  # the stop is a note without units
     return _State(batches, notes, stop)

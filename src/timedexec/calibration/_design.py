@@ -390,6 +390,8 @@ class DesignModel:
                 gp = DelayGP(
                     random_state=np.random.default_rng([seed, k]),
                     max_variance_conditions=None,
+                    # exact (the design needs covariances): 24 h of units is ~6,000 conditions
+                    max_exact_conditions=20_000,
                 ).fit(encode_inputs(q[m], d[m]), y[m])
                 gps[j] = gp
                 noise[j] = float(gp.noise_std_ ** 2)

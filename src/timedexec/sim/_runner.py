@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec.effects import EffectSet, default_effects
+from timedexec.errors import ConfigError
 from timedexec.recording import (
     Field,
     RecordingReader,
@@ -32,7 +33,7 @@ from timedexec.recording import (
 from timedexec.robots import RobotSpec, get_robot
 from timedexec.sim._batch import simulate_block, sweep_clock
 from timedexec.sim._settings import SimSettings, default_settings
-from timedexec.sim._sweep import _still_recording
+from timedexec.sim._sweep import _still_recording, sweep_header
 
 __all__ = ["SimulatedRunner"]
 
@@ -82,21 +83,9 @@ class SimulatedRunner:
 
     def header(self) -> dict[str, Any]:
         """The header ``timedexec simulate`` writes (without the plan)."""
-        assert self._clock is not None, "prepare() first"
-        protocol = self.settings.protocol
-        return {
-            "source": "simulator",
-            "robot": self.spec.to_dict(),
-            "settings": self.settings.to_dict(),
-            "effects": self.effects.to_dict(),
-            "seed": self.seed,
-            "profile": protocol.profile.to_dict(),
-            "controller_period_s": protocol.controller_period_s,
-            "gyro": protocol.gyro.to_dict(),
-            "sim_truth": {**self._clock.to_dict(), "gyro_true_rate_hz": self.settings.gyro.true_rate_hz},
-            "time_origin": "trial time 0 = host arrival of the trigger state package",
-            "power_on_s": self._clock.power_on_s,
-        }
+        if self._clock is None:
+            raise ConfigError("SimulatedRunner: call prepare() first")
+        return sweep_header(self.spec, self.settings, self.effects, self.seed, self._clock)
 
     def fields(self) -> list[Field]:
         """The fields of a simulated recording (ground truth included)."""

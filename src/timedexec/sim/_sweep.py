@@ -142,20 +142,7 @@ def simulate_sweep(
         if not (tp.parent if str(tp.parent) else Path(".")).is_dir():
             raise RecordingError(f"cannot write {tp}: directory {tp.parent} does not exist")
     clock = sweep_clock(plan, settings, seed, warm=bool(warm))
-    header = {
-        "source": "simulator",
-        "robot": spec.to_dict(),
-        "settings": settings.to_dict(),
-        "effects": effects.to_dict(),
-        "plan": plan.meta(),
-        "seed": seed,
-        "profile": settings.protocol.profile.to_dict(),
-        "controller_period_s": settings.protocol.controller_period_s,
-        "gyro": settings.protocol.gyro.to_dict(),
-        "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
-        "time_origin": "trial time 0 = host arrival of the trigger state package",
-        "power_on_s": clock.power_on_s,
-    }
+    header = sweep_header(spec, settings, effects, seed, clock, plan=plan)
     fields = trial_fields(settings.protocol)
     with RecordingWriter(out, header=header, fields=fields, resume=resume) as writer:
         if resume:
@@ -224,6 +211,38 @@ def _stop_workers(results: Any) -> None:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r".*tasks have been successfully executed")
         close()
+
+
+def sweep_header(
+    spec: RobotSpec,
+    settings: SimSettings,
+    effects: EffectSet,
+    seed: int,
+    clock: SweepClock,
+    *,
+    plan: SweepPlan | None = None,
+) -> dict[str, Any]:
+    """The header of a simulated recording (the plan's summary when given; an adaptive
+    sweep adds its own): what ``timedexec simulate`` and the adaptive sweep's
+    :class:`~timedexec.sim.SimulatedRunner` write."""
+    header: dict[str, Any] = {
+        "source": "simulator",
+        "robot": spec.to_dict(),
+        "settings": settings.to_dict(),
+        "effects": effects.to_dict(),
+    }
+    if plan is not None:
+        header["plan"] = plan.meta()
+    header.update({
+        "seed": seed,
+        "profile": settings.protocol.profile.to_dict(),
+        "controller_period_s": settings.protocol.controller_period_s,
+        "gyro": settings.protocol.gyro.to_dict(),
+        "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
+        "time_origin": "trial time 0 = host arrival of the trigger state package",
+        "power_on_s": clock.power_on_s,
+    })  # fmt: skip
+    return header
 
 
 def truth_table(reader: RecordingReader) -> DelayTable:
