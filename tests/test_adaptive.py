@@ -270,3 +270,27 @@ def test_resume_in_any_batch_gives_the_same_recording(tmp_path: Path, stop_at: i
                        resume=True, progress=False)  # fmt: skip
     assert res.stopped == "budget"
     _assert_same(_contents(tmp_path / "whole.h5"), _contents(cut))
+
+
+def test_cli_workspace_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``simulate --adaptive --workspace``: a CSV of configurations is measured whole (the
+    sweep ends at "workspace"); a JSON file of another form is refused (exit 2) naming the
+    file and the forms allowed, before anything is written."""
+    from timedexec.cli import main
+
+    csv = tmp_path / "cell.csv"
+    csv.write_text("# q1..q6, rad\n0.1,-1.2,1.0,-1.0,0.5,0\n0.4,-1.5,1.2,-1.2,0.6,0\n")
+    out = tmp_path / "cell.h5"
+    code = main(["simulate", "--robot", "ur10e", "--warm", "--adaptive", "--workspace",
+                 str(csv), "--out", str(out), "--json", "-", "--quiet"])  # fmt: skip
+    assert code == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["stopped"] == "workspace"
+    assert info["trials"] == 2 * 4 * 2 * 2
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"q_low": [0, 0, 0, 0, 0, 0]}')
+    code = main(["simulate", "--robot", "ur10e", "--adaptive", "--workspace", str(bad),
+                 "--out", str(tmp_path / "no.h5")])  # fmt: skip
+    assert code == 2
+    assert "configurations_rad" in capsys.readouterr().err
+    assert not (tmp_path / "no.h5").exists()
