@@ -295,7 +295,7 @@ CASES: dict[str, Case] = {
     ),
     "calibrate-url-unknown-parameter": Case(
         "calibrate --robot-url sim://ur10?typo=1 --trials 2 --out c.h5 --quiet",
-        ["unknown parameter 'typo' for sim:// URLs (allowed: realtime, seed)"],
+        ["unknown parameter 'typo' for sim:// URLs (allowed: realtime, seed, warm)"],
         absent=["c.h5"],
     ),
     "calibrate-rsi-url-unknown-parameter": Case(

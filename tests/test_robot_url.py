@@ -28,6 +28,7 @@ from timedexec.errors import ConfigError
         ("sim:ur10e", "sim", None, None, "ur10e", {}),  # the path-only form, as before
         ("sim:///kr5", "sim", None, None, "kr5", {}),
         ("sim://UR10?seed=3&realtime=yes&", "sim", None, None, "ur10", {"seed": 3, "realtime": True}),
+        ("sim://ur10e?warm=1", "sim", None, None, "ur10e", {"warm": True}),
         ("ur://192.168.1.10", "ur", "192.168.1.10", None, None, {}),
         ("ur:192.168.1.10", "ur", "192.168.1.10", None, None, {}),
         ("ur://h?ur_cap_port=50010", "ur", "h", None, None,
@@ -69,10 +70,11 @@ def test_the_grammar_tables_name_every_scheme() -> None:
         ("sim://ur10#frag", "unexpected fragment #frag"),
         (
             "sim://ur10?trials=4",
-            "unknown parameter 'trials' for sim:// URLs (allowed: realtime, seed)",
+            "unknown parameter 'trials' for sim:// URLs (allowed: realtime, seed, warm)",
         ),
         ("sim://ur10?realtime", "parameter 'realtime' has no value"),
         ("sim://ur10?realtime=maybe", "realtime='maybe' must be 1 or 0"),
+        ("sim://ur10?warm=hot", "warm='hot' must be 1 or 0"),
         ("sim://ur10?seed=1&seed=2", "parameter 'seed' is given twice"),
         ("ur://", "names no host; use ur://HOST"),
         ("ur://h:30004", "ur:// takes no port (ur_rtde uses the controller's fixed ports"),

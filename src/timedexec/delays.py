@@ -19,6 +19,8 @@ flag                      optional str: why a trial could not be measured ("" wh
                           its delays are NaN
 response_flag             optional str: why the trial's response delay is not to be used
                           although its actuation delay is ("" when fine; see below)
+t_since_power_on          optional float, s since the robot was powered on (its thermal
+                          clock), where the recorder knows it (the simulators do)
 ========================  ==================================================================
 
 Extra columns are kept as they are. Delays are in seconds; human-facing tables show ms.

@@ -17,6 +17,7 @@ __all__ = [
     "RecordingError",
     "SensorError",
     "StaleStateError",
+    "ThermalStateWarning",
     "TimedExecError",
     "UnreachableError",
 ]
@@ -70,3 +71,9 @@ class UnreachableError(ConfigError):
     def __init__(self, message: str, *, miss_s: float) -> None:
         super().__init__(message)
         self.miss_s = float(miss_s)
+
+
+class ThermalStateWarning(UserWarning):
+    """A delay model was asked about a robot in another thermal state than the one it was
+    trained in (a model of a warm robot queried for one just powered on, or the reverse);
+    its delays may be off by the warm-up drift. Not an error: the answer is given."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from timedexec.recording import (
     trial_layout,
 )
 
-__all__ = ["CalibrationResult", "run_calibration"]
+__all__ = ["CalibrationResult", "DriverRunner", "run_calibration"]
 
 FloatArray = NDArray[np.float64]
 #: Raw bytes kept per state package (RTDE and RSI packages are a few hundred bytes).
@@ -246,6 +247,25 @@ class _Recorded:
     session: int
     last_t0_s: float
     has_still: bool
+    power_on: float | None = None  # the header's power_on_s
+
+
+def sweep_origin(driver: RobotDriver, last_t0_s: float) -> float:
+    """Host time of the sweep clock's zero: now for a new recording; for a resumed one, so
+    that the sweep clock goes on 10 s after the last recorded trial (its sessions' host
+    clocks are unrelated)."""
+    now = float(getattr(driver, "clock", time.monotonic)())
+    return now if not math.isfinite(last_t0_s) else now - (last_t0_s + 10.0)
+
+
+def power_on_header(driver: RobotDriver, origin: float) -> dict[str, float]:
+    """``{"power_on_s": ...}``, the sweep time of the robot's power-on, when the driver knows
+    it (``power_on_s``, its host time: the simulated robots), else nothing: the recording's
+    thermal clock (time since power-on) is then unknown."""
+    power_on = getattr(driver, "power_on_s", None)
+    if power_on is None:
+        return {}
+    return {"power_on_s": float(power_on) - origin}
 
 
 def _recorded_so_far(out: Path, resume: bool, plan: SweepPlan) -> _Recorded:
@@ -272,12 +292,13 @@ def _recorded_so_far(out: Path, resume: bool, plan: SweepPlan) -> _Recorded:
             )
         has_still = r.has_static("still_gyro_raw")
         if not r.n_trials:
-            return _Recorded(nothing.done, 0, -math.inf, has_still)
+            return _Recorded(nothing.done, 0, -math.inf, has_still, r.header.get("power_on_s"))
         return _Recorded(
             np.unique(r.read("trial")),
             int(r.read("session").max()) + 1,
             float(r.read("t0_s").max()),
             has_still,
+            r.header.get("power_on_s"),
         )
 
 
@@ -351,8 +372,11 @@ def run_calibration(
     out = Path(out)
     before = _recorded_so_far(out, resume, plan)
     todo = np.setdiff1d(np.arange(len(plan)), before.done)
-    now = float(getattr(driver, "clock", time.monotonic)())
-    origin = now if not math.isfinite(before.last_t0_s) else now - (before.last_t0_s + 10.0)
+    origin = sweep_origin(driver, before.last_t0_s)
+    if before.power_on is not None:
+        header["power_on_s"] = before.power_on  # as the first session recorded it
+    elif not out.exists():
+        header.update(power_on_header(driver, origin))
     sess = Session(driver, gyro, protocol, origin)
     if len(todo) or not before.has_still:
         sess.catch_up()  # no motion planned on packages that waited in a queue
@@ -398,3 +422,127 @@ def run_calibration(
             bar.close()
         driver.stop()
     return CalibrationResult(out, len(plan), len(todo), before.session, report)
+
+
+class DriverRunner:
+    """An adaptive sweep's robot: any :class:`~timedexec.drivers.RobotDriver` with its gyro
+    (the trials, still recording, sessions and pre-flight of :func:`run_calibration`).
+
+    Parameters
+    ----------
+    driver : RobotDriver
+        Connected driver.
+    gyro : GyroSource
+        The gyro on the flange.
+    protocol : SweepProtocol
+        Motion, controller period, the gyro's constants.
+    source : str
+        Where the data came from (the robot URL), for the header.
+    preflight : bool
+        Check the gyro stream and that it turns with the robot before anything is written.
+    """
+
+    def __init__(
+        self,
+        driver: RobotDriver,
+        gyro: GyroSource,
+        protocol: SweepProtocol,
+        *,
+        source: str = "",
+        preflight: bool = True,
+    ) -> None:
+        self.driver = driver
+        self.gyro = gyro
+        self.protocol = protocol
+        self.robot = protocol.robot
+        prof = protocol.profile
+        # a trial: the record window after the trigger, then the stillness the next needs
+        self.trial_s = prof.record_s + protocol.trial_gap_s + prof.pre_s
+        self.move_s = protocol.config_move_s
+        self.source = source
+        self.preflight = preflight
+        self.truth = hasattr(driver, "true_onset_s")
+        self.report: PreflightReport | None = None
+        self._sess: Session | None = None
+        self._session = 0
+        self._power_on: float | None = None
+        self._current: NDArray[np.float64] | None = None
+
+    def header(self) -> dict[str, Any]:
+        """The header of :func:`run_calibration` (without the plan)."""
+        header: dict[str, Any] = {
+            "source": self.source or "live",
+            "robot": self.protocol.spec.to_dict(),
+            "profile": self.protocol.profile.to_dict(),
+            "controller_period_s": self.protocol.controller_period_s,
+            "gyro": self.protocol.gyro.to_dict(),
+            "time_origin": "trial time 0 = host arrival of the trigger state package",
+        }
+        if self._power_on is not None:
+            header["power_on_s"] = self._power_on
+        return header
+
+    def fields(self) -> list[Field]:
+        """The live recording's fields (sessions, raw packages, truth on a simulator)."""
+        return _live_fields(self.protocol, self.truth)
+
+    def prepare(self, out: Path, plan: SweepPlan, first_row: int, resume: bool) -> None:
+        """Continue the sweep clock of a resumed recording, then the pre-flight."""
+        last_t0 = -math.inf
+        if resume:
+            with RecordingReader(out) as r:
+                self._power_on = r.header.get("power_on_s")
+                if r.n_trials:
+                    last_t0 = float(r.read("t0_s").max())
+                    self._session = int(r.read("session").max()) + 1
+        origin = sweep_origin(self.driver, last_t0)
+        if not resume:
+            self._power_on = power_on_header(self.driver, origin).get("power_on_s")
+        sess = Session(self.driver, self.gyro, self.protocol, origin)
+        self._sess = sess
+        sess.catch_up()
+        if self.preflight:
+            report = check_stream(sess)
+            sess.move_to(plan.q_start_rad[first_row])
+            self._current = plan.q_start_rad[first_row]
+            sess.wait_still(min_s=0.2)
+            self.report = check_motion(
+                sess, report, int(plan.joint[first_row]), float(plan.direction[first_row])
+            )
+
+    def begin(self, writer: RecordingWriter, plan: SweepPlan) -> None:
+        """The still recording, where the sweep's first configuration waits."""
+        sess = self._session_()
+        if not writer.has_static("still_gyro_raw"):
+            sess.wait_still(min_s=0.2)
+            for name, arr in _stillrecording(sess, self.protocol.still_s).items():
+                writer.write_static(name, arr)
+
+    def _session_(self) -> Session:
+        if self._sess is None:
+            raise ConfigError("DriverRunner: call prepare() first")
+        return self._sess
+
+    def now_s(self) -> float:
+        """The sweep clock now, s."""
+        sess = self._session_()
+        return sess.clock() - sess.origin_s
+
+    def run(
+        self, plan: SweepPlan, rows: NDArray[np.int64], until_s: float
+    ) -> Iterator[dict[str, Any]]:
+        """Each row as one trial (move when the configuration changes, wait until still)."""
+        sess = self._session_()
+        for i in rows.tolist():
+            if self.now_s() + self.trial_s > until_s:
+                return
+            q = plan.q_start_rad[i]
+            if self._current is None or not np.allclose(q, self._current):
+                sess.move_to(q)
+                self._current = q
+            sess.wait_still(min_s=self.protocol.trial_gap_s)
+            yield _trial(sess, plan, int(i), self._session, self.truth)
+
+    def finish(self) -> None:
+        """Stop the robot."""
+        self.driver.stop()

@@ -53,7 +53,8 @@ def add_parser(sub: Any) -> None:
             "examples:\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
             "--out cal.h5\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu "
             "/dev/ttyUSB0 --sensor-profile gyro.json --trials 33500 --seed 1 --out ur10.h5 "
-            "--resume"
+            "--resume\n  timedexec calibrate --robot-url 'sim://ur10e?warm=1' --adaptive "
+            "--budget-min 45 --seed 1 --out ur10e-adaptive.h5"
         ),
     )
     p.add_argument(
@@ -68,7 +69,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--trials",
         type=int_arg(1, MAX_TRIALS, fix=" (the paper's sweep: 33500; about 1 s of robot time each)"),
-        help=f"number of trials (with --seed; 1 .. {MAX_TRIALS:,})",
+        help=f"number of trials (with --seed; 1 .. {MAX_TRIALS:,}); not with --adaptive",
     )
     add_seed(p, help="plan seed")
     p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
@@ -102,21 +103,135 @@ def add_parser(sub: Any) -> None:
         "?max_correction_deg=D1,...,D6). A sweep over RSI is planned around that pose within "
         "it; a --plan that leaves it is refused before anything moves",
     )
+    add_adaptive_options(p)
     add_quiet(p)
     add_json(p, "the summary (recording, planned, recorded_now, ...)")
     p.set_defaults(func=run)
 
 
+def add_adaptive_options(p: Any) -> None:
+    """``--adaptive`` and its options (``calibrate`` and ``simulate`` share them)."""
+    g = p.add_argument_group(
+        "adaptive sweep (docs/calibration.md: when to use it rather than the fixed sweep)"
+    )
+    g.add_argument(
+        "--adaptive",
+        action="store_true",
+        help="choose each batch of trials from a Gaussian-process model of the trials so far "
+        "(where another trial lowers the model's expected error over the workspace most), "
+        "until --budget-min of robot time or until another 10 minutes would lower the "
+        "estimated error by less than a tenth of the noise floor; resumable (--resume)",
+    )
+    g.add_argument(
+        "--budget-min",
+        metavar="M",
+        type=float_arg(1.0, 24 * 60.0, unit="min"),
+        default=45.0,
+        help="robot time the adaptive sweep may take, min (1 .. 1440)",
+    )
+    g.add_argument(
+        "--batch-min",
+        metavar="M",
+        type=float_arg(0.5, 60.0, unit="min"),
+        default=3.0,
+        help="robot time of one adaptive batch, min: the next is chosen while it runs",
+    )
+    g.add_argument(
+        "--stop-fraction",
+        metavar="F",
+        type=float_arg(0.0, 0.99),
+        default=0.1,
+        help="the stopping rule: stop when another 10 minutes would lower the estimated "
+        "error by less than F times the noise floor (and the newest batches, predicted "
+        "before they were measured, bear the estimate out); 0: run to --budget-min",
+    )
+    g.add_argument(
+        "--workspace",
+        metavar="FILE",
+        help="where the robot works (the adaptive sweep samples there): a JSON file with "
+        '{"q_min_rad": [6], "q_max_rad": [6]} (a joint-range box, within the calibration '
+        'ranges) or {"configurations_rad": [[6], ...]}, or a CSV of configurations (6 '
+        "angles per row, rad); default the robot's calibration ranges",
+    )
+
+
+def adaptive_settings(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The :class:`~timedexec.calibration.AdaptiveSettings` and
+    :class:`~timedexec.calibration.Workspace` of the adaptive options.
+
+    Raises
+    ------
+    ConfigError
+        ``--trials`` or ``--plan`` with ``--adaptive``; an unreadable workspace file.
+    """
+    from timedexec.calibration import AdaptiveSettings, Workspace
+
+    if getattr(args, "plan", None) is not None:
+        raise ConfigError("--adaptive chooses its own trials: drop --plan")
+    settings = AdaptiveSettings(
+        budget_s=args.budget_min * 60.0,
+        batch_s=args.batch_min * 60.0,
+        stop_fraction=args.stop_fraction,
+        seed=args.seed,
+    )
+    if args.workspace is None:
+        return settings, Workspace()
+    return settings, read_workspace(args.workspace)
+
+
+def read_workspace(path: str) -> Any:
+    """The workspace in ``path``: JSON (a box or configurations) or CSV (configurations).
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or malformed file, naming it and the expected form.
+    """
+    import json
+
+    import numpy as np
+
+    from timedexec.calibration import Workspace
+
+    form = (
+        '{"q_min_rad": [6 angles], "q_max_rad": [6 angles]} or {"configurations_rad": '
+        "[[6 angles], ...]} (JSON), or a CSV with 6 angles (rad) per row"
+    )
+    try:
+        if path.lower().endswith(".json"):
+            with open(path, encoding="utf-8") as f:
+                d = json.load(f)
+            if not isinstance(d, dict) or not set(d) <= {
+                "q_min_rad",
+                "q_max_rad",
+                "configurations_rad",
+            }:
+                raise ConfigError(f"--workspace {path}: expected {form}")
+            return Workspace.from_dict(d)
+        rows = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+    except (OSError, ValueError, TypeError) as exc:
+        raise ConfigError(f"--workspace {path}: cannot read it ({exc}); expected {form}") from exc
+    if rows.shape[1] != 6:
+        raise ConfigError(
+            f"--workspace {path}: rows of {rows.shape[1]} values; expected {form}"
+        )
+    return Workspace(configurations_rad=tuple(map(tuple, rows.tolist())))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; return the exit code."""
-    from timedexec.calibration import run_calibration
+    from timedexec.calibration import DriverRunner, run_adaptive, run_calibration
     from timedexec.drivers import RobotURL, open_driver
     from timedexec.recording import SweepPlan, SweepProtocol
 
     url = RobotURL.parse(args.robot_url)
     simulated = url.scheme == "sim"
     robot = _robot(args, url)
-    if (args.trials is None) == (args.plan is None):
+    if args.adaptive:
+        if args.trials is not None:
+            raise ConfigError("--adaptive chooses its own trials: drop --trials")
+        adaptive = adaptive_settings(args)
+    elif (args.trials is None) == (args.plan is None):
         raise ConfigError("give either --trials N (with --seed S) or --plan PLAN, not both")
     if not simulated and not args.imu:
         raise ConfigError("--imu is required for real robots: give the gyro's serial port")
@@ -125,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
         args,
         "calibrate",
         # the recording refuses an existing file itself unless --resume continues it
-        inputs={"--plan": args.plan, "--imu": imu},
+        inputs={"--plan": args.plan, "--imu": imu, "--workspace": args.workspace},
         outputs={"--out": args.out},
         devices=("--imu",),
     )
@@ -159,7 +274,9 @@ def run(args: argparse.Namespace) -> int:
             if gyro_constants is not None:
                 protocol = dataclasses.replace(protocol, gyro=gyro_constants)
             reach = getattr(driver, "reachable_range_rad", None)
-            if args.plan:
+            if args.adaptive:
+                plan = None  # the adaptive sweep chooses its own trials
+            elif args.plan:
                 plan = _read_plan(args.plan, protocol.robot)
             elif callable(reach) and args.resume and os.path.exists(args.out):
                 # a sweep planned around the pose where RSI first started goes on with its
@@ -172,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
                                           q_range_rad=(lo + margin, hi - margin))  # fmt: skip
             else:
                 plan = SweepPlan.generate(protocol.robot, args.trials, seed=args.seed)
-            if callable(reach):  # refused before anything moves (exit 2)
+            if callable(reach) and plan is not None:  # refused before anything moves (exit 2)
                 driver.check_reachable(  # type: ignore[attr-defined]
                     plan.q_start_rad, margin_rad=_trial_excursion_rad(protocol),
                     what="the plan's configuration",
@@ -186,6 +303,18 @@ def run(args: argparse.Namespace) -> int:
                 from timedexec.sensors import open_gyro
 
                 gyro = stack.enter_context(open_gyro(args.imu))
+            if args.adaptive:
+                runner = DriverRunner(driver, gyro, protocol, source=args.robot_url)
+                done = run_adaptive(
+                    runner,
+                    args.out,
+                    settings=adaptive[0],
+                    workspace=adaptive[1],
+                    resume=args.resume,
+                    progress=not args.quiet,
+                )
+                return adaptive_done(args, done)
+            assert plan is not None
             result = run_calibration(
                 driver,
                 gyro,
@@ -207,6 +336,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def adaptive_done(args: argparse.Namespace, result: Any) -> int:
+    """Report an adaptive sweep (summary, and the figure of its estimated error against
+    robot time next to the recording); exit code 0."""
+    from timedexec.calibration import plot_design_log
+
+    info = result.summary()
+    figure = plot_design_log(result.path)
+    info["figure"] = None if figure is None else str(figure)
+    why = {
+        "converged": "the stopping rule: another 10 minutes would improve the model by less "
+        "than a tenth of the noise floor",
+        "budget": "the budget of robot time",
+        "workspace": "every candidate of the workspace measured",
+    }.get(result.stopped, result.stopped)
+    last = [n for n in info["batches"] if n["error_s"] == n["error_s"]]  # not NaN
+    err = f"; estimated error {1e3 * last[-1]['error_after_s']:.2f} ms" if last else ""
+    emit(
+        args,
+        info,
+        f"recorded {info['recorded_now']} trials ({info['trials']} in all, "
+        f"{info['robot_time_s'] / 60:.1f} min of robot time) to {info['recording']}{err}; "
+        f"stopped by {why}"
+        + (f"; figure {figure}" if figure is not None else ""),
+    )
+    return 0
+
+
 def resume_command(args: argparse.Namespace) -> str:
     """The command that continues this run: the same options and ``--resume``."""
     return shell_command(
@@ -218,6 +374,11 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--trials", args.trials),
             ("--seed", args.seed),
             ("--plan", args.plan),
+            ("--adaptive", args.adaptive),
+            ("--budget-min", args.budget_min if args.adaptive else None),
+            ("--batch-min", args.batch_min if args.adaptive else None),
+            ("--stop-fraction", args.stop_fraction if args.adaptive else None),
+            ("--workspace", args.workspace),
             ("--sensor-profile", args.sensor_profile),
             ("--gyro-group-delay", args.gyro_group_delay),
             ("--gyro-transport-latency", args.gyro_transport_latency),

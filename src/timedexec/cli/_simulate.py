@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from timedexec.cli._calibrate import adaptive_done, adaptive_settings, add_adaptive_options
 from timedexec.cli._common import (
     MAX_TRIALS,
     add_command,
@@ -22,6 +23,7 @@ from timedexec.cli._common import (
 )
 from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs
 from timedexec.effects import EFFECTS
+from timedexec.errors import ConfigError
 
 __all__ = ["add_parser", "resume_command", "run"]
 
@@ -47,8 +49,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--trials",
         type=int_arg(1, MAX_TRIALS, fix=" (the paper's sweep: 33500)"),
-        required=True,
-        help=f"number of trials (1 .. {MAX_TRIALS:,}; the paper: 33500)",
+        help=f"number of trials (1 .. {MAX_TRIALS:,}; the paper: 33500); required unless "
+        "--adaptive",
     )
     add_seed(p)
     p.add_argument("--out", required=True, help="recording to write (HDF5)")
@@ -59,7 +61,16 @@ def add_parser(sub: Any) -> None:
         help="effect set: default, base, a comma list of effect names, or default,NAME,... "
         f"(the robot's defaults plus those named); the vocabulary: {', '.join(EFFECTS)}",
     )
+    p.add_argument(
+        "--warm",
+        action="store_true",
+        help="a warm robot: powered on 4 h before the sweep (as one taken out of production; "
+        "thermal_drift has settled); default cold, powered on as the sweep starts. The "
+        "recording's power_on_s says which, and models trained on it say which thermal "
+        "state they answer for",
+    )
     add_period(p)
+    add_adaptive_options(p)
     add_jobs(p, help="worker processes (output does not depend on it)")
     add_scheduler(p, what="the simulation blocks (the recording is written here)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run")
@@ -78,11 +89,16 @@ def run(args: argparse.Namespace) -> int:
         args,
         "simulate",
         # the recording refuses an existing file itself unless --resume continues it
+        inputs={"--workspace": args.workspace},
         outputs={"--out": args.out, "--truth": args.truth},
         what={"--truth": "the ground-truth delay table (CSV)"},
     )
     spec = get_robot(args.robot, period_s=args.period)
     effects = parse_effects(args.effects, spec.name)
+    if args.adaptive:
+        return _adaptive(args, spec, effects)
+    if args.trials is None:
+        raise ConfigError("give --trials N (or --adaptive)")
     try:
         with cluster(args, "simulate") as client:
             result = simulate_sweep(
@@ -96,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
                 resume=args.resume,
                 jobs=cluster_jobs("simulate", args, client),
                 progress=not args.quiet,
+                warm=args.warm,
             )
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("simulate", exc, args.out, resume_command(args))
@@ -110,6 +127,35 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _adaptive(args: argparse.Namespace, spec: Any, effects: Any) -> int:
+    """``simulate --adaptive``: the adaptive sweep on the batch simulator (what
+    ``calibrate --robot-url sim://ROBOT --adaptive`` records, at the batch simulator's speed)."""
+    from timedexec.calibration import run_adaptive
+    from timedexec.sim import SimulatedRunner, default_settings
+
+    if args.trials is not None:
+        raise ConfigError("--adaptive chooses its own trials: drop --trials")
+    for flag, given in (("--truth", args.truth), ("--scheduler", args.scheduler)):
+        if given:
+            raise ConfigError(f"{flag} is not available with --adaptive (drop it)")
+    settings, workspace = adaptive_settings(args)
+    runner = SimulatedRunner(
+        spec, seed=args.seed, effects=effects, settings=default_settings(spec), warm=args.warm
+    )
+    try:
+        result = run_adaptive(
+            runner,
+            args.out,
+            settings=settings,
+            workspace=workspace,
+            resume=args.resume,
+            progress=not args.quiet,
+        )
+    except (KeyboardInterrupt, OSError) as exc:
+        return sweep_stopped("simulate", exc, args.out, resume_command(args))
+    return adaptive_done(args, result)
+
+
 def resume_command(args: argparse.Namespace) -> str:
     """The command that continues this run: the same options and ``--resume``."""
     return shell_command(
@@ -119,7 +165,13 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--trials", args.trials),
             ("--seed", args.seed),
             ("--effects", None if args.effects == "default" else args.effects),
+            ("--warm", args.warm),
             ("--period", args.period),
+            ("--adaptive", args.adaptive),
+            ("--budget-min", args.budget_min if args.adaptive else None),
+            ("--batch-min", args.batch_min if args.adaptive else None),
+            ("--stop-fraction", args.stop_fraction if args.adaptive else None),
+            ("--workspace", args.workspace),
             ("--jobs", None if args.jobs == 1 else args.jobs),
             ("--scheduler", args.scheduler),
             ("--out", args.out),

@@ -32,7 +32,15 @@ from timedexec.drivers._base import RobotDriver, RobotState
 from timedexec.effects import EffectSet
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.sensors import GyroSamples
-from timedexec.sim import ControllerSim, SimSettings, SpeedJ, SpeedStop, StopJ, default_settings
+from timedexec.sim import (
+    WARM_START_S,
+    ControllerSim,
+    SimSettings,
+    SpeedJ,
+    SpeedStop,
+    StopJ,
+    default_settings,
+)
 
 __all__ = ["WATCHDOG_STOP_DECELERATION_RAD_S2", "SimDriver", "VirtualGyro"]
 
@@ -57,6 +65,10 @@ class SimDriver(RobotDriver):
         A name in :data:`~timedexec.robots.ROBOT_NAMES`.
     virtual : bool
         Virtual time (default) or real time.
+    warm : bool
+        Start warm: the robot was powered on :data:`~timedexec.sim.WARM_START_S` before
+        the driver's clock starts (a robot taken out of production); default cold, powered
+        on at the clock's zero. :attr:`power_on_s` says when.
     effects, settings, seed, q0_rad, physics_rate_hz
         Passed to :class:`~timedexec.sim.ControllerSim` (``physics_rate_hz``: physics
         integration rate, Hz). Default: the gyro's 8 kHz in virtual time; in real time
@@ -71,6 +83,7 @@ class SimDriver(RobotDriver):
         robot: str = "ur10",
         *,
         virtual: bool = True,
+        warm: bool = False,
         effects: EffectSet | None = None,
         settings: SimSettings | None = None,
         seed: int = 0,
@@ -81,6 +94,7 @@ class SimDriver(RobotDriver):
         if physics_rate_hz is None and not virtual:
             physics_rate_hz = REALTIME_PHYSICS_RATE_HZ
         self._physics_rate_hz = physics_rate_hz
+        self.warm = bool(warm)
         self.robot = self.settings.protocol.robot
         self.virtual = virtual
         self._effects = effects
@@ -124,6 +138,7 @@ class SimDriver(RobotDriver):
                 seed=self._seed,
                 q0_rad=self._q0,
                 physics_rate_hz=self._physics_rate_hz,
+                power_on_s=-WARM_START_S if self.warm else 0.0,
             )
             self._wall0 = time.monotonic()
 
@@ -132,6 +147,13 @@ class SimDriver(RobotDriver):
         self._queue.clear()
         self._wd_timeout_s = None
         self._wd_tripped = False
+
+    @property
+    def power_on_s(self) -> float:
+        """Host time of the robot's power-on, s: what the calibration runner records so
+        that a recording (and a model trained on it) says which thermal state it saw."""
+        power_on = -WARM_START_S if self.warm else 0.0
+        return self._host_from_controller(power_on)
 
     def clock(self) -> float:
         """Host clock, s: virtual time, or ``time.monotonic()`` in real time."""

@@ -9,7 +9,7 @@ robot, a repeated parameter, a malformed value, a port, path or fragment where n
 is a :class:`~timedexec.errors.ConfigError` naming the part and what is allowed; a typo
 never falls back silently to a default)::
 
-    sim://[ROBOT][?realtime=0|1][&seed=N]          ROBOT: ur10 (the default), ur10e, kr5
+    sim://[ROBOT][?realtime=0|1][&seed=N][&warm=0|1]   ROBOT: ur10 (the default), ur10e, kr5
     sim://[ROBOT]?trials=N[&seed=S][&repeats=R][&effects=E]    a simulated sweep (fleet)
     ur://HOST[?external_control=0|1][&ur_cap_port=P][&program=/programs/X.urp]
     rsi://[LISTEN_IP:]PORT[?listen=IP][&robot=IP][&period=S][&ipoc_tick_ms=MS|auto]
@@ -46,7 +46,7 @@ SCHEMES = ("sim", "ur", "rsi")
 
 #: Query parameters each scheme accepts when the URL names a robot to drive.
 URL_PARAMS: dict[str, tuple[str, ...]] = {
-    "sim": ("realtime", "seed"),
+    "sim": ("realtime", "seed", "warm"),
     "ur": ("external_control", "ur_cap_port", "program"),
     "rsi": (
         "period",
@@ -92,7 +92,8 @@ class RobotURL:
         for ``ur://`` and ``rsi://`` (the controller or the ``robot=`` option says).
     options : Mapping[str, Any]
         The query's parameters, validated, in SI units, under the driver's keyword names:
-        ``sim://`` ``realtime`` (bool), ``seed`` (int); ``ur://`` ``external_control``
+        ``sim://`` ``realtime`` (bool), ``seed`` (int), ``warm`` (bool: powered on
+        hours before, :data:`~timedexec.sim.WARM_START_S`; default cold); ``ur://`` ``external_control``
         (bool), ``ur_cap_port`` (int), ``program`` (str); ``rsi://`` ``robot_ip`` (str),
         ``period_s`` (float, s), ``ipoc_tick_s`` (float, s, or ``"auto"``),
         ``first_frame_timeout_s`` (float, s), ``max_correction_deg`` (float or 6 floats,
@@ -189,7 +190,8 @@ def open_driver(url: str | RobotURL, **options: Any) -> RobotDriver:
     """A (not yet connected) driver for ``url``.
 
     ``sim://ur10`` (in-process simulator, virtual time; ``sim://ur10?realtime=1`` real
-    time, ``?seed=N`` its seed, which wins over a ``seed=`` option), ``ur://192.168.1.10``
+    time, ``?seed=N`` its seed, which wins over a ``seed=`` option, ``?warm=1`` a robot
+    powered on hours before the sweep instead of a cold one), ``ur://192.168.1.10``
     (ur_rtde; a UR twin: ``ur://127.0.0.2``; through the External Control URCap:
     ``?external_control=1``, ``?ur_cap_port=50002``, ``?program=/programs/x.urp`` which the
     dashboard then plays; see docs/ur-twin.md), ``rsi://49152`` (the PC side
@@ -227,6 +229,8 @@ def open_driver(url: str | RobotURL, **options: Any) -> RobotDriver:
             parsed.options["seed"] if "seed" in parsed.options else _seed(parsed.text, option_seed)
         )
         realtime = bool(parsed.options.get("realtime", False))
+        if "warm" in parsed.options:
+            options["warm"] = parsed.options["warm"]
         return SimDriver(
             parsed.robot or DEFAULT_SIM_ROBOT, virtual=not realtime, seed=seed, **options
         )
@@ -341,6 +345,8 @@ def _sim_options(url: str, query: dict[str, str]) -> dict[str, Any]:
         out["realtime"] = _flag(url, query, "realtime")
     if "seed" in query:
         out["seed"] = _seed(url, query["seed"])
+    if "warm" in query:
+        out["warm"] = _flag(url, query, "warm")
     return out
 
 

@@ -709,7 +709,8 @@ def extract_recording(
         ``response_deflection_s`` (how far separating a gear's deflection moved the
         response delay, s; NaN where the trial's joint showed none), ``response_flag``
         (why the response delay alone is not to be used, "" when fine), ``onset_window_s``,
-        ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``)
+        ``gyro_gain``, ``gyro_noise_rad_s`` and ``gyro_missing``; ``t_since_power_on``, s,
+        where the header gives the robot's power-on, ``power_on_s``)
         and what was learnt of the sensor (clock offset and drift, filter, noise).
 
     Raises
@@ -790,6 +791,7 @@ def _extract(
         plan_q = reader.static("plan_q_start_rad")
         plan_joint = reader.static("plan_joint")
         plan_dir = reader.static("plan_direction")
+        power_on = reader.header.get("power_on_s")  # the robot's power-on, where known
         truth = {
             k: reader.read(f"true_{k}_s")
             for k in ("actuation_delay", "response_delay")
@@ -862,6 +864,8 @@ def _extract(
         if bad.any() and (~bad).any():
             t_start[bad] = np.interp(trial[bad], trial[~bad], t_start[~bad])
             cols["t_start"] = t_start
+    if power_on is not None:  # the thermal clock: time since the robot was powered on
+        cols["t_since_power_on"] = np.asarray(cols["t_start"], dtype=float) - float(power_on)
     order = np.argsort(trial)
     table = DelayTable(
         {k: (v[order] if isinstance(v, np.ndarray) else v) for k, v in cols.items()}, source=path

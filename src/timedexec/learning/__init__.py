@@ -54,6 +54,12 @@ from timedexec.learning._registry import (
     make_estimator,
 )
 from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
+from timedexec.learning._thermal import (
+    THERMAL_MARGIN_S,
+    WARM_AFTER_S,
+    thermal_mismatch,
+    thermal_state,
+)
 from timedexec.learning._threads import single_threaded_blas
 from timedexec.learning._train import (
     DELAYS,
@@ -77,6 +83,8 @@ __all__ = [
     "MANIFEST_NAME",
     "METHODS",
     "PAPER_TABLES",
+    "THERMAL_MARGIN_S",
+    "WARM_AFTER_S",
     "CVResult",
     "Collapsed",
     "DelayGP",
@@ -113,5 +121,7 @@ __all__ = [
     "predictor_from_arrays",
     "single_threaded_blas",
     "std_scale_factor",
+    "thermal_mismatch",
+    "thermal_state",
     "train_delay_models",
 ]

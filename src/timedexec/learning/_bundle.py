@@ -23,6 +23,7 @@ import io
 import json
 import math
 import os
+import warnings
 import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
@@ -34,13 +35,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec._files import make_dir, write_atomic
 from timedexec._version import __version__
-from timedexec.errors import ConfigError, ModelError
+from timedexec.errors import ConfigError, ModelError, ThermalStateWarning
 from timedexec.learning._calibrate import CALIBRATED_METHOD, STD_SCALE_RULE
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._gpcore import GPPredictor
 from timedexec.learning._method import DelayMethod, ModelInputs, Predictor
 from timedexec.learning._registry import METHODS, get_method
 from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
+from timedexec.learning._thermal import thermal_mismatch
 from timedexec.learning._threads import BLAS_PIN, BlasPin
 
 __all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
@@ -262,6 +264,13 @@ class DelayModel:
         self.time_input: bool = bool(manifest.get("time_input", False))
         default = manifest.get("time_default_s")
         self.time_default_s: float | None = None if default is None else float(default)
+        thermal = manifest.get("thermal_state")
+        #: The thermal states the training saw (``clock``, ``range_s``, ``state``), or None
+        #: (bundles from before it was recorded); see :mod:`timedexec.learning._thermal`.
+        self.thermal_state: dict[str, Any] | None = (
+            dict(thermal) if isinstance(thermal, dict) else None
+        )
+        self._thermal_warned = False
         self._predictors: dict[tuple[str, str, str], Any] = {}  # (method, delay, key)
         self._mean_std: dict[tuple[str, str, str], float] = {}
         # (method, joint, combined) -> (act, resp, fused pair or None, c_act², c_resp²)
@@ -286,12 +295,14 @@ class DelayModel:
         training: Mapping[str, Any],
         time_input: bool = False,
         time_range_s: tuple[float, float] = (0.0, 0.0),
+        thermal: Mapping[str, Any] | None = None,
     ) -> DelayModel:
         """Assemble a model from final fits ``{(method, delay, key): {"arrays", "train_rmse_s", "info"}}``.
 
         The GP's std calibration (``cv.std_scale``, ``cv.std_held_out``) goes into the
         manifest as ``std_scale`` and ``std_calibration``; without CV (or without "gpr")
-        neither is written and the GP's std is used as it is (factor 1).
+        neither is written and the GP's std is used as it is (factor 1). ``thermal``
+        (:func:`~timedexec.learning._thermal.thermal_state`) becomes ``thermal_state``.
         """
         arrays: dict[str, NDArray[Any]] = {}
         models: dict[str, Any] = {}
@@ -329,6 +340,7 @@ class DelayModel:
             # predictions default to the end of the calibration sweep: the warm robot
             "time_default_s": float(time_range_s[1]) if time_input else None,
             "time_range_s": [float(time_range_s[0]), float(time_range_s[1])],
+            "thermal_state": None if thermal is None else dict(thermal),
             "training_data": dict(training),
             "cv": None
             if cv is None
@@ -563,9 +575,14 @@ class DelayModel:
         q : array, shape (6,)
             Start configuration, rad.
         t_s : float, optional
-            Bundles with a time input (``time_input`` in the manifest): time since the robot
-            started working, s, on the calibration sweep's clock; default the end of the
-            sweep (warm). Refused for bundles without a time input.
+            Time since the robot's power-on, s (bundles whose ``thermal_state`` has the
+            power-on clock; older bundles: on the calibration sweep's clock). The time input
+            of bundles with one (``time_input``; default the end of the sweep, warm); for
+            every bundle that knows its thermal states, checked against them: a query about
+            another (a warm robot's model asked about a cold robot, or the reverse; see
+            :mod:`timedexec.learning._thermal`) warns once per model
+            (:class:`~timedexec.errors.ThermalStateWarning`). Refused by bundles with
+            neither.
         method : str, optional
             One of the bundle's methods (``methods``): "gpr", "nn", "rt", "median", ...
             (:data:`~timedexec.learning.METHODS`); default :attr:`default_method` (the GP
@@ -643,18 +660,44 @@ class DelayModel:
         """
         return BLAS_PIN
 
+    def check_thermal_state(self, t_since_power_on_s: float) -> str | None:
+        """Whether this model answers for a robot ``t_since_power_on_s`` after power-on:
+        None if so (or the bundle does not know its thermal state), else why not, also
+        warned as a :class:`~timedexec.errors.ThermalStateWarning` (every call: this is the
+        check a caller makes once, e.g. before an executor starts; ``predict`` warns once
+        per model by itself)."""
+        why = thermal_mismatch(self.thermal_state, [float(t_since_power_on_s)])
+        if why is not None:
+            warnings.warn(why, ThermalStateWarning, stacklevel=2)
+        return why
+
+    @property
+    def thermal_clock(self) -> bool:
+        """Whether ``t_s`` is the time since the robot's power-on (the bundle knows the
+        thermal states it was trained in), so that every bundle takes it."""
+        return bool(self.thermal_state) and self.thermal_state.get("clock") == "power-on"  # type: ignore[union-attr]
+
     def _time_h(self, t_s: Any) -> Any:
-        if not self.time_input:
-            if t_s is not None:
+        """The time input (hours) of a query: ``t_s`` (default: the end of the sweep),
+        checked against the thermal states of the training (a warning when another)."""
+        if t_s is not None:
+            if not self.time_input and not self.thermal_clock:
                 raise ConfigError(
-                    "this bundle has no time input (trained without --time-input); drop t_s"
+                    "this bundle has no time input (trained without --time-input) and no "
+                    "thermal clock (its table had no t_since_power_on); drop t_s"
                 )
+            t = np.asarray(t_s, dtype=float)
+            if not np.all(np.isfinite(t)):
+                raise ConfigError(f"t_s={t_s!r}: the time must be finite seconds")
+            if not self._thermal_warned:
+                why = thermal_mismatch(self.thermal_state, t)
+                if why is not None:
+                    self._thermal_warned = True  # once per model: a control loop asks often
+                    warnings.warn(why, ThermalStateWarning, stacklevel=4)
+        if not self.time_input:
             return None
         if t_s is None:
             return self.time_default_s / 3600.0  # type: ignore[operator]
-        t = np.asarray(t_s, dtype=float)
-        if not np.all(np.isfinite(t)):
-            raise ConfigError(f"t_s={t_s!r}: the time must be finite seconds")
         return t / 3600.0
 
     def _encode_one(
@@ -675,8 +718,9 @@ class DelayModel:
         x[12] = direction
         if combined:
             x[13 : 13 + n_hot] = [1.0 if j == joint else 0.0 for j in self.joints]
-        if self.time_input or t_s is not None:
-            x[-1] = float(self._time_h(t_s))
+        t_h = self._time_h(t_s) if self.time_input or t_s is not None else None
+        if t_h is not None:
+            x[-1] = float(t_h)
         return x
 
     def predict_many(

@@ -293,6 +293,32 @@ class GPPredictor:
         np.maximum(var, 0.0, out=var)
         return mean, var * self.y_std**2
 
+    def latent_cov(self, A: FloatArray, B: FloatArray) -> FloatArray:
+        """Posterior covariance of the latent delay between encoded inputs A (n, d) and
+        B (k, d), s², shape (n, k): ``k(a, b) - k(a, C) (K + D)⁻¹ k(C, b)``.
+
+        What sequential design asks (the variance a planned trial would remove elsewhere
+        does not depend on its outcome). Exact models only.
+
+        Raises
+        ------
+        ModelError
+            The variance is conditioned on a subset or is FITC's (an upper bound, not a
+            covariance): fit with ``max_variance_conditions=None`` and below
+            ``max_exact_conditions``.
+        """
+        if not self.exact_variance or self.centres.shape[0] != self.B.shape[0]:
+            raise ModelError(
+                "latent_cov needs the exact posterior: fit the GP with "
+                "max_variance_conditions=None and at most max_exact_conditions conditions"
+            )
+        Am = self.map_inputs(np.atleast_2d(A))
+        Bm = self.map_inputs(np.atleast_2d(B))
+        Ka = _kernel(Am, self.centres, self.signal_var)
+        Kb = _kernel(Bm, self.centres, self.signal_var)
+        cov = _kernel(Am, Bm, self.signal_var) - (Ka @ self.B) @ Kb.T
+        return np.asarray(cov * self.y_std**2, dtype=np.float64)
+
     def predict_one(self, x: FloatArray) -> tuple[float, float]:
         """Mean (s) and latent variance (s²) for one encoded input x (d,): the fast path.
 

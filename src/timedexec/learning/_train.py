@@ -38,6 +38,7 @@ from timedexec.learning._calibrate import CALIBRATED_METHOD, gaussian_coverage, 
 from timedexec.learning._features import encode_inputs
 from timedexec.learning._method import ModelInputs
 from timedexec.learning._registry import DEFAULT_METHODS, check_methods, get_method
+from timedexec.learning._thermal import thermal_state
 from timedexec.robots import ROBOT_NAMES, get_robot_entry
 
 __all__ = [
@@ -119,6 +120,7 @@ class _Data:
     #: Per delay, the rows it may be trained on (a ``response_flag`` rules out the
     #: response delay only: ``DelayTable.usable``).
     usable: dict[str, NDArray[np.bool_]]
+    power_on_clock: bool = False  # t_h is the time since power-on (t_since_power_on)
 
     def rows(self, key: str, delay: str) -> NDArray[np.intp]:
         mask = self.usable[delay]
@@ -215,7 +217,9 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
     condition = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)
     # The condition's mean start time: its repeats run back to back (seconds apart, against
     # an hour-long warm-up), so one time per condition keeps replicates identical rows.
-    t_start = t["t_start"].astype(float)
+    # On the thermal clock (time since power-on) where the table has it.
+    power_on_clock = "t_since_power_on" in t
+    t_start = t["t_since_power_on" if power_on_clock else "t_start"].astype(float)
     t_h = (np.bincount(condition, weights=t_start) / np.bincount(condition))[condition] / 3600.0
     h = hashlib.sha256()
     for arr in (q, joint, direction, y["actuation_delay"], y["response_delay"]):
@@ -235,6 +239,7 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
         t_h=t_h,
         time_input=time_input,
         usable=usable,
+        power_on_clock=power_on_clock,
     )
 
 
@@ -684,9 +689,11 @@ def train_delay_models(
     final : bool
         Train the final models (False: CV only, ``model`` is None).
     time_input : bool
-        Add the sweep time (``t_start`` averaged per condition, hours) as an input beside
-        the published ones: separates the warm-up drift from the pose dependence. The
-        bundle then predicts at the end of the sweep (warm) unless given a time.
+        Add the sweep time (``t_start`` averaged per condition, hours; the time since
+        power-on, ``t_since_power_on``, where the table has it) as an input beside the
+        published ones: separates the warm-up drift from the pose dependence. The bundle
+        then predicts at the end of the sweep (warm) unless given a time. Either way the
+        manifest's ``thermal_state`` says which thermal states the training saw.
 
     Returns
     -------
@@ -743,6 +750,7 @@ def train_delay_models(
             cv=cv,
             time_input=data.time_input,
             time_range_s=(float(data.t_h.min() * 3600.0), float(data.t_h.max() * 3600.0)),
+            thermal=thermal_state(data.t_h * 3600.0, power_on_clock=data.power_on_clock),
             training={
                 "arrays_sha256": data.sha256,
                 "file_sha256": source_sha256,

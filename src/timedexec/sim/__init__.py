@@ -6,12 +6,20 @@ cycle by cycle, behind the protocol twins of :mod:`timedexec.twins`), the simula
 (:class:`GyroFrameSource` and its rate sources), the settings calibrated to the published
 statistics (:func:`default_settings`) and the vectorised batch sweep
 (:func:`simulate_sweep`, :func:`simulate_delays`), which writes through
-:mod:`timedexec.recording`.
+:mod:`timedexec.recording`, also as the robot of an adaptive sweep
+(:class:`SimulatedRunner`). A warm start (:data:`WARM_START_S`) puts the robot's power-on
+hours before the sweep.
 """
 
 from __future__ import annotations
 
-from timedexec.sim._batch import BLOCK_TRIALS, SweepClock, simulate_block, sweep_clock
+from timedexec.sim._batch import (
+    BLOCK_TRIALS,
+    WARM_START_S,
+    SweepClock,
+    simulate_block,
+    sweep_clock,
+)
 from timedexec.sim._controller import (
     ControllerSim,
     CycleResult,
@@ -34,6 +42,7 @@ from timedexec.sim._gyro import (
     step_rate_source,
 )
 from timedexec.sim._physics import JointBank, JointChain, JointParams, joint_params, pulse_profile
+from timedexec.sim._runner import SimulatedRunner
 from timedexec.sim._settings import (
     GyroModel,
     ServoSettings,
@@ -47,6 +56,7 @@ __all__ = [
     "BLOCK_TRIALS",
     "DEFAULT_BIAS_DPS",
     "FULL_SCALE_SENSITIVITY",
+    "WARM_START_S",
     "ControllerSim",
     "CycleResult",
     "GyroFrameSource",
@@ -59,6 +69,7 @@ __all__ = [
     "ServoJ",
     "ServoSettings",
     "SimSettings",
+    "SimulatedRunner",
     "SpeedJ",
     "SpeedStop",
     "StatePacket",

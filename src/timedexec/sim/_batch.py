@@ -45,6 +45,7 @@ from timedexec.sim._settings import SimSettings
 
 __all__ = [
     "BLOCK_TRIALS",
+    "WARM_START_S",
     "SweepClock",
     "iter_blocks",
     "simulate_block",
@@ -53,6 +54,9 @@ __all__ = [
 
 #: Trials per random-number block (fixed: changing it changes the output for a seed).
 BLOCK_TRIALS = 512
+#: A warm start: the robot was powered on this long before the sweep began, s (four of
+#: ``thermal_drift``'s default hour-long time constants: friction within 1.1 % of warm).
+WARM_START_S = 4 * 3600.0
 
 FloatArray = NDArray[np.float64]
 
@@ -68,6 +72,14 @@ class SweepClock:
     gyro_bias_drift_dps_per_s: FloatArray  # (3,)
     gyro_scale: FloatArray  # (3,)
     controller_boot_s: float  # controller clock value at host sweep time 0, s
+    #: host sweep time of the robot's power-on, s: 0 for a cold start, ``-WARM_START_S``
+    #: for a warm one; the thermal state (``thermal_drift``) runs on ``t0_s - power_on_s``
+    power_on_s: float = 0.0
+
+    @property
+    def thermal_s(self) -> FloatArray:
+        """Time since power-on of each trial's start, s (what ``thermal_drift`` sees)."""
+        return self.t0_s - self.power_on_s
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe ground truth of the sweep's sensor (for the recording header)."""
@@ -81,11 +93,15 @@ class SweepClock:
         }
 
 
-def sweep_clock(plan: SweepPlan, settings: SimSettings, seed: int) -> SweepClock:
+def sweep_clock(
+    plan: SweepPlan, settings: SimSettings, seed: int, *, warm: bool = False
+) -> SweepClock:
     """Draw the sweep-wide truths and lay out the trials in time.
 
     A still recording of the protocol's ``still_s`` opens the sweep; each trial takes its
     record window plus ``trial_gap_s``; moving to a new configuration adds ``config_move_s``.
+    ``warm``: the robot was powered on :data:`WARM_START_S` before the sweep clock's zero
+    (a robot taken out of production); otherwise at zero (cold).
     """
     rng = np.random.default_rng([seed, 0xC10C])
     gyro, protocol = settings.gyro, settings.protocol
@@ -104,6 +120,7 @@ def sweep_clock(plan: SweepPlan, settings: SimSettings, seed: int) -> SweepClock
         gyro_bias_drift_dps_per_s=rng.choice([-1.0, 1.0], 3) * gyro.bias_drift_dps_per_hour * hours,
         gyro_scale=1.0 + rng.uniform(-gyro.scale_error, gyro.scale_error, 3),
         controller_boot_s=float(rng.uniform(100.0, 5000.0)),
+        power_on_s=-WARM_START_S if warm else 0.0,
     )
 
 
@@ -157,7 +174,10 @@ def simulate_block(
         + rng.exponential(timing.to_controller_jitter_s or 1e-12, n)
     )
     intake = s0 + np.ceil((at_controller - s0) / period) * period
-    pose = Pose(spec=spec, q_start_rad=q_start, joint=joint, t_start_s=t0, direction=direction)
+    thermal = t0 - clock.power_on_s  # time since power-on: the thermal state's clock
+    pose = Pose(
+        spec=spec, q_start_rad=q_start, joint=joint, t_start_s=thermal, direction=direction
+    )
     drive_offset = drive_delay_s(effects, pose)
     t_ref = (
         intake
@@ -177,7 +197,7 @@ def simulate_block(
     # (velocity, <= 160 rad/s) sees 0.04 rad per step and the current loop is discretised
     # exactly. Gyro samples in between are interpolated. Histories hold the state at the
     # start of each step, stamped with that time.
-    params, tau_g, j_true = joint_params(spec, settings, effects, q_start, joint, t0)
+    params, tau_g, j_true = joint_params(spec, settings, effects, q_start, joint, thermal)
     q_j0 = q_start[np.arange(n), col]
     stride = 2
     dt_phys = stride * dt

@@ -183,6 +183,10 @@ class ControllerSim:
     physics_rate_hz : float, optional
         Integration rate; defaults to the gyro's nominal rate (8 kHz). Real-time twins may
         use 4 kHz to halve the CPU cost (the gyro twin interpolates to its own clock).
+    power_on_s : float
+        Controller time of the robot's power-on, s (<= 0): the thermal state
+        (``thermal_drift``) runs on ``time_s - power_on_s``. 0: cold at time 0;
+        ``-WARM_START_S``: warm.
     """
 
     #: Pose change (rad, any joint) after which gravity/inertia parameters are refreshed.
@@ -198,8 +202,15 @@ class ControllerSim:
         period_s: float | None = None,
         settings: SimSettings | None = None,
         physics_rate_hz: float | None = None,
+        power_on_s: float = 0.0,
     ) -> None:
         spec = robot if isinstance(robot, RobotSpec) else get_robot(robot, period_s=period_s)
+        if not (math.isfinite(power_on_s) and power_on_s <= 0.0):
+            raise ConfigError(
+                f"power_on_s={power_on_s!r} must be finite and <= 0 s (the controller time of "
+                "power-on: 0 cold, -WARM_START_S warm)"
+            )
+        self.power_on_s = float(power_on_s)
         self.settings = settings or default_settings(spec, period_s=period_s)
         self.spec = self.settings.spec
         self.effects = effects if effects is not None else default_effects(self.spec.name)
@@ -221,7 +232,7 @@ class ControllerSim:
             spec=self.spec,
             q_start_rad=np.broadcast_to(q0, (6, 6)),
             joint=_JOINTS,
-            t_start_s=np.zeros(6),
+            t_start_s=np.full(6, -self.power_on_s),
         )
         self._offset_s = np.zeros(6) + drive_delay_s(self.effects, start)
         self._bank = JointChain(
@@ -310,7 +321,12 @@ class ControllerSim:
     def _params(self, q: FloatArray):  # type: ignore[no-untyped-def]
         rows = np.broadcast_to(q, (6, 6))
         params, _, _ = joint_params(
-            self.spec, self.settings, self.effects, rows, _JOINTS, np.full(6, self.time_s)
+            self.spec,
+            self.settings,
+            self.effects,
+            rows,
+            _JOINTS,
+            np.full(6, self.time_s - self.power_on_s),
         )
         return params
 

@@ -98,6 +98,7 @@ def simulate_sweep(
     progress: bool = True,
     joints: Sequence[int] = (1, 2, 3, 5),
     repeats: int = 10,
+    warm: bool = False,
 ) -> SweepResult:
     """Simulate a calibration sweep in virtual time and record it.
 
@@ -121,6 +122,12 @@ def simulate_sweep(
         Worker processes (joblib); the output does not depend on it.
     progress : bool
         Progress with ETA on stderr.
+    joints, repeats
+        Of the plan drawn from ``seed``.
+    warm : bool
+        Start warm: the robot was powered on :data:`~timedexec.sim.WARM_START_S` before the
+        sweep (a robot taken out of production); default cold, powered on as the sweep
+        clock starts. The header's ``power_on_s`` says which (the sweep time of power-on).
     """
     spec = robot if isinstance(robot, RobotSpec) else get_robot(robot)
     settings = settings or default_settings(spec)
@@ -134,28 +141,21 @@ def simulate_sweep(
         tp = Path(truth_path)
         if not (tp.parent if str(tp.parent) else Path(".")).is_dir():
             raise RecordingError(f"cannot write {tp}: directory {tp.parent} does not exist")
-    clock = sweep_clock(plan, settings, seed)
-    header = {
-        "source": "simulator",
-        "robot": spec.to_dict(),
-        "settings": settings.to_dict(),
-        "effects": effects.to_dict(),
-        "plan": plan.meta(),
-        "seed": seed,
-        "profile": settings.protocol.profile.to_dict(),
-        "controller_period_s": settings.protocol.controller_period_s,
-        "gyro": settings.protocol.gyro.to_dict(),
-        "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
-        "time_origin": "trial time 0 = host arrival of the trigger state package",
-    }
+    clock = sweep_clock(plan, settings, seed, warm=bool(warm))
+    header = sweep_header(spec, settings, effects, seed, clock, plan=plan)
     fields = trial_fields(settings.protocol)
     with RecordingWriter(out, header=header, fields=fields, resume=resume) as writer:
         if resume:
             old = writer.header
-            if old.get("seed") != seed or old.get("plan") != plan.meta():
+            if (
+                old.get("seed") != seed
+                or old.get("plan") != plan.meta()
+                or old.get("power_on_s", 0.0) != clock.power_on_s
+            ):
                 raise RecordingError(
-                    f"{out} was recorded with another plan or seed "
-                    f"({old.get('plan')}, seed {old.get('seed')}); resume with the same arguments"
+                    f"{out} was recorded with another plan, seed or thermal start "
+                    f"({old.get('plan')}, seed {old.get('seed')}, power-on at "
+                    f"{old.get('power_on_s', 0.0)} s); resume with the same arguments"
                 )
         for name, arr in plan.to_arrays().items():
             if not writer.has_static(name):
@@ -213,9 +213,42 @@ def _stop_workers(results: Any) -> None:
         close()
 
 
+def sweep_header(
+    spec: RobotSpec,
+    settings: SimSettings,
+    effects: EffectSet,
+    seed: int,
+    clock: SweepClock,
+    *,
+    plan: SweepPlan | None = None,
+) -> dict[str, Any]:
+    """The header of a simulated recording (the plan's summary when given; an adaptive
+    sweep adds its own): what ``timedexec simulate`` and the adaptive sweep's
+    :class:`~timedexec.sim.SimulatedRunner` write."""
+    header: dict[str, Any] = {
+        "source": "simulator",
+        "robot": spec.to_dict(),
+        "settings": settings.to_dict(),
+        "effects": effects.to_dict(),
+    }
+    if plan is not None:
+        header["plan"] = plan.meta()
+    header.update({
+        "seed": seed,
+        "profile": settings.protocol.profile.to_dict(),
+        "controller_period_s": settings.protocol.controller_period_s,
+        "gyro": settings.protocol.gyro.to_dict(),
+        "sim_truth": {**clock.to_dict(), "gyro_true_rate_hz": settings.gyro.true_rate_hz},
+        "time_origin": "trial time 0 = host arrival of the trigger state package",
+        "power_on_s": clock.power_on_s,
+    })  # fmt: skip
+    return header
+
+
 def truth_table(reader: RecordingReader) -> DelayTable:
     """The ground-truth delay table of a simulated recording (true delays in the delay
-    columns and again in ``true_*``), sorted by trial."""
+    columns and again in ``true_*``, and ``t_since_power_on`` where the header gives the
+    robot's power-on), sorted by trial."""
     if "true_actuation_delay_s" not in reader.fields:
         raise RecordingError("this recording holds no ground truth (it was not simulated)")
     trial = reader.read("trial")
@@ -236,6 +269,9 @@ def truth_table(reader: RecordingReader) -> DelayTable:
         "true_actuation_delay": act,
         "true_response_delay": resp,
     }
+    power_on = reader.header.get("power_on_s")
+    if power_on is not None:
+        cols["t_since_power_on"] = cols["t_start"] - float(power_on)
     return DelayTable(cols, source=str(reader.path) if hasattr(reader, "path") else "recording")
 
 
