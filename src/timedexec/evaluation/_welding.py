@@ -67,6 +67,7 @@ from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import simulate_delays
 from timedexec.tasks import (
+    MAX_CALIBRATION_RUNS,
     SEAM_KINDS,
     SEAM_POSITION_GAIN_1_S,
     ConveyorRun,
@@ -464,15 +465,25 @@ def evaluate_conveyor(
         return run
 
     # Calibration: uncompensated welds at other work points, measured as a real cell would.
-    cal_cells = conveyor_cells(spec.name, calibration_runs + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
-    cal_runs = [
-        weld(plan_for(cell), seed + _CAL_SEED + i, compensate=False)
-        for i, cell in enumerate(cal_cells)
-    ]
+    # Runs that disagree with no majority get more, at further work points (the same
+    # seeded sequence of cells: the first ones do not change with the cap).
+    most = max(calibration_runs, MAX_CALIBRATION_RUNS)
+    cal_cells = conveyor_cells(spec.name, most + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
+    cal_runs: list[ConveyorRun] = []
+
+    def calibration_weld(i: int) -> ConveyorRun:
+        run = weld(plan_for(cal_cells[i]), seed + _CAL_SEED + i, compensate=False)
+        cal_runs.append(run)
+        return run
+
+    for i in range(calibration_runs):
+        calibration_weld(i)
+    tracking_model = TrackingDelays.calibrate_runs(
+        predictor, list(cal_runs), more=calibration_weld, max_runs=most
+    )
     tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
     constant = float(np.median(tracks_arr))
     median = np.median(tracks_arr, axis=0)
-    tracking_model = TrackingDelays.calibrate_runs(predictor, cal_runs)
     if onset:
         on_all, on_joint, _ = _onset_medians(spec.name, 40, seed + _CAL_SEED, effects)
         onset_oracle = SimulatedOracle(spec.name, draws=20, t_start_s=_WARM_S, effects=effects, seed=seed + 77)  # fmt: skip
@@ -525,7 +536,7 @@ def evaluate_conveyor(
         "seeds_per_cell": seeds,
         "n_runs": cells * seeds,
         "oracle_draws": oracle_draws,
-        "calibration_runs": calibration_runs,
+        "calibration_runs": len(cal_runs),
         "previous_welds": previous_welds,
         "seed": seed,
         "tracking_ms": {
