@@ -10,11 +10,8 @@ the calibration welds) and ``oracle``, whether the model meets both targets, and
 number of calibration welds behind it (more than 3: runs that disagreed, welded again
 automatically).
 
-``--sweep`` adds a column: the tracking model fitted from a calibration sweep's
-constant-speed phases alone (no dry run of the task), ``--tracking-from sweep``.
-
 Usage: python benchmarks/bench_conveyor_speeds.py [--robots ur10 ur10e kr5]
-       [--speeds 0.01 0.05 0.1 0.3 1.0] [--runs 4] [--cells 2] [--sweep]
+       [--speeds 0.01 0.05 0.1 0.3 1.0] [--runs 4] [--cells 2]
 """
 
 from __future__ import annotations
@@ -26,6 +23,7 @@ import json
 import os
 import tempfile
 import time
+from pathlib import Path
 
 from timedexec.cli import main
 
@@ -33,17 +31,17 @@ ROBOTS = ("ur10", "ur10e", "kr5")
 SPEEDS = (0.01, 0.05, 0.1, 0.3, 1.0)
 
 
-def one(robot: str, speed: float, runs: int, cells: int, extra: list[str]) -> dict[str, object]:
+def one(robot: str, speed: float, runs: int, cells: int) -> dict[str, object]:
     """Run ``evaluate --task conveyor`` once; return its exit code, result and stderr."""
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "weld.json")
         argv = ["evaluate", "--task", "conveyor", "--robot", robot, "--speed", str(speed),
-                "--runs", str(runs), "--cells", str(cells), "--quiet", "--json", out, *extra]  # fmt: skip
+                "--runs", str(runs), "--cells", str(cells), "--quiet", "--json", out]  # fmt: skip
         err = io.StringIO()
         t0 = time.monotonic()
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             code = main(argv)
-        doc = json.load(open(out)) if code == 0 and os.path.exists(out) else {}
+        doc = json.loads(Path(out).read_text()) if code == 0 and os.path.exists(out) else {}
     return {"code": code, "doc": doc, "stderr": err.getvalue(), "s": time.monotonic() - t0}
 
 
@@ -54,17 +52,14 @@ def main_bench() -> None:
     ap.add_argument("--speeds", nargs="+", type=float, default=list(SPEEDS))
     ap.add_argument("--runs", type=int, default=4, help="publisher phases per work point")
     ap.add_argument("--cells", type=int, default=2, help="work points")
-    ap.add_argument("--sweep", action="store_true", help="also the model from a sweep alone")
     args = ap.parse_args()
     head = "| robot | belt m/s | exit | none | median | model | oracle | model ok | cal. welds |"
-    if args.sweep:
-        head += " sweep model | sweep ok |"
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
     failures = 0
     for robot in args.robots:
         for speed in args.speeds:
-            r = one(robot, speed, args.runs, args.cells, [])
+            r = one(robot, speed, args.runs, args.cells)
             doc = r["doc"]
             assert isinstance(doc, dict)
             if r["code"] != 0:
@@ -80,19 +75,6 @@ def main_bench() -> None:
                 f"{s['model']:.2f} | {s['oracle']:.2f} | {'yes' if ok else 'NO'} | "
                 f"{doc['calibration_runs']} |"
             )
-            if args.sweep:
-                w = one(robot, speed, args.runs, args.cells, ["--tracking-from", "sweep"])
-                wd = w["doc"]
-                assert isinstance(wd, dict)
-                if w["code"] != 0:
-                    failures += 1
-                    row += f" exit {w['code']} | NO |"
-                else:
-                    m = wd["strategies"]["model"]["torch_mean_mm"]
-                    n = wd["strategies"]["none"]["torch_mean_mm"]
-                    sweep_ok = m <= 1.0 and m <= n
-                    failures += not sweep_ok
-                    row += f" {m:.2f} | {'yes' if sweep_ok else 'NO'} |"
             print(row, flush=True)
     print(f"\n{failures} cell(s) missing a target")
 

@@ -377,6 +377,37 @@ def _onset_medians(
     return overall, per_joint, float(np.median(tab["response_delay"]))
 
 
+#: The cruise windows :func:`evaluate_conveyor` tries in turn when none is given, s: a
+#: weld spans ``speed x (settle + cruise + 0.05 s)`` of belt, centred on the work point,
+#: which a small arm cannot reach on a fast belt (KR 5, 850 mm: 0.8 m of belt at 1 m/s).
+CRUISE_CHOICES_S = (0.6, 0.45, 0.3, 0.2)
+
+
+def _cruise_in_reach(
+    robot: str, seam: Seam, speed_m_s: float, settle_s: float, cruise_s: float | None
+) -> tuple[float, list[str]]:
+    """The cruise window (s) and a note when it was shortened: ``cruise_s`` as given, or
+    the longest of :data:`CRUISE_CHOICES_S` whose weld the built-in cell can plan."""
+    if cruise_s is not None:
+        return cruise_s, []
+    for choice in CRUISE_CHOICES_S:
+        try:
+            plan_seam(
+                default_cell(robot, speed_m_s=speed_m_s), seam, weld_s=settle_s + choice + 0.05
+            )
+        except ConfigError:
+            if choice == CRUISE_CHOICES_S[-1]:
+                raise
+            continue
+        if choice == CRUISE_CHOICES_S[0]:
+            return choice, []
+        return choice, [
+            f"the cruise is {choice:g} s instead of {CRUISE_CHOICES_S[0]:g} s: at "
+            f"{speed_m_s:g} m/s a longer weld leaves the reach of {robot}"
+        ]
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 def evaluate_conveyor(
     robot: str,
     model: DelayPredictor | str | os.PathLike[str] | None = None,
@@ -389,7 +420,7 @@ def evaluate_conveyor(
     calibration_runs: int = 3,
     seed: int = 20_261,
     settle_s: float = 0.15,
-    cruise_s: float = 0.6,
+    cruise_s: float | None = None,
     onset: bool = True,
     feedback: bool = True,
     progress: bool = False,
@@ -417,7 +448,9 @@ def evaluate_conveyor(
     seed : int
         Seeds the work points and every run's phase.
     settle_s, cruise_s : float
-        The error window after the meeting, s.
+        The error window after the meeting, s. ``cruise_s`` None: 0.6 s, or the longest of
+        :data:`CRUISE_CHOICES_S` whose weld stays in the robot's reach on a fast belt
+        (the KR 5 at 1 m/s: 0.3 s; a note says so).
     onset : bool
         Also run the strategies with onset-delay shifts (``onset_strategies``).
     feedback : bool
@@ -448,6 +481,7 @@ def evaluate_conveyor(
     effects = warm(spec.name)
     the_seam = Seam(kind=seam)  # type: ignore[arg-type]
     t_begin = time.monotonic()
+    cruise_s, cruise_note = _cruise_in_reach(spec.name, the_seam, speed_m_s, settle_s, cruise_s)
     weld_s = settle_s + cruise_s + 0.05
     n_onset = 4 if onset else 0
     total = calibration_runs + cells * (
@@ -552,7 +586,7 @@ def evaluate_conveyor(
         },
         "shift_ms": shift_log,
         "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
-        "notes": list(tracking_model.notes),
+        "notes": [*cruise_note, *tracking_model.notes],
     }
     details["elapsed_s"] = time.monotonic() - t_begin
     return ConveyorEvaluation(

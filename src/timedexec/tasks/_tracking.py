@@ -487,12 +487,16 @@ class TrackingDelays:
 
     def tracking_delay_s(self, joint: int, v_rad_s: ArrayLike) -> FloatArray:
         """The time lag joint ``joint`` keeps at speed ``v_rad_s`` without the friction
-        offsets in its command: ``dead time + e / |v|``, s."""
-        v = np.asarray(v_rad_s, dtype=float)
+        offsets in its command, as the model compensates it: ``D + e · |sign(v)| / |v|``,
+        s, with the executor's smooth sign (:attr:`FrictionFeed.sign`): ``D + e / |v|``
+        once the joint moves, bounded as the speed goes to 0 (at rest ``D + e`` over the
+        sign's slope). The offset ``e`` itself, a position, is bounded at every speed."""
+        v = np.abs(np.asarray(v_rad_s, dtype=float))
         f = np.zeros((2, 6)) if self.friction_rad is None else np.asarray(self.friction_rad)
-        e = np.where(v >= 0, f[0, joint - 1], f[1, joint - 1])
-        with np.errstate(divide="ignore"):
-            return np.asarray(self.dead_time_s[joint - 1] + e / np.abs(v))
+        e = np.where(np.asarray(v_rad_s, dtype=float) >= 0, f[0, joint - 1], f[1, joint - 1])
+        tiny = 1e-9  # below it, the sign's slope at 0 (its limit over the speed)
+        ratio = np.abs(FrictionFeed.sign(np.maximum(v, tiny))) / np.maximum(v, tiny)
+        return np.asarray(self.dead_time_s[joint - 1] + e * ratio)
 
     def predict_many(self, joint: Any, direction: Any, q: Any) -> DelayPredictions:
         """The base model's predictions with the dead time as the actuation delay."""
