@@ -384,17 +384,16 @@ CRUISE_CHOICES_S = (0.6, 0.45, 0.3, 0.2)
 
 
 def _cruise_in_reach(
-    robot: str, seam: Seam, speed_m_s: float, settle_s: float, cruise_s: float | None
+    cells: list[WeldCell], seam: Seam, settle_s: float, cruise_s: float | None
 ) -> tuple[float, list[str]]:
     """The cruise window (s) and a note when it was shortened: ``cruise_s`` as given, or
-    the longest of :data:`CRUISE_CHOICES_S` whose weld the built-in cell can plan."""
+    the longest of :data:`CRUISE_CHOICES_S` whose weld every one of ``cells`` can plan."""
     if cruise_s is not None:
         return cruise_s, []
     for choice in CRUISE_CHOICES_S:
         try:
-            plan_seam(
-                default_cell(robot, speed_m_s=speed_m_s), seam, weld_s=settle_s + choice + 0.05
-            )
+            for cell in cells:
+                plan_seam(cell, seam, weld_s=settle_s + choice + 0.05)
         except ConfigError:
             if choice == CRUISE_CHOICES_S[-1]:
                 raise
@@ -403,7 +402,8 @@ def _cruise_in_reach(
             return choice, []
         return choice, [
             f"the cruise is {choice:g} s instead of {CRUISE_CHOICES_S[0]:g} s: at "
-            f"{speed_m_s:g} m/s a longer weld leaves the reach of {robot}"
+            f"{cells[0].conveyor.speed_m_s:g} m/s a longer weld leaves the reach of "
+            f"{cells[0].robot}"
         ]
     raise AssertionError("unreachable")  # pragma: no cover
 
@@ -481,7 +481,14 @@ def evaluate_conveyor(
     effects = warm(spec.name)
     the_seam = Seam(kind=seam)  # type: ignore[arg-type]
     t_begin = time.monotonic()
-    cruise_s, cruise_note = _cruise_in_reach(spec.name, the_seam, speed_m_s, settle_s, cruise_s)
+    # Runs that disagree with no majority get more, at further work points (the same
+    # seeded sequence of cells: the first ones do not change with the cap).
+    most = max(calibration_runs, MAX_CALIBRATION_RUNS)
+    cal_cells = conveyor_cells(spec.name, most + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
+    eval_cells = conveyor_cells(spec.name, cells, seed, speed_m_s=speed_m_s)
+    cruise_s, cruise_note = _cruise_in_reach(
+        [*eval_cells, *cal_cells], the_seam, settle_s, cruise_s
+    )
     weld_s = settle_s + cruise_s + 0.05
     n_onset = 4 if onset else 0
     total = calibration_runs + cells * (
@@ -499,10 +506,6 @@ def evaluate_conveyor(
         return run
 
     # Calibration: uncompensated welds at other work points, measured as a real cell would.
-    # Runs that disagree with no majority get more, at further work points (the same
-    # seeded sequence of cells: the first ones do not change with the cap).
-    most = max(calibration_runs, MAX_CALIBRATION_RUNS)
-    cal_cells = conveyor_cells(spec.name, most + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
     cal_runs: list[ConveyorRun] = []
 
     def calibration_weld(i: int) -> ConveyorRun:
@@ -533,7 +536,7 @@ def evaluate_conveyor(
             shift_log[name] = (run.shifts_s * 1e3).round(2).tolist()
 
     oracle_shifts = []
-    for c, cell in enumerate(conveyor_cells(spec.name, cells, seed, speed_m_s=speed_m_s)):
+    for c, cell in enumerate(eval_cells):
         sp = plan_for(cell)
         draws = [
             physical_tracking_delays(weld(sp, k, compensate=False))

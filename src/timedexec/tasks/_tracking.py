@@ -588,8 +588,8 @@ class TrackingDelays:
                 for j in np.flatnonzero(moved & ~fit.separable)
             )
             notes += (
-                f"dead time not separable from friction on joints {shown}: their speeds are "
-                "too alike; dead time taken from the other joints (or the shortest lag), "
+                f"dead time not separable from friction on joints {shown}: speeds too "
+                "alike for the positions' scatter about the fit; dead time taken from the other joints (or the shortest lag), "
                 "exact at these speeds only: calibrate at a second belt speed, or from a "
                 "sweep with constant-speed phases, to use the model at other speeds",
             )
