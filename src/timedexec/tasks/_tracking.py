@@ -201,10 +201,12 @@ def fit_dead_time_and_friction(
 
 
 #: A joint's dead time counts as separable from its friction offset when its standard
-#: error in the joint's own fit is below this, s (at the position scatter of the fit, at
-#: least :data:`POSITION_FLOOR_RAD`). On the simulated welds: 0.01-0.3 ms where the
-#: cruise's speeds vary (0.5 m/s belt), 5 ms to seconds on a 0.05 m/s belt, where joint 5
-#: of the UR10 moves at 0.013-0.015 rad/s and its free fit put ``D`` at -6.8 s.
+#: error in the joint's own fit is below this, s: the shift of ``D`` that a systematic
+#: position misfit of the fit's RMS (at least :data:`POSITION_FLOOR_RAD`) along ``D``'s
+#: column, orthogonal to the offsets', would cause. Measured on three simulated
+#: calibration welds (physical angles): 0.5 m/s belt, UR10e 0.1-0.6 ms (joint 4, which
+#: reverses, 7.5), UR10 0.95-11, KR 5 0.8-7.5; 0.05 m/s, UR10 8.7-142 ms (joint 5 at
+#: 0.013-0.015 rad/s, whose free fit put ``D`` at -6.8 s), UR10e 2.9-90, KR 5 1.6-19.
 DEAD_TIME_SE_S = 0.002
 #: The smallest position scatter a fit is credited with, rad (about an encoder count of a
 #: 19-bit joint encoder: the simulator's positions fit to 1e-9 rad, a real joint's do not).
@@ -224,8 +226,8 @@ class TrackingFit:
     rms_rad : ndarray (6,)
         Position scatter about the fit, rad.
     dead_time_se_s : ndarray (6,)
-        Standard error of the dead time in the joint's own fit, s (inf: the speeds cannot
-        tell it from the offset).
+        Standard error of the dead time in the joint's own fit, s (see
+        :data:`DEAD_TIME_SE_S`).
     separable : ndarray (6,) of bool
         The dead time came from the joint's own data (its standard error below
         :data:`DEAD_TIME_SE_S`); False: taken from the other joints (see
@@ -293,7 +295,7 @@ def fit_tracking(
         dead_time_s=dead,
         friction_rad=fric,
         rms_rad=rms,
-        dead_time_se_s=np.where(np.isfinite(se), se, np.where(np.isnan(dead), np.nan, np.inf)),
+        dead_time_se_s=se,
         separable=separable,
         speed_rad_s=speeds,
     )
