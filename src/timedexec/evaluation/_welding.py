@@ -67,6 +67,7 @@ from timedexec.recording import SweepPlan
 from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import simulate_delays
 from timedexec.tasks import (
+    MAX_CALIBRATION_RUNS,
     SEAM_KINDS,
     SEAM_POSITION_GAIN_1_S,
     ConveyorRun,
@@ -376,6 +377,37 @@ def _onset_medians(
     return overall, per_joint, float(np.median(tab["response_delay"]))
 
 
+#: The cruise windows :func:`evaluate_conveyor` tries in turn when none is given, s: a
+#: weld spans ``speed x (settle + cruise + 0.05 s)`` of belt, centred on the work point,
+#: which a small arm cannot reach on a fast belt (KR 5, 850 mm: 0.8 m of belt at 1 m/s).
+CRUISE_CHOICES_S = (0.6, 0.45, 0.3, 0.2)
+
+
+def _cruise_in_reach(
+    cells: list[WeldCell], seam: Seam, settle_s: float, cruise_s: float | None
+) -> tuple[float, list[str]]:
+    """The cruise window (s) and a note when it was shortened: ``cruise_s`` as given, or
+    the longest of :data:`CRUISE_CHOICES_S` whose weld every one of ``cells`` can plan."""
+    if cruise_s is not None:
+        return cruise_s, []
+    for choice in CRUISE_CHOICES_S:
+        try:
+            for cell in cells:
+                plan_seam(cell, seam, weld_s=settle_s + choice + 0.05)
+        except ConfigError:
+            if choice == CRUISE_CHOICES_S[-1]:
+                raise
+            continue
+        if choice == CRUISE_CHOICES_S[0]:
+            return choice, []
+        return choice, [
+            f"the cruise is {choice:g} s instead of {CRUISE_CHOICES_S[0]:g} s: at "
+            f"{cells[0].conveyor.speed_m_s:g} m/s a longer weld leaves the reach of "
+            f"{cells[0].robot}"
+        ]
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 def evaluate_conveyor(
     robot: str,
     model: DelayPredictor | str | os.PathLike[str] | None = None,
@@ -388,7 +420,7 @@ def evaluate_conveyor(
     calibration_runs: int = 3,
     seed: int = 20_261,
     settle_s: float = 0.15,
-    cruise_s: float = 0.6,
+    cruise_s: float | None = None,
     onset: bool = True,
     feedback: bool = True,
     progress: bool = False,
@@ -416,7 +448,9 @@ def evaluate_conveyor(
     seed : int
         Seeds the work points and every run's phase.
     settle_s, cruise_s : float
-        The error window after the meeting, s.
+        The error window after the meeting, s. ``cruise_s`` None: 0.6 s, or the longest of
+        :data:`CRUISE_CHOICES_S` whose weld stays in the robot's reach on a fast belt
+        (the KR 5 at 1 m/s: 0.3 s; a note says so).
     onset : bool
         Also run the strategies with onset-delay shifts (``onset_strategies``).
     feedback : bool
@@ -447,6 +481,14 @@ def evaluate_conveyor(
     effects = warm(spec.name)
     the_seam = Seam(kind=seam)  # type: ignore[arg-type]
     t_begin = time.monotonic()
+    # Runs that disagree with no majority get more, at further work points (the same
+    # seeded sequence of cells: the first ones do not change with the cap).
+    most = max(calibration_runs, MAX_CALIBRATION_RUNS)
+    cal_cells = conveyor_cells(spec.name, most + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
+    eval_cells = conveyor_cells(spec.name, cells, seed, speed_m_s=speed_m_s)
+    cruise_s, cruise_note = _cruise_in_reach(
+        [*eval_cells, *cal_cells], the_seam, settle_s, cruise_s
+    )
     weld_s = settle_s + cruise_s + 0.05
     n_onset = 4 if onset else 0
     total = calibration_runs + cells * (
@@ -464,15 +506,21 @@ def evaluate_conveyor(
         return run
 
     # Calibration: uncompensated welds at other work points, measured as a real cell would.
-    cal_cells = conveyor_cells(spec.name, calibration_runs + 1, seed + _CAL_SEED, speed_m_s=speed_m_s)[1:]  # fmt: skip
-    cal_runs = [
-        weld(plan_for(cell), seed + _CAL_SEED + i, compensate=False)
-        for i, cell in enumerate(cal_cells)
-    ]
+    cal_runs: list[ConveyorRun] = []
+
+    def calibration_weld(i: int) -> ConveyorRun:
+        run = weld(plan_for(cal_cells[i]), seed + _CAL_SEED + i, compensate=False)
+        cal_runs.append(run)
+        return run
+
+    for i in range(calibration_runs):
+        calibration_weld(i)
+    tracking_model = TrackingDelays.calibrate_runs(
+        predictor, list(cal_runs), more=calibration_weld, max_runs=most
+    )
     tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
     constant = float(np.median(tracks_arr))
     median = np.median(tracks_arr, axis=0)
-    tracking_model = TrackingDelays.calibrate_runs(predictor, cal_runs)
     if onset:
         on_all, on_joint, _ = _onset_medians(spec.name, 40, seed + _CAL_SEED, effects)
         onset_oracle = SimulatedOracle(spec.name, draws=20, t_start_s=_WARM_S, effects=effects, seed=seed + 77)  # fmt: skip
@@ -488,7 +536,7 @@ def evaluate_conveyor(
             shift_log[name] = (run.shifts_s * 1e3).round(2).tolist()
 
     oracle_shifts = []
-    for c, cell in enumerate(conveyor_cells(spec.name, cells, seed, speed_m_s=speed_m_s)):
+    for c, cell in enumerate(eval_cells):
         sp = plan_for(cell)
         draws = [
             physical_tracking_delays(weld(sp, k, compensate=False))
@@ -525,7 +573,7 @@ def evaluate_conveyor(
         "seeds_per_cell": seeds,
         "n_runs": cells * seeds,
         "oracle_draws": oracle_draws,
-        "calibration_runs": calibration_runs,
+        "calibration_runs": len(cal_runs),
         "previous_welds": previous_welds,
         "seed": seed,
         "tracking_ms": {
@@ -541,7 +589,7 @@ def evaluate_conveyor(
         },
         "shift_ms": shift_log,
         "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
-        "notes": list(tracking_model.notes),
+        "notes": [*cruise_note, *tracking_model.notes],
     }
     details["elapsed_s"] = time.monotonic() - t_begin
     return ConveyorEvaluation(

@@ -11,7 +11,8 @@ streams every task); real-robot code, no simulator. docs/welding.md.
 * **The delay a tracking arm keeps** (not the onset delay the models learn): measured from
   reported positions (:func:`fit_joint_lags`, :func:`sampling_times_s`,
   :func:`measure_tracking_delays`) and modelled as a dead time plus friction offsets
-  (:class:`TrackingDelays`, :func:`fit_dead_time_and_friction`).
+  (:class:`TrackingDelays`, :func:`fit_dead_time_and_friction`, :func:`fit_tracking` ->
+  :class:`TrackingFit`).
 * **A seam on a carousel** followed with the base joint (:func:`track_seam` ->
   :class:`SeamResult`, :func:`compare_seam_tracking`, :func:`tool_radius_m`).
 * **Interception**: the tool where a moving object will be, by a deadline at a confidence
@@ -38,9 +39,12 @@ from timedexec.tasks._conveyor import (
 )
 from timedexec.tasks._intercept import InterceptResult, intercept, solve_position_ik
 from timedexec.tasks._tracking import (
+    MAX_CALIBRATION_RUNS,
     TrackingDelays,
+    TrackingFit,
     fit_dead_time_and_friction,
     fit_joint_lags,
+    fit_tracking,
     measure_tracking_delays,
     sampling_times_s,
 )
@@ -52,6 +56,7 @@ from timedexec.tasks._welding import (
 )
 
 __all__ = [
+    "MAX_CALIBRATION_RUNS",
     "SEAM_KINDS",
     "SEAM_POSITION_GAIN_1_S",
     "Conveyor",
@@ -62,11 +67,13 @@ __all__ = [
     "SeamResult",
     "TorchErrors",
     "TrackingDelays",
+    "TrackingFit",
     "WeldCell",
     "compare_seam_tracking",
     "default_cell",
     "fit_dead_time_and_friction",
     "fit_joint_lags",
+    "fit_tracking",
     "intercept",
     "measure_tracking_delays",
     "plan_seam",

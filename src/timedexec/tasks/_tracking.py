@@ -51,7 +51,7 @@ other work points) see the speeds the task uses.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -69,14 +69,37 @@ from timedexec.execution import (
 )
 
 __all__ = [
+    "DEAD_TIME_SE_S",
+    "MAX_CALIBRATION_RUNS",
+    "POSITION_FLOOR_RAD",
+    "RUN_AGREEMENT_RAD",
+    "RUN_AGREEMENT_S",
     "TrackingDelays",
+    "TrackingFit",
     "fit_dead_time_and_friction",
     "fit_joint_lags",
+    "fit_tracking",
     "measure_tracking_delays",
     "sampling_times_s",
 ]
 
 FloatArray = NDArray[np.float64]
+
+#: Largest difference, s, between one calibration run's lag (best constant shift) on any
+#: joint and the runs' median that still counts as the same task's lag: work points apart
+#: by 5 cm differ by up to 1.2 ms (3 ms on a joint that reverses in the cruise); a run
+#: whose approach ended off its start, or that a disturbed machine delayed, reads 15-20 ms
+#: off (the independent peer: 31-36 ms where its lag is 16.2).
+RUN_AGREEMENT_S = 0.005
+#: ... and the position that difference is worth at the joint's mean speed, rad, beyond
+#: which a run disagrees (both must be exceeded): a joint's time lag is ``D + e / |v|``, so
+#: on a slow belt work points 5 cm apart differ by 5-10 ms on a joint that barely moves
+#: (UR10 at 0.05 m/s, joint 4: 33.9-43.3 ms at 0.016-0.033 rad/s) while the position,
+#: what the torch feels, differs by 0.1-0.2 mrad. 0.5 mrad is ~0.5 mm at a 1 m reach.
+RUN_AGREEMENT_RAD = 5e-4
+#: The most calibration runs :meth:`TrackingDelays.calibrate_runs` welds in all when it may
+#: add runs to settle a disagreement.
+MAX_CALIBRATION_RUNS = 7
 
 
 def fit_joint_lags(
@@ -148,9 +171,17 @@ def fit_dead_time_and_friction(
     A joint that trails its command by a position (kinetic friction over the velocity
     loop's integral gain; gravity makes it differ with the direction) keeps a time lag
     ``D + e / |v|``: one constant shift fits it at one speed only. Gauss-Newton on ``D``
-    and the offsets pooled over the runs, from ``e = 0``. An offset fitted negative
-    (speeds too alike to tell it from the dead time) is held at 0 and the rest refitted; a
-    direction no run moves in gets the other direction's offset.
+    and the offsets pooled over the runs, from ``e = 0``, with ``D >= 0`` and ``e >= 0``
+    (a bound that binds is held there and the rest refitted); a direction no run moves in
+    gets the other direction's offset.
+
+    Where a joint's speeds are too alike to tell ``D`` from ``e / |v|`` (a slow belt: every
+    joint near one speed; :data:`DEAD_TIME_SE_S`), its dead time is not fitted but taken
+    from the joints where it is separable (their median), or, where none is, the shortest
+    lag of any joint (the dead time can be no longer: every offset is >= 0); either way no
+    longer than the joint's own lag, and its offset is fitted with it. The lag at the
+    speeds the runs saw is the data's either way; :func:`fit_tracking` says which joints
+    were separable.
 
     Parameters
     ----------
@@ -165,6 +196,62 @@ def fit_dead_time_and_friction(
         row 1: negative) and joint; the RMS of the positions about the fit per joint (rad:
         how well ``D`` and ``e`` explain the joint). NaN for a joint no run moves.
     """
+    fit = fit_tracking(samples, iterations=iterations)
+    return fit.dead_time_s, fit.friction_rad, fit.rms_rad
+
+
+#: A joint's dead time counts as separable from its friction offset when its standard
+#: error in the joint's own fit is below this, s: the shift of ``D`` that a systematic
+#: position misfit of the fit's RMS (at least :data:`POSITION_FLOOR_RAD`) along ``D``'s
+#: column, orthogonal to the offsets', would cause. Measured on three simulated
+#: calibration welds (physical angles): 0.5 m/s belt, UR10e 0.1-0.6 ms (joint 4, which
+#: reverses, 7.5), UR10 0.95-11, KR 5 0.8-7.5; 0.05 m/s, UR10 8.7-142 ms (joint 5 at
+#: 0.013-0.015 rad/s, whose free fit put ``D`` at -6.8 s), UR10e 2.9-90, KR 5 1.6-19.
+DEAD_TIME_SE_S = 0.002
+#: The smallest position scatter a fit is credited with, rad (about an encoder count of a
+#: 19-bit joint encoder: the simulator's positions fit to 1e-9 rad, a real joint's do not).
+POSITION_FLOOR_RAD = 1e-5
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackingFit:
+    """What :func:`fit_tracking` found, per joint (NaN: no run moves the joint).
+
+    Attributes
+    ----------
+    dead_time_s : ndarray (6,)
+        Dead time, s.
+    friction_rad : ndarray (2, 6)
+        Friction offset per direction (row 0 positive, row 1 negative), rad.
+    rms_rad : ndarray (6,)
+        Position scatter about the fit, rad.
+    dead_time_se_s : ndarray (6,)
+        Standard error of the dead time in the joint's own fit, s (see
+        :data:`DEAD_TIME_SE_S`).
+    separable : ndarray (6,) of bool
+        The dead time came from the joint's own data (its standard error below
+        :data:`DEAD_TIME_SE_S`); False: taken from the other joints (see
+        :func:`fit_dead_time_and_friction`).
+    speed_rad_s : ndarray (2, 6)
+        Smallest and largest joint speed the fit saw, rad/s.
+    """
+
+    dead_time_s: FloatArray
+    friction_rad: FloatArray
+    rms_rad: FloatArray
+    dead_time_se_s: FloatArray
+    separable: NDArray[np.bool_]
+    speed_rad_s: FloatArray
+
+
+def fit_tracking(
+    samples: Sequence[tuple[JointPlan, ArrayLike, ArrayLike, ArrayLike]],
+    *,
+    iterations: int = 6,
+) -> TrackingFit:
+    """:func:`fit_dead_time_and_friction` with what it knows about each joint's fit
+    (:class:`TrackingFit`): the dead time's standard error and whether the joint's own
+    speeds separated it from the friction offset."""
     runs = [
         (
             plan,
@@ -176,43 +263,99 @@ def fit_dead_time_and_friction(
     ]
     if not runs or any(len(tp) < 3 or len(tp) != len(q) for _, tp, q, _ in runs):
         raise ConfigError("fit_dead_time_and_friction needs runs of >= 3 samples, one time each")
-    dead, fric, rms = np.full(6, np.nan), np.full((2, 6), np.nan), np.full(6, np.nan)
+    nan6 = np.full(6, np.nan)
+    dead, fric, rms, se = nan6.copy(), np.full((2, 6), np.nan), nan6.copy(), nan6.copy()
+    speeds = np.full((2, 6), np.nan)
+    lag = nan6.copy()
+    joints: dict[int, _JointData] = {}
     for j in range(6):
-
-        def columns(d: float, e: FloatArray, j: int = j) -> tuple[FloatArray, FloatArray]:
-            """Residual (n,) and the derivatives of the fit by D, e+, e- (n, 3)."""
-            res, cols = [], []
-            for plan, tp, q, shift in runs:
-                qp, vp = plan.sample_many(tp + shift[j] - d)
-                sgn = FrictionFeed.sign(vp[:, j])
-                split = np.c_[np.maximum(sgn, 0.0), np.minimum(sgn, 0.0)]
-                res.append(q[:, j] - qp[:, j] + split @ e)
-                cols.append(np.c_[-vp[:, j], -split])
-            return np.concatenate(res), np.concatenate(cols)
-
-        d0 = float(np.median([shift[j] for *_, shift in runs]))  # start: the shift that ran
-        _, a0 = columns(d0, np.zeros(2))
-        if float(a0[:, 0] @ a0[:, 0]) < 1e-12:
-            continue  # no run moves this joint
-        # A direction moved in for less than 1 % of the samples cannot be fitted.
-        seen = np.abs(a0[:, 1:]).sum(axis=0) >= 0.01 * len(a0)
-        free = seen.copy()
-        while True:
-            d, e = d0, np.zeros(2)
-            for _ in range(int(iterations)):
-                res, a = columns(d, e)
-                keep = np.r_[True, free]
-                step = np.linalg.lstsq(a[:, keep], res, rcond=None)[0]
-                d += float(step[0])
-                e[free] += step[1:]
-            if np.all(e >= 0):
-                break
-            free &= e >= 0  # hold a negative offset at 0 and refit the rest
-        res, _ = columns(d, e)
-        if seen.sum() == 1:
-            e[~seen] = e[seen]
+        data = _JointData(runs, j, iterations)
+        if not data.moves:
+            continue
+        joints[j] = data
+        d, e, a, res = data.fit()
+        r = float(np.sqrt(np.mean(res**2)))
+        cov = np.linalg.pinv(a.T @ a)
+        se[j] = max(r, POSITION_FLOOR_RAD) * float(np.sqrt(max(len(res) * cov[0, 0], 0.0)))
+        dead[j], fric[:, j], rms[j] = d, e, r
+        lag[j] = data.fit(e_free=False)[0]
+        speeds[:, j] = data.speed_range
+    separable = np.isfinite(se) & (se < DEAD_TIME_SE_S)
+    if separable.any():
+        prior = float(np.median(dead[separable]))
+    else:
+        prior = float(np.nanmin(lag)) if np.isfinite(lag).any() else 0.0
+    for j, data in joints.items():
+        if separable[j]:
+            continue
+        d_fixed = max(min(prior, float(lag[j])), 0.0)
+        d, e, _, res = data.fit(d_fixed=d_fixed)
         dead[j], fric[:, j], rms[j] = d, e, float(np.sqrt(np.mean(res**2)))
-    return dead, fric, rms
+    return TrackingFit(
+        dead_time_s=dead,
+        friction_rad=fric,
+        rms_rad=rms,
+        dead_time_se_s=se,
+        separable=separable,
+        speed_rad_s=speeds,
+    )
+
+
+class _JointData:
+    """One joint's cruising positions over the runs, and its bounded least-squares fits."""
+
+    def __init__(self, runs: list[Any], j: int, iterations: int) -> None:
+        self.runs, self.j, self.iterations = runs, j, int(iterations)
+        # Start: the shift that ran (the median over runs).
+        self.d0 = float(np.median([shift[j] for *_, shift in runs]))
+        _, a0 = self.columns(self.d0, np.zeros(2))
+        self.moves = float(a0[:, 0] @ a0[:, 0]) >= 1e-12
+        # A direction moved in for less than 1 % of the samples cannot be fitted.
+        self.seen = np.abs(a0[:, 1:]).sum(axis=0) >= 0.01 * len(a0)
+        v = np.abs(a0[:, 0])
+        self.speed_range = (float(v.min()), float(v.max()))
+
+    def columns(self, d: float, e: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Residual (n,) and the derivatives of the fit by D, e+, e- (n, 3)."""
+        res, cols = [], []
+        j = self.j
+        for plan, tp, q, shift in self.runs:
+            qp, vp = plan.sample_many(tp + shift[j] - d)
+            sgn = FrictionFeed.sign(vp[:, j])
+            split = np.c_[np.maximum(sgn, 0.0), np.minimum(sgn, 0.0)]
+            res.append(q[:, j] - qp[:, j] + split @ e)
+            cols.append(np.c_[-vp[:, j], -split])
+        return np.concatenate(res), np.concatenate(cols)
+
+    def fit(
+        self, *, d_fixed: float | None = None, e_free: bool = True
+    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+        """Gauss-Newton on D (unless ``d_fixed``) and the offsets seen (unless not
+        ``e_free``: a pure shift), D and e held at 0 where they would go negative.
+        Returns D, e (2,), the Jacobian (n, 3) and the residual (n,) at the solution."""
+        free = np.r_[d_fixed is None, self.seen & e_free]
+        while True:
+            d = self.d0 if d_fixed is None else d_fixed
+            e = np.zeros(2)
+            for _ in range(self.iterations):
+                res, a = self.columns(d, e)
+                if not free.any():
+                    break
+                step = np.linalg.lstsq(a[:, free], res, rcond=None)[0]
+                x = np.r_[d, e]
+                x[free] += step
+                d, e = float(x[0]), x[1:]
+            x = np.r_[d, e]
+            if np.all(x[free] >= 0):
+                break
+            free &= x >= 0  # hold what went negative at 0 and refit the rest
+            d = max(d, 0.0) if d_fixed is None else d_fixed
+            if not free[0] and d_fixed is None:
+                d_fixed = 0.0
+        res, a = self.columns(d, e)
+        if self.seen.sum() == 1:
+            e[~self.seen] = e[self.seen]
+        return d, e, a, res
 
 
 def sampling_times_s(run: Any, *, response_s: float | None = None) -> FloatArray:
@@ -346,12 +489,16 @@ class TrackingDelays:
 
     def tracking_delay_s(self, joint: int, v_rad_s: ArrayLike) -> FloatArray:
         """The time lag joint ``joint`` keeps at speed ``v_rad_s`` without the friction
-        offsets in its command: ``dead time + e / |v|``, s."""
-        v = np.asarray(v_rad_s, dtype=float)
+        offsets in its command, as the model compensates it: ``D + e · |sign(v)| / |v|``,
+        s, with the executor's smooth sign (:attr:`FrictionFeed.sign`): ``D + e / |v|``
+        once the joint moves, bounded as the speed goes to 0 (at rest ``D + e`` over the
+        sign's slope). The offset ``e`` itself, a position, is bounded at every speed."""
+        v = np.abs(np.asarray(v_rad_s, dtype=float))
         f = np.zeros((2, 6)) if self.friction_rad is None else np.asarray(self.friction_rad)
-        e = np.where(v >= 0, f[0, joint - 1], f[1, joint - 1])
-        with np.errstate(divide="ignore"):
-            return np.asarray(self.dead_time_s[joint - 1] + e / np.abs(v))
+        e = np.where(np.asarray(v_rad_s, dtype=float) >= 0, f[0, joint - 1], f[1, joint - 1])
+        tiny = 1e-9  # below it, the sign's slope at 0 (its limit over the speed)
+        ratio = np.abs(FrictionFeed.sign(np.maximum(v, tiny))) / np.maximum(v, tiny)
+        return np.asarray(self.dead_time_s[joint - 1] + e * ratio)
 
     def predict_many(self, joint: Any, direction: Any, q: Any) -> DelayPredictions:
         """The base model's predictions with the dead time as the actuation delay."""
@@ -377,78 +524,137 @@ class TrackingDelays:
         return DelayPredictions(actuation_mean=np.asarray(self.dead_time_s)[j - 1], **out)
 
     @classmethod
-    def calibrate_runs(cls, base: DelayPredictor | Any, runs: Sequence[Any]) -> TrackingDelays:
+    def calibrate_runs(
+        cls,
+        base: DelayPredictor | Any,
+        runs: Sequence[Any],
+        *,
+        more: Callable[[int], Any] | None = None,
+        max_runs: int = MAX_CALIBRATION_RUNS,
+    ) -> TrackingDelays:
         """Dead time and friction offsets from calibration runs (uncompensated or shifted
         tracking runs, e.g. welds at other work points): the pooled fit of
         :func:`fit_dead_time_and_friction` over each run's cruise, the reported positions at
         their sampling instants (:func:`sampling_times_s`). A joint no run moves gets the
         median dead time of the others and no offset. A run whose lag on some joint is
-        more than :data:`RUN_AGREEMENT_S` off the runs' median is set aside (``notes``
-        says which and why).
+        more than :data:`RUN_AGREEMENT_S` (and :data:`RUN_AGREEMENT_RAD` of position) off
+        the runs' median is set aside (``notes`` says which and why).
+
+        Runs that disagree with no majority to side with (two runs, or as many outliers as
+        agreeing runs): with ``more`` (``more(i)`` makes the ``i``-th calibration run,
+        counting from 0 over all runs, e.g. a weld at yet another work point), runs are
+        added one at a time until a majority agrees, up to ``max_runs`` in all (``notes``
+        says how many were added).
 
         Raises
         ------
         ConfigError
             No run; a run that carried friction offsets (its positions would need them
-            undone); runs that disagree with no majority to side with (two runs, or as
-            many outliers as agreeing runs).
+            undone); runs that still disagree with no majority (without ``more``, or at
+            ``max_runs``).
         """
         if not runs:
             raise ConfigError("calibrate_runs needs at least one calibration run")
-        if any(np.any(np.asarray(r.plan.meta.get("friction_rad", 0.0)) != 0) for r in runs):
-            raise ConfigError(
-                "calibrate_runs takes runs without friction offsets (compensate=False, or an "
-                "explicit shift_s); one of these ran a model's offsets"
+        runs = list(runs)
+        added = 0
+        while True:
+            if any(np.any(np.asarray(r.plan.meta.get("friction_rad", 0.0)) != 0) for r in runs):
+                raise ConfigError(
+                    "calibrate_runs takes runs without friction offsets (compensate=False, or "
+                    "an explicit shift_s); one of these ran a model's offsets"
+                )
+            samples = [(run.plan, *_cruise(run), run.shifts_s) for run in runs]
+            lags = np.array([fit_joint_lags(p, t, q) + shift for p, t, q, shift in samples])
+            speeds = np.array([_mean_speed(p, t) for p, t, *_ in samples])
+            agreement = _agreeing(lags, speeds)
+            if agreement is not None:
+                break
+            if more is None or len(runs) >= max_runs:
+                raise ConfigError(_disagreement(lags, len(runs), more is not None))
+            runs.append(more(len(runs)))
+            added += 1
+        keep, notes = agreement
+        if added:
+            notes = (
+                f"calibration runs disagreed with no majority: {added} more welded "
+                f"automatically ({len(runs)} in all)",
+                *notes,
             )
-        samples = [(run.plan, *_cruise(run), run.shifts_s) for run in runs]
-        keep, notes = _agreeing(
-            np.array([fit_joint_lags(p, t, q) + shift for p, t, q, shift in samples])
-        )
-        dead, fric, rms = fit_dead_time_and_friction(
-            [x for x, k in zip(samples, keep, strict=True) if k]
-        )
-        fallback = float(np.nanmedian(dead)) if np.isfinite(dead).any() else 0.0
+        fit = fit_tracking([x for x, k in zip(samples, keep, strict=True) if k])
+        dead = fit.dead_time_s
+        moved = np.isfinite(dead)
+        if (moved & ~fit.separable).any():
+            lo, hi = fit.speed_rad_s
+            shown = ", ".join(
+                f"{j + 1} ({lo[j]:.3f}-{hi[j]:.3f} rad/s)"
+                for j in np.flatnonzero(moved & ~fit.separable)
+            )
+            notes += (
+                f"dead time not separable from friction on joints {shown}: speeds too "
+                "alike for the positions' scatter about the fit; dead time taken from the other joints (or the shortest lag), "
+                "exact at these speeds only: calibrate at a second belt speed, or from a "
+                "sweep with constant-speed phases, to use the model at other speeds",
+            )
+        fallback = float(np.nanmedian(dead)) if moved.any() else 0.0
         return cls(
             base=base,
-            dead_time_s=tuple(np.maximum(np.where(np.isfinite(dead), dead, fallback), 0.0)),
-            friction_rad=np.where(np.isfinite(fric), fric, 0.0),  # type: ignore[arg-type]
-            fit_rms_rad=tuple(float(x) for x in rms),
+            dead_time_s=tuple(np.maximum(np.where(moved, dead, fallback), 0.0)),
+            friction_rad=np.where(np.isfinite(fit.friction_rad), fit.friction_rad, 0.0),  # type: ignore[arg-type]
+            fit_rms_rad=tuple(float(x) for x in fit.rms_rad),
             notes=notes,
         )
 
 
-#: Largest difference, s, between one calibration run's lag (best constant shift) on any
-#: joint and the runs' median that still counts as the same task's lag: work points apart
-#: by 5 cm differ by up to 1.2 ms (3 ms on a joint that reverses in the cruise); a run
-#: whose approach ended off its start, or that a disturbed machine delayed, reads 15-20 ms
-#: off (the independent peer: 31-36 ms where its lag is 16.2).
-RUN_AGREEMENT_S = 0.005
+def _mean_speed(plan: JointPlan, times_s: FloatArray) -> FloatArray:
+    """Mean absolute planned speed per joint over the instants ``times_s`` (host), rad/s."""
+    return np.asarray(np.mean(np.abs(plan.sample_many(times_s - plan.start_time_s)[1]), axis=0))
 
 
-def _agreeing(lags_s: FloatArray) -> tuple[NDArray[np.bool_], tuple[str, ...]]:
-    """Which calibration runs (rows of per-joint lags, s) agree with the others, and a note
-    for each one set aside. Two runs that disagree, or as many outliers as agreeing runs,
-    cannot be told apart: a ConfigError says so."""
+def _agreeing(
+    lags_s: FloatArray, speeds_rad_s: FloatArray
+) -> tuple[NDArray[np.bool_], tuple[str, ...]] | None:
+    """Which calibration runs (rows of per-joint lags, s; and mean joint speeds, rad/s)
+    agree with the others, and a note for each one set aside: a run disagrees where a
+    joint's lag is off the runs' median by more than :data:`RUN_AGREEMENT_S` and by more
+    than :data:`RUN_AGREEMENT_RAD` of position at its speed. None: two runs that
+    disagree, or as many outliers as agreeing runs, cannot be told apart."""
     n = len(lags_s)
     if n < 2:
         return np.ones(n, bool), ()
     off = np.abs(lags_s - np.nanmedian(lags_s, axis=0))
-    worst = np.nanmax(np.where(np.isfinite(off), off, 0.0), axis=1)
+    off = np.where(np.isfinite(off) & (off * speeds_rad_s > RUN_AGREEMENT_RAD), off, 0.0)
+    worst = np.max(off, axis=1)
     far = worst > RUN_AGREEMENT_S
     if not far.any():
         return ~far, ()
     if 2 * int(far.sum()) >= n:
-        table = "; ".join(
-            f"run {i}: " + " ".join(f"{x * 1e3:.1f}" for x in row) for i, row in enumerate(lags_s)
-        )
-        raise ConfigError(
-            f"calibration runs disagree by more than {RUN_AGREEMENT_S * 1e3:g} ms on some "
-            f"joint (lags per joint, ms: {table}); weld at least three calibration runs, each "
-            "starting at rest on the approach's start, so that an outlier can be set aside"
-        )
+        return None
     notes = tuple(
         f"calibration run {i} set aside: joint {int(np.nanargmax(off[i])) + 1} lags "
         f"{worst[i] * 1e3:.1f} ms off the runs' median"
         for i in np.flatnonzero(far)
     )
     return ~far, notes
+
+
+def _disagreement(lags_s: FloatArray, n_runs: int, automatic: bool) -> str:
+    """The message for calibration runs that disagree with no majority (lags per run and
+    joint, s)."""
+    table = "; ".join(
+        f"run {i}: " + " ".join(f"{x * 1e3:.1f}" for x in row) for i, row in enumerate(lags_s)
+    )
+    head = (
+        f"calibration runs disagree by more than {RUN_AGREEMENT_S * 1e3:g} ms "
+        f"({RUN_AGREEMENT_RAD * 1e3:g} mrad at the joint's speed) on some joint (lags per "
+        f"joint, ms: {table})"
+    )
+    if automatic:
+        return (
+            f"{head}, with no majority after {n_runs} runs (the most calibrate_runs welds): "
+            "the task's lag changes from run to run; check that nothing disturbs the arm "
+            "and that each run starts at rest on the approach's start"
+        )
+    return (
+        f"{head}; weld at least three calibration runs, each starting at rest on the "
+        "approach's start, so that an outlier can be set aside"
+    )
