@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
+
 __all__ = [
     "CHANGE_POINT_DF",
     "MIN_SPREAD",
@@ -22,7 +24,6 @@ __all__ = [
     "time_basis",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Smallest spread of a variable over a joint's conditions for a family to use it.
 MIN_SPREAD = 1e-6

@@ -48,8 +48,9 @@ from typing import Any, Final
 from xml.parsers import expat
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ProtocolError
 
 __all__ = [
@@ -64,7 +65,6 @@ __all__ = [
     "parse_sen",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Largest frame accepted, bytes. Real RSI frames are 300-600 bytes; 4 KiB leaves room for
 #: configurations that send extra signals while bounding the parser's work per cycle.

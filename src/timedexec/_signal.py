@@ -18,7 +18,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
+
+from timedexec._types import FloatArray
 
 __all__ = ["ONSET_FRACTION", "fit_shift", "interp_rows"]
 
@@ -27,7 +28,6 @@ __all__ = ["ONSET_FRACTION", "fit_shift", "interp_rows"]
 #: ramp reaches the same speed (the simulator's truth and the extraction both use it).
 ONSET_FRACTION = 0.1
 
-FloatArray = NDArray[np.float64]
 Template = Callable[[FloatArray], FloatArray]
 
 

@@ -41,6 +41,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.calibration._design import (
     AdaptiveSettings,
     BatchChoice,
@@ -62,7 +63,6 @@ from timedexec.recording import Field, RecordingReader, RecordingWriter, SweepPl
 
 __all__ = ["NOTE_FIELDS", "AdaptiveResult", "TrialRunner", "read_design_log", "run_adaptive"]
 
-FloatArray = NDArray[np.float64]
 
 #: The figures of each batch's choice, in the order of an ``adaptive_note_NNNN`` static:
 #: the robot time of the data the choice was made on (s), its trials, the estimated RMS
@@ -123,7 +123,9 @@ class TrialRunner(Protocol):
         """The sweep clock now, s (robot time since the sweep started)."""
         ...
 
-    def run(self, plan: SweepPlan, rows: NDArray[np.int64], until_s: float) -> Iterator[dict[str, Any]]:
+    def run(
+        self, plan: SweepPlan, rows: NDArray[np.int64], until_s: float
+    ) -> Iterator[dict[str, Any]]:
         """Run plan rows in order, yielding trial batches to append; stop before a trial
         that would end after ``until_s`` on the sweep clock."""
         ...
@@ -205,9 +207,7 @@ def _measure_batch(path: Path, trials: NDArray[np.int64], work: Path) -> DelayTa
             return None
         data = {name: r.read(name, pos) for name in r.fields}
         statics = {
-            name: r.static(name)
-            for name in r.static_names
-            if not name.startswith(("adaptive_",))
+            name: r.static(name) for name in r.static_names if not name.startswith(("adaptive_",))
         }
         header, fields = r.header, list(r.fields.values())
     tmp = work / f"batch-{int(trials[0])}.h5"
@@ -303,9 +303,7 @@ class _Designer:
             -self.settings.calibration_batches :
         ]
         pooled = [r for h in recent for r, _ in h.values()]
-        pooled_rmse = (
-            float(np.sqrt(np.mean(np.concatenate(pooled) ** 2))) if pooled else math.nan
-        )
+        pooled_rmse = float(np.sqrt(np.mean(np.concatenate(pooled) ** 2))) if pooled else math.nan
         choice = choose_batch(
             model,
             self.pool_q,
@@ -550,12 +548,12 @@ def _pool_exhausted(plan: SweepPlan, batches: Sequence[Sequence[Unit]]) -> bool:
 def _write_batch(
     w: RecordingWriter, plan: SweepPlan, k: int, units: Sequence[Unit], note: FloatArray
 ) -> None:
-    rows = (
-        np.concatenate([unit_rows(plan, u) for u in units]) if units else np.zeros(0, np.int64)
-    )
+    rows = np.concatenate([unit_rows(plan, u) for u in units]) if units else np.zeros(0, np.int64)
     w.write_static(f"{_BATCH}{k:04d}", rows, doc=f"plan rows of adaptive batch {k}, in run order")
     w.write_static(
-        f"{_NOTE}{k:04d}", np.asarray(note, dtype=float), doc="the choice's figures: " + ", ".join(NOTE_FIELDS)
+        f"{_NOTE}{k:04d}",
+        np.asarray(note, dtype=float),
+        doc="the choice's figures: " + ", ".join(NOTE_FIELDS),
     )
 
 

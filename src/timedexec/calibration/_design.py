@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec._validation import DictMixin, check_positive
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
@@ -79,7 +80,6 @@ __all__ = [
     "unit_rows",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: A unit: (configuration index in the pool, joint).
 Unit = tuple[int, int]
@@ -113,7 +113,10 @@ class Workspace(DictMixin):
                     f"workspace: the box needs 6 lower and 6 upper bounds (rad), got "
                     f"{len(lo)} and {len(hi)}"
                 )
-            if not all(math.isfinite(a) and math.isfinite(b) and a <= b for a, b in zip(lo, hi, strict=True)):
+            if not all(
+                math.isfinite(a) and math.isfinite(b) and a <= b
+                for a, b in zip(lo, hi, strict=True)
+            ):
                 raise ConfigError(
                     f"workspace: box bounds {lo} .. {hi} must be finite with low <= high per joint"
                 )
@@ -219,7 +222,11 @@ class AdaptiveSettings(DictMixin):
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"adaptive: {name}={v!r} must be an integer >= {low}")
         joints = tuple(int(j) for j in self.joints)
-        if not joints or len(set(joints)) != len(joints) or any(j not in range(1, 6) for j in joints):
+        if (
+            not joints
+            or len(set(joints)) != len(joints)
+            or any(j not in range(1, 6) for j in joints)
+        ):
             raise ConfigError(
                 f"adaptive: joints {self.joints} must be distinct joints of 1..5 (joint 6 "
                 "carries the gyro)"
@@ -394,7 +401,7 @@ class DesignModel:
                     max_exact_conditions=20_000,
                 ).fit(encode_inputs(q[m], d[m]), y[m])
                 gps[j] = gp
-                noise[j] = float(gp.noise_std_ ** 2)
+                noise[j] = float(gp.noise_std_**2)
         scale = {j: float((scale2 or {}).get(j, 1.0)) for j in joints}
         return cls(
             gps=gps, scale2=scale, noise_s2=noise, trials=len(y), calibrated_by=calibrated_by
@@ -593,7 +600,9 @@ def choose_batch(
         states = {j: _JointState(model, j, Xc, Xr, reps) for j in joints}
         ref_var = {j: states[j].scale2 * _mean_ref_var(model, j, Xr) for j in joints}
         noise = float(np.mean([model.noise_s2[j] for j in joints]))
-        scaled_noise = float(np.mean([model.scale2.get(j, 1.0) * model.noise_s2[j] for j in joints]))
+        scaled_noise = float(
+            np.mean([model.scale2.get(j, 1.0) * model.noise_s2[j] for j in joints])
+        )
 
         def error() -> float:
             return math.sqrt(max(float(np.mean(list(ref_var.values()))), 0.0) + scaled_noise)

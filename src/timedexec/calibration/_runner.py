@@ -49,7 +49,6 @@ from timedexec.recording import (
 
 __all__ = ["CalibrationResult", "DriverRunner", "run_calibration"]
 
-FloatArray = NDArray[np.float64]
 #: Raw bytes kept per state package (RTDE and RSI packages are a few hundred bytes).
 RAW_BYTES = 1024
 #: Robot time the runner waits for gyro samples that are late before calling it a fault, s

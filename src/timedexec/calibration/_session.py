@@ -12,16 +12,14 @@ from collections import deque
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import DriverTimeout
 from timedexec.recording import SweepProtocol
 from timedexec.sensors import GyroSamples
 
 __all__ = ["GyroSource", "Pulse", "Session", "gyro_name"]
-
-FloatArray = NDArray[np.float64]
 
 
 class GyroSource(Protocol):
@@ -156,9 +154,7 @@ class Session:
                     "the robot did not come to rest within 30 s; check it is not moving"
                 )
 
-    def move_to(
-        self, q_target: FloatArray, *, tol_rad: float = 5e-4, stuck_s: float = 3.0
-    ) -> None:
+    def move_to(self, q_target: FloatArray, *, tol_rad: float = 5e-4, stuck_s: float = 3.0) -> None:
         """Drive to ``q_target`` with speed commands (works on every driver).
 
         Raises

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.discrepancy._conditions import NoiseFloor
 from timedexec.discrepancy._model import (
     FittedModel,
@@ -57,8 +58,6 @@ __all__ = [
     "refit_candidates",
     "score_candidates",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(eq=False)

@@ -14,12 +14,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.errors import ConfigError
 
 __all__ = ["MIN_PURE_ERROR_DF", "Conditions", "NoiseFloor", "group_conditions", "replicate_noise"]
 
-FloatArray = NDArray[np.float64]
 
 #: Fewest degrees of freedom of pure error (sum over conditions of repeats - 1) and fewest
 #: replicated conditions for a noise floor from replicates. Below, the fallback is used.

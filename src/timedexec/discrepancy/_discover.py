@@ -31,8 +31,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._candidates import compare_models
 from timedexec.discrepancy._conditions import NoiseFloor
@@ -67,7 +67,6 @@ from timedexec.effects import DataTerm, EffectSet
 
 __all__ = ["add_discovered", "nuisance_columns", "vocabulary_check", "withdraw_names"]
 
-FloatArray = NDArray[np.float64]
 _A = "actuation_delay"
 
 

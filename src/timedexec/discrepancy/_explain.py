@@ -7,15 +7,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._model import FittedModel, SimModel, closed_form_shift_s
 from timedexec.effects import Effect, TermInputs, Variable, effect_type
 
 __all__ = ["describe_parameters", "gaps_ms", "observed_effect"]
-
-FloatArray = NDArray[np.float64]
 
 
 def gaps_ms(fitted: FittedModel) -> dict[str, float]:

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._candidates import (
     CandidateScore,
@@ -55,8 +56,6 @@ __all__ = [
     "shape_summary",
     "with_shapes",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 class TermContext:

@@ -65,6 +65,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.discrepancy._model import SimModel
 from timedexec.effects import DataTerm, register_term, term_columns
 from timedexec.robots import gravity_torque
@@ -82,7 +83,6 @@ __all__ = [
     "term_uncertainty",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Complexity of each form for the parsimony rule: its columns plus its fitted shape
 #: parameters (a harmonic's order is chosen from three, like a grid point).

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.discrepancy._conditions import Conditions, NoiseFloor
 from timedexec.effects import Variable
 
@@ -24,7 +25,6 @@ __all__ = [
     "variable_fit",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: A group whose chi-square p-value exceeds this shows no sign of a disagreement.
 CLEAN_P = 0.1

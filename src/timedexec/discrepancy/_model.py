@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._conditions import Conditions
 from timedexec.effects import DataTerm, Effect, EffectSet, Pose, effect_type
@@ -57,7 +58,6 @@ __all__ = [
     "model_params",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Window after the trigger in which the model looks for the onset, s (delays up to 0.12 s
 #: and friction far beyond the vocabulary's defaults fit; a joint that does not break

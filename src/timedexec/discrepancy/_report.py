@@ -14,14 +14,13 @@ from numpy.typing import NDArray
 
 from timedexec._files import check_paths, make_dir, write_atomic
 from timedexec._plot import subplots
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.effects import Variable, effect_type
 
 __all__ = ["ReportSource", "write_report"]
 
 _WORDS = {"actuation_delay": "actuation delay", "response_delay": "response delay"}
-
-FloatArray = NDArray[np.float64]
 
 
 class _Step(Protocol):

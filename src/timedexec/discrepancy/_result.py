@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._files import write_atomic
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS
 from timedexec.discrepancy._conditions import Conditions, NoiseFloor
 from timedexec.discrepancy._model import FittedModel
@@ -20,8 +21,6 @@ from timedexec.discrepancy._report import write_report
 from timedexec.effects import Variable, effect_type
 
 __all__ = ["DiscoveredTerm", "DiscrepancyResult", "DiscrepancyStep"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(eq=False)

@@ -45,13 +45,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.discrepancy._terms import TermFamily
 
 __all__ = ["Selection", "UnitScore", "forward_select", "loo_fit", "score_unit"]
 
-FloatArray = NDArray[np.float64]
 
 #: Relative singular-value cut-off of the least-squares fits (collinear columns).
 _RCOND = 1e-8

@@ -53,15 +53,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from timedexec._columns import normalised_per_joint, stack_columns, sweep_fraction
+from timedexec._types import FloatArray
 from timedexec.discrepancy._conditions import Conditions
 from timedexec.effects import EFFECTS, TermInputs, TermSpec, effect_type
 
 __all__ = ["TermFamily", "actuation_families", "response_families", "term_inputs"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

@@ -46,8 +46,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DELAY_COLUMNS, DelayTable
 from timedexec.discrepancy._candidates import (
     CandidateScore,
@@ -103,8 +103,6 @@ __all__ = [
 
 #: Most rounds of discovery (each followed by a new search of the vocabulary).
 MAX_DISCOVERY_ROUNDS = 3
-
-FloatArray = NDArray[np.float64]
 
 
 def load_measured(path: str | os.PathLike[str], *, progress: bool = False) -> DelayTable:

@@ -22,12 +22,9 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Self
 
-import numpy as np
-from numpy.typing import NDArray
+from timedexec._types import FloatArray
 
 __all__ = ["RobotDriver", "RobotState"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True, kw_only=True)

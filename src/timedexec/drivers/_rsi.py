@@ -78,9 +78,10 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
+from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver
 from timedexec.drivers._rsi_link import (
     FirstFrameWait,
@@ -101,7 +102,6 @@ from timedexec.robots import RobotSpec, get_robot
 
 __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIState", "RSIStats"]
 
-FloatArray = NDArray[np.float64]
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
 

@@ -14,13 +14,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.robots import RobotSpec
 
 __all__ = ["SpeedCommand", "SpeedProfile"]
 
-FloatArray = NDArray[np.float64]
 
 _LIMIT_MARGIN_RAD = math.radians(0.5)  # stay this far inside the joint position limits
 

@@ -12,15 +12,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.drivers._rsi_profile import SpeedProfile
 from timedexec.errors import ConfigError, DriverError
 from timedexec.robots import RobotSpec
 
 __all__ = ["check_reach", "diagnose"]
-
-FloatArray = NDArray[np.float64]
 
 
 def check_reach(

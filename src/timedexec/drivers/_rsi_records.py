@@ -8,13 +8,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotState
 
 __all__ = ["RSICommandRecord", "RSIState", "RSIStats"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,8 +26,9 @@ import time
 from collections import deque
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver, RobotState
 from timedexec.effects import EffectSet
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
@@ -47,7 +48,6 @@ __all__ = ["WATCHDOG_STOP_DECELERATION_RAD_S2", "SimDriver", "VirtualGyro"]
 #: Deceleration of the emulated program stop after a watchdog trip, rad/s² (the UR twin's).
 WATCHDOG_STOP_DECELERATION_RAD_S2 = 4.0
 
-FloatArray = NDArray[np.float64]
 
 #: Physics rate of a real-time SimDriver, Hz: 2.3x cheaper than 8 kHz (UR10: 3.2 vs 7.5 ms
 #: per 8 ms cycle on the development VM); a speed step's onset moves by 0.4 ms (2 kHz vs

@@ -12,14 +12,10 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
+from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver, RobotState
 
 __all__ = ["HostTimeTap"]
-
-FloatArray = NDArray[np.float64]
 
 
 class HostTimeTap(RobotDriver):

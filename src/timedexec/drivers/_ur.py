@@ -61,7 +61,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from timedexec.drivers._base import FloatArray, RobotDriver, RobotState
+from timedexec._types import FloatArray
+from timedexec.drivers._base import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
 from timedexec.robots import ROBOT_NAMES, RobotSpec, get_robot, get_robot_entry
 

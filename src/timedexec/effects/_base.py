@@ -30,6 +30,7 @@ from typing import Any, ClassVar, Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray, IntArray
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, joint_inertia
 
@@ -44,8 +45,6 @@ __all__ = [
     "Variable",
 ]
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 #: How the discrepancy workflow's model holds a closed-form effect (:attr:`Effect.closed_form`).
 ClosedForm = Literal["joint_levels", "response_periods", "term"]
 

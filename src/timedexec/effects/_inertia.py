@@ -8,7 +8,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from timedexec._columns import per_joint_columns, stack_columns
-from timedexec.effects._base import Effect, FitParam, FloatArray, Pose, TermInputs, TermSpec
+from timedexec._types import FloatArray
+from timedexec.effects._base import Effect, FitParam, Pose, TermInputs, TermSpec
 from timedexec.effects._registry import register_effect
 from timedexec.errors import ConfigError
 

@@ -8,8 +8,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from timedexec._columns import stack_columns
+from timedexec._types import FloatArray
 from timedexec._validation import check_joint_tuple
-from timedexec.effects._base import ClosedForm, Effect, FloatArray, Pose, TermInputs, TermSpec
+from timedexec.effects._base import ClosedForm, Effect, Pose, TermInputs, TermSpec
 from timedexec.effects._registry import register_effect
 from timedexec.errors import ConfigError
 

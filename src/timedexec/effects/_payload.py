@@ -8,15 +8,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from timedexec.effects._base import (
-    Effect,
-    FitParam,
-    FloatArray,
-    MassChange,
-    Pose,
-    TermInputs,
-    Variable,
-)
+from timedexec._types import FloatArray
+from timedexec.effects._base import Effect, FitParam, MassChange, Pose, TermInputs, Variable
 from timedexec.effects._registry import register_effect
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, gravity_torque_coefficients, joint_inertia

@@ -7,7 +7,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from timedexec.effects._base import ClosedForm, Effect, FloatArray, Pose, TermInputs, TermSpec
+from timedexec._types import FloatArray
+from timedexec.effects._base import ClosedForm, Effect, Pose, TermInputs, TermSpec
 from timedexec.effects._registry import register_effect
 from timedexec.errors import ConfigError
 

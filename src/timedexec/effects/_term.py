@@ -43,7 +43,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from timedexec.effects._base import ClosedForm, Effect, FloatArray, Pose
+from timedexec._types import FloatArray
+from timedexec.effects._base import ClosedForm, Effect, Pose
 from timedexec.effects._registry import EFFECTS
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec, gravity_torque

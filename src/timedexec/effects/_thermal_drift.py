@@ -15,7 +15,8 @@ from timedexec._columns import (
     sweep_fraction,
     time_basis,
 )
-from timedexec.effects._base import Effect, FitParam, FloatArray, Pose, TermInputs, TermSpec
+from timedexec._types import FloatArray
+from timedexec.effects._base import Effect, FitParam, Pose, TermInputs, TermSpec
 from timedexec.effects._registry import register_effect
 from timedexec.errors import ConfigError
 

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._progress import Progress
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet, ThermalDrift, default_effects
 from timedexec.errors import ConfigError
 from timedexec.execution import (
@@ -59,7 +60,6 @@ __all__ = [
     "warm_effects",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: The strategies compared, in report order.
 STRATEGIES = ("none", "constant", "median", "model", "oracle")

@@ -49,9 +49,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from timedexec._progress import Progress
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
 from timedexec.evaluation._onset import STRATEGIES, SimulatedOracle
@@ -92,7 +92,6 @@ __all__ = [
     "weld_on_twin",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Parts welded before each measured weld by default (:func:`run_weld`,
 #: :func:`weld_on_twin`, :func:`evaluate_conveyor`): none, every weld from a fresh start,

@@ -17,14 +17,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.special import ndtr, ndtri
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 
 __all__ = ["UNIFORM_SHARE", "TimingBounds", "check_confidence", "delay_cdf", "delay_quantile"]
 
-FloatArray = NDArray[np.float64]
 
 _SQRT12 = math.sqrt(12.0)
 

@@ -20,8 +20,9 @@ import math
 from collections import deque
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.execution._plan import ExecutionLimits, JointPlan
 from timedexec.execution._state import StateTracker
 from timedexec.robots import RobotSpec
@@ -37,7 +38,6 @@ __all__ = [
     "ramp_acceleration",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Speed scale of the smooth sign that carries a joint's friction offset, rad/s: the offset
 #: is ``friction_rad * tanh(v / FRICTION_SPEED_RAD_S)`` (96 % of it from 0.04 rad/s on).

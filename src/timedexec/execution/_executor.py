@@ -77,8 +77,6 @@ from timedexec.robots import RobotSpec, check_configuration, get_robot
 
 __all__ = ["TimedExecutor"]
 
-FloatArray = NDArray[np.float64]
-
 
 class TimedExecutor:
     """Delay-compensating trajectory execution around a :class:`RobotDriver`.
@@ -512,9 +510,7 @@ class TimedExecutor:
         if directions is not None:
             d = np.asarray(directions)
             if d.shape != (6,) or not np.isin(d, (1, -1)).all():
-                raise ConfigError(
-                    f"directions={directions!r}: give six directions, each +1 or -1"
-                )
+                raise ConfigError(f"directions={directions!r}: give six directions, each +1 or -1")
         return self._predictions.predict(q, directions)
 
     def onset_bounds(
@@ -762,9 +758,7 @@ def _caller_level() -> int:
     """``stacklevel`` of the first frame outside timedexec (a warning names the user's line,
     however the executor was entered: ``with``, ``connect()`` or a task)."""
     level, frame = 2, sys._getframe(2)  # the frame that called our caller
-    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith(
-        "timedexec."
-    ):
+    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith("timedexec."):
         frame, level = frame.f_back, level + 1
     return level
 

@@ -15,12 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.drivers import RobotState
 from timedexec.execution._plan import JointPlan
 
 __all__ = ["CycleLog", "ExecutionResult", "intake_echo"]
-
-FloatArray = NDArray[np.float64]
 
 
 class CycleLog:

@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError, ModelError
 from timedexec.learning import BUNDLED_MODELS, bundled_model_dir
 from timedexec.robots import get_robot
@@ -31,8 +32,6 @@ __all__ = [
     "model_period_s",
     "predict_delays",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 @runtime_checkable

@@ -17,13 +17,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec._validation import check_joint_array, check_known_keys
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec
 
 __all__ = ["ExecutionLimits", "JointPlan", "check_target", "plan_motion"]
 
-FloatArray = NDArray[np.float64]
 
 #: Planned positions stay this far inside the joint limits, rad.
 POSITION_MARGIN_RAD = 1e-6

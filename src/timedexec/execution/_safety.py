@@ -22,7 +22,6 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
 
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import DriverError, DriverTimeout
@@ -39,7 +38,6 @@ __all__ = [
     "wait_for_rest",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Default controller watchdog timeout, s: 50 periods at 500 Hz (12.5 at 125 Hz). Longer
 #: than any stall the adaptive staleness limits tolerate (their 80 ms ceiling), so the

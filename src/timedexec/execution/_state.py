@@ -36,8 +36,8 @@ from dataclasses import dataclass
 from typing import Any, NoReturn
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec._validation import DictMixin, check_known_keys
 from timedexec.drivers import RobotDriver, RobotState
 from timedexec.errors import ConfigError, DriverError, DriverTimeout
@@ -60,7 +60,6 @@ __all__ = [
     "read_fresh_state",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Window of the lower-envelope clock model (arrival minus controller time), s.
 ENVELOPE_S = 0.5

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError, ModelError, UnreachableError
 from timedexec.execution._bounds import TimingBounds, check_confidence, delay_cdf, delay_quantile
 from timedexec.execution._model import DelayPredictions, DelayPredictor, predict_delays
@@ -37,7 +38,6 @@ __all__ = [
     "require_scheduled",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Configurations are cached to this many decimals of a radian (4: 0.1 mrad).
 CACHE_DECIMALS = 4

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.extraction._check import Contract, read_contract
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
 from timedexec.recording import RecordingReader
@@ -25,7 +26,6 @@ from timedexec.sensors import (
 
 __all__ = ["RowsView", "SweepContext", "open_rows", "sweep_context"]
 
-FloatArray = NDArray[np.float64]
 
 #: Segments per trial whose lowest block arrival enters the clock fits: at least this many,
 #: more for short sweeps (about _ENVELOPE_POINTS points in all).

@@ -8,12 +8,11 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import RecordingError
 from timedexec.recording import DamagedChunkError, RecordingReader
 
 __all__ = ["bad_time_rows", "lost_trials"]
-
-FloatArray = NDArray[np.float64]
 
 
 #: Per-trial scalar times extraction cannot do without; a trial where one is not finite is

@@ -70,6 +70,7 @@ from scipy import signal
 
 from timedexec._progress import Progress
 from timedexec._signal import ONSET_FRACTION
+from timedexec._types import FloatArray
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError
 from timedexec.extraction._check import REQUIRED_FIELDS
@@ -132,7 +133,6 @@ _COV_STRIDE = 4
 #: Samples between the points at which the sensor clock model is evaluated for each row;
 #: linear in between (the model's curvature makes that exact to < 1 ns).
 _CLOCK_NODE_STEP = 64
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
+
 __all__ = [
     "LEPSKI_KAPPA",
     "LEPSKI_NOISE_SCALE_S",
@@ -39,7 +41,6 @@ __all__ = [
     "onset_adaptive",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Ladder of fit windows (before, after the coarse crossing), s. The first is the window
 #: the extraction used before issue 14 (clean data keep it); each next one is ~1.35x wider,

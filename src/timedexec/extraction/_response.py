@@ -85,6 +85,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d, uniform_filter1d
 
+from timedexec._types import FloatArray
+
 __all__ = [
     "DEFLECTION_MIN_CHANGE_S",
     "DEFLECTION_MODEL_SHARE",
@@ -106,7 +108,6 @@ __all__ = [
     "response_increments",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Width of the moving average of the gyro rate in the response fit, s (97 samples at
 #: 8 kHz). Measured on the independent recordings (benchmarks/bench_extract_robustness.py,

@@ -5,12 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import signal
 
-__all__ = ["StillAnalysis", "analyse_still", "design_lowpass"]
+from timedexec._types import FloatArray
 
-FloatArray = NDArray[np.float64]
+__all__ = ["StillAnalysis", "analyse_still", "design_lowpass"]
 
 
 @dataclass(frozen=True)

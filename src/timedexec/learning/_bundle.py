@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._files import make_dir, write_atomic
+from timedexec._types import FloatArray
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError, ThermalStateWarning
 from timedexec.learning._calibrate import CALIBRATED_METHOD, STD_SCALE_RULE
@@ -47,7 +48,6 @@ from timedexec.learning._threads import BLAS_PIN, BlasPin
 
 __all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
 
-FloatArray = NDArray[np.float64]
 
 BUNDLE_FORMAT = "timedexec-delay-model"
 BUNDLE_VERSION = 1

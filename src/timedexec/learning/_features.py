@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 
 __all__ = [
@@ -37,7 +38,6 @@ __all__ = [
     "feature_names",
 ]
 
-FloatArray = NDArray[np.float64]
 
 _N_JOINTS = 6
 

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates, standardise
@@ -22,8 +23,6 @@ from timedexec.learning._method import DelayMethod, ModelInputs
 from timedexec.learning._threads import single_threaded_blas
 
 __all__ = ["METHOD", "DelayGP"]
-
-FloatArray = NDArray[np.float64]
 
 
 class DelayGP(DelayEstimator):

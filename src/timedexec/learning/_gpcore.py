@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ModelError
 
 # scipy.linalg is imported in the functions that factorise (fits, conditioning), so that
@@ -47,7 +48,6 @@ __all__ = [
     "spread_subset",
 ]
 
-FloatArray = NDArray[np.float64]
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 

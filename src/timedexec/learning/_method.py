@@ -23,12 +23,12 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.learning._features import feature_names
 
 __all__ = ["ArraySpec", "DelayMethod", "MeanPredictor", "ModelInputs", "Predictor"]
 
-FloatArray = NDArray[np.float64]
 
 #: ``((array name, shape), ...)``: see :attr:`DelayMethod.arrays`.
 ArraySpec = tuple[tuple[str, tuple[str, ...]], ...]

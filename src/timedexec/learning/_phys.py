@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates
@@ -48,7 +49,6 @@ from timedexec.robots import RobotSpec, get_robot, gravity_torque, joint_inertia
 
 __all__ = ["METHOD", "PhysicalLinearModel"]
 
-FloatArray = NDArray[np.float64]
 
 #: Warm-up time constants of the time basis, hours.
 WARMUP_H = (0.25, 0.5, 1.0, 2.0, 4.0)

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
 from timedexec.learning._calibrate import CALIBRATED_METHOD, gaussian_coverage, std_scale_factor
@@ -52,7 +53,6 @@ __all__ = [
     "train_delay_models",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: The two delays, each modelled separately (delay-table column names).
 DELAYS: tuple[str, ...] = ("actuation_delay", "response_delay")

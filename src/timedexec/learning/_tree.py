@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray, IntArray
 from timedexec.errors import ConfigError
 from timedexec.learning._base import DelayEstimator, not_fitted
 from timedexec.learning._features import check_x, check_xy, collapse_replicates, standardise
@@ -15,9 +16,6 @@ from timedexec.learning._method import DelayMethod, MeanPredictor, ModelInputs
 from timedexec.learning._threads import single_threaded_blas
 
 __all__ = ["METHOD", "LinearLeafTree"]
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 
 def tree_predict(

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.monitoring._cusum import check_arl0, false_alarm_rate, threshold_for_arl
 from timedexec.monitoring._moves import PLAN_WINDOW_S, Move, MoveExtractor
@@ -62,7 +63,6 @@ __all__ = [
     "warmup_reference",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Smallest warm-up: the quantile map and the threshold's correction need it.
 MIN_WARMUP = 20

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError, RecordingError
 
 __all__ = [
@@ -46,7 +47,6 @@ __all__ = [
     "save_cycle_log",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Lower and upper edge of the onset window, fractions of the commanded displacement at the
 #: end of the first acceleration. Below 2 % the joint is still breaking away (and a real
@@ -422,7 +422,9 @@ def _check_log_meta(path: str | os.PathLike[str], meta: Any) -> dict[str, Any]:
     period, a robot name (may be empty)."""
     where = f"{os.fspath(path)}: 'meta'"
     if not isinstance(meta, dict):
-        raise RecordingError(f"{where} is a {type(meta).__name__}, not an object; see docs/monitor.md")
+        raise RecordingError(
+            f"{where} is a {type(meta).__name__}, not an object; see docs/monitor.md"
+        )
     version = meta.get("format_version", 0)
     if meta.get("format") != LOG_FORMAT or not isinstance(version, int) or version > 1:
         raise RecordingError(

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.robots._spec import N_JOINTS, RobotSpec, _as_configurations, spec_cache
 
@@ -25,7 +26,6 @@ __all__ = [
     "joint_inertia",
 ]
 
-FloatArray = NDArray[np.float64]
 
 # --------------------------------------------------------------------------------------
 # Input normalisation

@@ -31,8 +31,9 @@ import functools
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.robots._dynamics import _chain, _params
 from timedexec.robots._spec import RobotSpec, _as_configurations, check_configuration
@@ -40,8 +41,6 @@ from timedexec.robots._ur_ik import ur_closed_form
 from timedexec.robots._wrist_ik import wrist_closed_form
 
 __all__ = ["rotation_error", "solve_ik", "tool_jacobian", "tool_pose"]
-
-FloatArray = NDArray[np.float64]
 
 
 def _tool(tool: ArrayLike | None) -> FloatArray:

@@ -41,8 +41,9 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 
 __all__ = ["N_JOINTS", "RobotSpec", "check_configuration"]
@@ -71,8 +72,6 @@ def spec_cache(fn: Callable[[RobotSpec], _T]) -> Callable[[RobotSpec], _T]:
 
     return wrapper
 
-
-FloatArray = NDArray[np.float64]
 
 #: Number of joints of every robot described here.
 N_JOINTS = 6

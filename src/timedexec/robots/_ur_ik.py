@@ -25,14 +25,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.robots._dynamics import _params
 from timedexec.robots._spec import RobotSpec, spec_cache
 
 __all__ = ["ur_closed_form"]
 
-FloatArray = NDArray[np.float64]
 
 _UR_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
 #: Below this |sin q5| (wrist), |1 - (d4 / r)^2| (shoulder) or |sin q3| (elbow) the branch is

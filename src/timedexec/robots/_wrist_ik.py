@@ -29,15 +29,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.robots._dynamics import _params
 from timedexec.robots._spec import RobotSpec, spec_cache
 from timedexec.robots._ur_ik import _SINGULAR, _acos_branch, _near, _pick
 
 __all__ = ["wrist_closed_form"]
-
-FloatArray = NDArray[np.float64]
 
 
 class _Geometry:

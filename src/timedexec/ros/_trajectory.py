@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec._validation import N_JOINTS
 from timedexec.errors import ConfigError
 from timedexec.execution import JointPlan
@@ -26,7 +27,6 @@ from timedexec.robots import RobotSpec
 
 __all__ = ["PointsTrajectory", "order_joints", "plan_from_points", "spline_kind"]
 
-FloatArray = NDArray[np.float64]
 
 #: Grid on which a trajectory is checked against the limits, s (the e-Series cycle; the
 #: CB3's 8 ms cycle sees a smoother command than this).
@@ -108,7 +108,11 @@ class PointsTrajectory:
         p = np.asarray(positions_rad, dtype=float).reshape(len(t), N_JOINTS)
         self.kind = spline_kind(velocities_rad_s is not None, accelerations_rad_s2 is not None)
         zeros = np.zeros_like(p)
-        v = zeros if velocities_rad_s is None else np.asarray(velocities_rad_s, float).reshape(p.shape)
+        v = (
+            zeros
+            if velocities_rad_s is None
+            else np.asarray(velocities_rad_s, float).reshape(p.shape)
+        )
         a = zeros if accelerations_rad_s2 is None else np.asarray(accelerations_rad_s2, float).reshape(p.shape)  # fmt: skip
         q0 = np.asarray(q_start_rad, dtype=float)
         if len(t) == 0 or not np.all(np.isfinite(t)) or t[0] < 0 or np.any(np.diff(t) <= 0):
@@ -118,7 +122,9 @@ class PointsTrajectory:
             )
         for name, arr in (("positions", p), ("velocities", v), ("accelerations", a)):
             if not np.all(np.isfinite(arr)):
-                raise ConfigError(f"trajectory {name} hold a value that is not finite; send numbers")
+                raise ConfigError(
+                    f"trajectory {name} hold a value that is not finite; send numbers"
+                )
         # Knots: the start state (at rest) unless the first point is at time 0.
         if t[0] > 0:
             t = np.concatenate([[0.0], t])
@@ -197,7 +203,9 @@ def plan_from_points(
         in speed where linear segments meet or leave rest) above the spec's limits. The
         message names the joint, the time, the value and the limit.
     """
-    traj = PointsTrajectory(q_start_rad, times_s, positions_rad, velocities_rad_s, accelerations_rad_s2)
+    traj = PointsTrajectory(
+        q_start_rad, times_s, positions_rad, velocities_rad_s, accelerations_rad_s2
+    )
     if np.any(np.abs(traj.qd_end_rad_s) > 1e-9):
         raise ConfigError(
             f"the last point has velocities {traj.qd_end_rad_s.tolist()!r} rad/s: a trajectory "

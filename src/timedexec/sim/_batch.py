@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._signal import ONSET_FRACTION, interp_rows
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet, Pose
 from timedexec.recording import SweepPlan, trial_layout
 from timedexec.robots import RobotSpec, get_robot_entry, joint_axis_in_tool
@@ -57,8 +58,6 @@ BLOCK_TRIALS = 512
 #: A warm start: the robot was powered on this long before the sweep began, s (four of
 #: ``thermal_drift``'s default hour-long time constants: friction within 1.1 % of warm).
 WARM_START_S = 4 * 3600.0
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -175,9 +174,7 @@ def simulate_block(
     )
     intake = s0 + np.ceil((at_controller - s0) / period) * period
     thermal = t0 - clock.power_on_s  # time since power-on: the thermal state's clock
-    pose = Pose(
-        spec=spec, q_start_rad=q_start, joint=joint, t_start_s=thermal, direction=direction
-    )
+    pose = Pose(spec=spec, q_start_rad=q_start, joint=joint, t_start_s=thermal, direction=direction)
     drive_offset = drive_delay_s(effects, pose)
     t_ref = (
         intake

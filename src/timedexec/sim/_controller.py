@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec._validation import check_joint_array
 from timedexec.effects import EffectSet, Pose, default_effects
 from timedexec.errors import ConfigError
@@ -38,7 +39,6 @@ __all__ = [
     "TruthEvent",
 ]
 
-FloatArray = NDArray[np.float64]
 _JOINTS = np.arange(1, 7)
 #: Period of the slow drift of the state publisher's phase against the control cycle, s.
 #: A triangle wave: within one trial (< 1 s) the phase moves by < 0.3 ms, never jumps.

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet, Pose
 from timedexec.robots import RobotSpec, gravity_torque_coefficients, joint_inertia
 from timedexec.sim._drive import _drive_step
@@ -40,8 +41,6 @@ __all__ = [
     "pulse_profile",
     "response_delay_s",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(kw_only=True)

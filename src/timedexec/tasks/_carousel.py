@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.drivers import RobotState, open_driver
 from timedexec.effects import default_effects
 from timedexec.errors import ConfigError
@@ -38,8 +39,6 @@ __all__ = [
     "tool_radius_m",
     "track_seam",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def tool_radius_m(spec: RobotSpec, q_rad: ArrayLike) -> float:

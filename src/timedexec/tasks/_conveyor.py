@@ -38,8 +38,9 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.execution import ExecutionLimits, JointPlan
 from timedexec.robots import RobotSpec, get_robot, get_robot_entry, solve_ik, tool_pose
@@ -54,7 +55,6 @@ __all__ = [
     "plan_seam",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Seam shapes :class:`Seam` knows.
 SEAM_KINDS = ("straight", "curved")

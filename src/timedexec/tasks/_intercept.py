@@ -14,8 +14,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.drivers import RobotState
 from timedexec.errors import ConfigError
 from timedexec.execution import ExecutionResult, MeetPlan, TimedExecutor
@@ -23,8 +24,6 @@ from timedexec.robots import RobotSpec, check_configuration, forward_kinematics
 from timedexec.tasks._truth import physical_probe
 
 __all__ = ["InterceptResult", "intercept", "solve_position_ik"]
-
-FloatArray = NDArray[np.float64]
 
 
 def solve_position_ik(

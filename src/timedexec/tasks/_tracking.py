@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.execution import (
     DelayPredictions,
@@ -83,7 +84,6 @@ __all__ = [
     "sampling_times_s",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Largest difference, s, between one calibration run's lag (best constant shift) on any
 #: joint and the runs' median that still counts as the same task's lag: work points apart

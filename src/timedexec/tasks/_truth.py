@@ -6,13 +6,11 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.execution import TimedExecutor
 
 __all__ = ["physical_probe"]
-
-FloatArray = NDArray[np.float64]
 
 
 def physical_probe(executor: TimedExecutor) -> Callable[[], tuple[float, FloatArray]] | None:

@@ -32,8 +32,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.drivers import RobotState
 from timedexec.errors import ConfigError
 from timedexec.execution import ExecutionResult, IntakeFix, JointPlan, TimedExecutor
@@ -41,8 +42,6 @@ from timedexec.tasks._conveyor import Seam, SeamPlan, WeldCell, plan_seam
 from timedexec.tasks._truth import physical_probe
 
 __all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -40,12 +40,11 @@ import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 from timedexec.robots import RobotSpec
-
-FloatArray = NDArray[np.float64]
 
 #: Damping of the least-squares inverse of the Jacobian (m or rad): small against any step
 #: the twin takes, large enough to keep the inverse bounded next to a singularity.

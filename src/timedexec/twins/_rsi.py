@@ -84,8 +84,9 @@ import time
 from typing import Any, Literal, Self
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet
 from timedexec.errors import ConfigError
 from timedexec.twins._lifecycle import Twin
@@ -117,8 +118,6 @@ __all__ = [
     "free_udp_port",
     "read_rsi_truth",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 class RSITwin(Twin):

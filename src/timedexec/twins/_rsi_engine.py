@@ -27,14 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from timedexec._types import FloatArray
 from timedexec.effects import EffectSet
 from timedexec.errors import ConfigError, ProtocolError
 from timedexec.robots import forward_kinematics, get_robot
 from timedexec.twins._rsi_config import STOP_REASONS, RSITwinConfig
-
-FloatArray = NDArray[np.float64]
 
 _LATE_SEND_S = 0.001  # a frame leaving more than this after its send time counts as late
 _SWITCH_INTERVAL_S = 0.0002

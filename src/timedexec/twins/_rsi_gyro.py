@@ -18,14 +18,12 @@ import threading
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from timedexec._realtime import try_realtime
+from timedexec._types import FloatArray
 from timedexec.errors import ConfigError
 
 __all__ = ["publish_controller_origin", "rsi_gyro_factory"]
-
-FloatArray = NDArray[np.float64]
 
 
 _FACTORY_PREFIX = "rsi_gyro_"

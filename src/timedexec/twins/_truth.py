@@ -53,6 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._signal import ONSET_FRACTION
+from timedexec._types import FloatArray
 from timedexec.delays import DelayTable
 from timedexec.drivers import HostTimeTap
 from timedexec.errors import ConfigError, ProtocolError, RecordingError
@@ -71,8 +72,6 @@ __all__ = [
     "read_twin_truth",
     "twin_truth_table",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def iter_truth_records(path: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:
