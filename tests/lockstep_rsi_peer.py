@@ -137,6 +137,8 @@ class LockStepRSIPeer:
             ts = gyro_start_s() + t0 + np.arange(k) * ((t1 - t0) / k)
             with self._lock:
                 t, q = np.asarray(self._t), np.asarray(self._q)
+            if len(t) < 2:  # RSI not started yet: the flange is still (no pose to index)
+                return np.zeros((k, 3))
             # pose n is reached at t[n], moving from pose n-1 over the cycle before it (an
             # arm waiting for an answer holds)
             n = np.searchsorted(t, ts, side="right")
