@@ -43,6 +43,14 @@ def check_non_negative(owner: str, **values: float) -> None:
             raise ConfigError(f"{owner}: {name}={value!r} must be >= 0")
 
 
+def check_counts(**values: tuple[Any, int]) -> None:
+    """Each ``name=(value, low)`` must be an integer (not a bool) >= ``low``; the first
+    that is not raises :class:`ConfigError` naming it."""
+    for name, (value, low) in values.items():
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
+
+
 def check_joint_tuple(owner: str, name: str, value: Iterable[float]) -> tuple[float, ...]:
     """``value`` as a tuple of 6 floats (one per joint), for frozen settings."""
     out = tuple(float(v) for v in value)

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from timedexec._progress import Progress
 from timedexec._types import FloatArray
+from timedexec._validation import check_counts
 from timedexec.effects import EffectSet, ThermalDrift, default_effects
 from timedexec.errors import ConfigError
 from timedexec.execution import (
@@ -339,14 +340,7 @@ def evaluate(
     seam; each shortfall adds a line to ``details["notes"]`` (printed by :meth:`table`).
     """
     spec = get_robot(robot)
-    counts = (
-        ("n_configs", n_configs, 1),
-        ("draws", draws, 2),
-        ("physics_configs", physics_configs, 0),
-    )
-    for name, value, low in counts:
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-            raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
+    check_counts(n_configs=(n_configs, 1), draws=(draws, 2), physics_configs=(physics_configs, 0))
     if not (math.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
     if model is None:

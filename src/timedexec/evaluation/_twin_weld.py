@@ -32,6 +32,7 @@ import numpy as np
 
 from timedexec._progress import Progress
 from timedexec._realtime import realtime
+from timedexec._validation import check_counts
 from timedexec.errors import ConfigError
 from timedexec.evaluation._onset import STRATEGIES
 from timedexec.evaluation._welding import (
@@ -103,9 +104,7 @@ def evaluate_conveyor_twin(
     spec = get_robot(robot)
     if seam not in SEAM_KINDS:
         raise ConfigError(f"seam={seam!r}; choose one of {', '.join(SEAM_KINDS)}")
-    for name, value in (("runs", runs), ("calibration_runs", calibration_runs)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise ConfigError(f"{name}={value!r} must be an integer >= 1")
+    check_counts(runs=(runs, 1), calibration_runs=(calibration_runs, 1))
     entry = get_robot_entry(spec.name)
     predictor = load_delay_model(entry.shipped_model if model is None else model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)

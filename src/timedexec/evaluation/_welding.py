@@ -52,6 +52,7 @@ import numpy as np
 
 from timedexec._progress import Progress
 from timedexec._types import FloatArray
+from timedexec._validation import check_counts
 from timedexec.effects import EffectSet, default_effects
 from timedexec.errors import ConfigError
 from timedexec.evaluation._onset import STRATEGIES, SimulatedOracle
@@ -466,12 +467,10 @@ def evaluate_conveyor(
     spec = get_robot(robot)
     if seam not in SEAM_KINDS:
         raise ConfigError(f"seam={seam!r}; choose one of {', '.join(SEAM_KINDS)}")
-    for name, value, low in (
-        ("cells", cells, 1), ("seeds", seeds, 1), ("oracle_draws", oracle_draws, 1),
-        ("calibration_runs", calibration_runs, 1), ("previous_welds", previous_welds, 0),
-    ):  # fmt: skip
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-            raise ConfigError(f"{name}={value!r} must be an integer >= {low}")
+    check_counts(
+        cells=(cells, 1), seeds=(seeds, 1), oracle_draws=(oracle_draws, 1),
+        calibration_runs=(calibration_runs, 1), previous_welds=(previous_welds, 0),
+    )  # fmt: skip
     if not (math.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
     entry = get_robot_entry(spec.name)
