@@ -665,8 +665,8 @@ def test_jittery_ur_stream_then_dead(ur_twin: Any) -> None:
 
 
 @pytest.mark.slow
-def test_jittery_stream_from_the_independent_peer_for_a_minute_then_dead() -> None:
-    """The same minute against the independently written UR peer (real script semantics;
+def test_jittery_stream_from_the_independent_peer_then_dead() -> None:
+    """The same 20 s against the independently written UR peer (real script semantics;
     it costs a quarter of a core where the twin's real-time tests need a faster machine),
     through real ur_rtde, the packages delivered every 6-24 ms: no false stale stop; the
     stream dies mid-motion, the fault comes within the stall limit in force (+ 10 ms of
@@ -681,7 +681,9 @@ def test_jittery_stream_from_the_independent_peer_for_a_minute_then_dead() -> No
     with peer_mod.run_peer("127.0.0.45", model="UR10", version="5.11.1") as peer:
         drv = GappyDriver(URDriver(peer.host, robot="ur10e"), seed=7)
         try:
-            _, late_s, fault_s = run_gappy_then_dead(drv, 60.0)
+            # 20 s (about 1,300 gappy deliveries; a minute before the CI budget was cut):
+            # a false stale stop at these gaps shows within seconds, as on the twin above.
+            _, late_s, fault_s = run_gappy_then_dead(drv, 20.0)
         except DriverError as exc:
             # Beyond the scenario (as for the twin above): this process woke > 25 ms late.
             if drv.max_wake_late_s > 0.025:
@@ -689,7 +691,7 @@ def test_jittery_stream_from_the_independent_peer_for_a_minute_then_dead() -> No
             raise
         t_fault = peer.to_peer_time(fault_s)
         truth = peer.wait_truth_until(t_fault + 1.0)
-    assert drv.delivered > 40 * 60
+    assert drv.delivered > 40 * 20
     assert -1e-4 <= late_s <= 0.010, late_s
     at_fault = np.searchsorted(truth.t, t_fault)
     speed = float(np.max(np.abs(truth.qd[at_fault])))
