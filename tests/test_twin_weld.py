@@ -37,7 +37,8 @@ def test_the_ur10_weld_through_ur_rtde_meets_the_targets(tmp_path: Path) -> None
     strategies with the simulator evaluation's fields; the model's torch is within 1 mm
     (RMS 1.5 mm), at least 3x nearer than none and not worse than the per-joint median
     (measured with --runs 2 at load 14: model 0.11 mm mean, 0.11 RMS, 63x; median 0.35;
-    none 6.7)."""
+    none 6.7). Example 02's ``--twin`` table welds through the same ``weld_on_twin``, so
+    this test stands for it too (the example's own twin run cost CI another 31 s)."""
     pytest.importorskip("rtde_control")
     out = tmp_path / "twin.json"
     code = main(["evaluate", "--task", "conveyor", "--twin", "--robot", "ur10", "--runs", "1",
