@@ -51,6 +51,7 @@ other work points) see the speeds the task uses.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -59,28 +60,37 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from timedexec._types import FloatArray
+from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
 from timedexec.execution import (
     DelayPredictions,
     DelayPredictor,
     FrictionFeed,
     JointPlan,
+    TimedExecutor,
     load_delay_model,
     predict_delays,
 )
+from timedexec.tasks._conveyor import _ruckig_velocity
+from timedexec.tasks._truth import physical_probe
 
 __all__ = [
     "DEAD_TIME_SE_S",
     "MAX_CALIBRATION_RUNS",
+    "PHASE_SPEEDS_RAD_S",
     "POSITION_FLOOR_RAD",
     "RUN_AGREEMENT_RAD",
     "RUN_AGREEMENT_S",
+    "PhaseRun",
     "TrackingDelays",
     "TrackingFit",
+    "TrackingPhases",
     "fit_dead_time_and_friction",
     "fit_joint_lags",
     "fit_tracking",
+    "fit_tracking_phases",
     "measure_tracking_delays",
+    "run_tracking_phases",
     "sampling_times_s",
 ]
 
@@ -438,6 +448,10 @@ class TrackingDelays:
         4, against 0.001-0.007 mrad for joints that do not reverse).
     notes : tuple of str
         What the calibration set aside and why (:meth:`calibrate_runs`).
+    source : str
+        Where the dead times and offsets came from: ``"dry runs"`` (:meth:`calibrate_runs`,
+        runs of the task), ``"sweep"`` (:meth:`calibrate_phases`, the calibration sweep's
+        constant-speed phases) or ``"given"``.
     """
 
     base: Any
@@ -445,6 +459,7 @@ class TrackingDelays:
     friction_rad: tuple[tuple[float, ...], ...] | None = None
     fit_rms_rad: tuple[float, ...] | None = None
     notes: tuple[str, ...] = ()
+    source: str = "given"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
@@ -581,6 +596,41 @@ class TrackingDelays:
                 *notes,
             )
         fit = fit_tracking([x for x, k in zip(samples, keep, strict=True) if k])
+        advice = (
+            "calibrate at a second belt speed, or from a sweep with constant-speed phases, "
+            "to use the model at other speeds"
+        )
+        return cls._from_fit(base, fit, notes, advice, source="dry runs")
+
+    @classmethod
+    def calibrate_phases(
+        cls, base: DelayPredictor | Any, runs: Sequence[PhaseRun]
+    ) -> TrackingDelays:
+        """Dead time and friction offsets from constant-speed phases
+        (:func:`run_tracking_phases`, :func:`fit_tracking_phases`): no run of the task
+        needed. A joint no phase moves gets the median dead time of the others and no
+        offset.
+
+        Raises
+        ------
+        ConfigError
+            No phase.
+        """
+        advice = "run the phases at two or more distinct speeds with longer holds"
+        return cls._from_fit(base, fit_tracking_phases(runs), (), advice, source="sweep")
+
+    @classmethod
+    def _from_fit(
+        cls,
+        base: DelayPredictor | Any,
+        fit: TrackingFit,
+        notes: tuple[str, ...],
+        advice: str,
+        *,
+        source: str,
+    ) -> TrackingDelays:
+        """The model of a fit; a note names the joints whose dead time was not separable
+        (with ``advice``)."""
         dead = fit.dead_time_s
         moved = np.isfinite(dead)
         if (moved & ~fit.separable).any():
@@ -591,9 +641,8 @@ class TrackingDelays:
             )
             notes += (
                 f"dead time not separable from friction on joints {shown}: speeds too "
-                "alike for the positions' scatter about the fit; dead time taken from the other joints (or the shortest lag), "
-                "exact at these speeds only: calibrate at a second belt speed, or from a "
-                "sweep with constant-speed phases, to use the model at other speeds",
+                "alike for the positions' scatter about the fit; dead time taken from the "
+                f"other joints (or the shortest lag), exact at these speeds only: {advice}",
             )
         fallback = float(np.nanmedian(dead)) if moved.any() else 0.0
         return cls(
@@ -602,6 +651,7 @@ class TrackingDelays:
             friction_rad=np.where(np.isfinite(fit.friction_rad), fit.friction_rad, 0.0),  # type: ignore[arg-type]
             fit_rms_rad=tuple(float(x) for x in fit.rms_rad),
             notes=notes,
+            source=source,
         )
 
 
@@ -658,3 +708,241 @@ def _disagreement(lags_s: FloatArray, n_runs: int, automatic: bool) -> str:
         f"{head}; weld at least three calibration runs, each starting at rest on the "
         "approach's start, so that an outlier can be set aside"
     )
+
+
+# ---------------------------------------------------------------- from constant-speed phases
+#: Joint speeds of the tracking phases by default, rad/s: a slow one, where the friction
+#: offset dominates the lag (``e / |v|``: a 0.05 m/s belt moves the joints at 0.01-0.05
+#: rad/s), and a fast one, where the dead time does (a 0.5 m/s belt: 0.1-0.5 rad/s).
+PHASE_SPEEDS_RAD_S = (0.05, 0.25)
+#: The move back before a joint's first phase, rad.
+PRELOAD_RAD = 0.02
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackingPhases(DictMixin):
+    """Constant-speed phases that calibrate the tracking model (dead time and friction
+    offsets per direction) from a sweep: per joint, per speed, per direction (positive
+    first, so the joint comes back), the joint ramps from rest to the speed (jerk-limited,
+    the executor's limits), holds it for ``settle_s + hold_s`` and stops; the others stay
+    still. The lag is fitted over the last ``hold_s`` of each hold (after the velocity
+    loop has settled: ~0.3 s on a KR 5, docs/welding.md).
+
+    Parameters
+    ----------
+    speeds_rad_s : tuple of float
+        At least two distinct speeds > 0, rad/s (one speed cannot tell the dead time ``D``
+        from ``e / |v|``).
+    settle_s : float
+        Time at speed before the fit's window, s (>= 0).
+    hold_s : float
+        The fit's window at speed, s (> 0).
+    joints : tuple of int
+        Joints to calibrate, 1-based (default all six: a tracking task moves every joint).
+    """
+
+    speeds_rad_s: tuple[float, ...] = PHASE_SPEEDS_RAD_S
+    settle_s: float = 0.4
+    hold_s: float = 0.4
+    joints: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+
+    def __post_init__(self) -> None:
+        speeds = tuple(float(v) for v in self.speeds_rad_s)
+        check_positive("TrackingPhases", **{f"speeds_rad_s[{i}]": v for i, v in enumerate(speeds)})
+        if len(set(speeds)) < 2:
+            raise ConfigError(
+                f"TrackingPhases.speeds_rad_s={self.speeds_rad_s!r}: give at least two "
+                "distinct speeds > 0 rad/s (e.g. 0.05 and 0.25): one speed cannot separate the "
+                "dead time from the friction offset"
+            )
+        check_non_negative("TrackingPhases", settle_s=self.settle_s)
+        check_positive("TrackingPhases", hold_s=self.hold_s)
+        joints = tuple(int(j) for j in self.joints)
+        if not joints or len(set(joints)) != len(joints) or not set(joints) <= set(range(1, 7)):
+            raise ConfigError(
+                f"TrackingPhases.joints={self.joints!r} must be distinct joints in 1..6"
+            )
+        object.__setattr__(self, "speeds_rad_s", speeds)
+        object.__setattr__(self, "joints", joints)
+
+    @property
+    def count(self) -> int:
+        """Phases in all (joints x speeds x 2 directions)."""
+        return 2 * len(self.joints) * len(self.speeds_rad_s)
+
+    def robot_time_s(self, acceleration_rad_s2: float = 8.0, gap_s: float = 0.3) -> float:
+        """Robot time the phases take, s: per phase the ramp up and down at
+        ``acceleration_rad_s2`` (the executor's default cap), the hold, and ``gap_s`` at rest
+        around it (the lead before the send and the wait for rest)."""
+        per_speed = [2 * v / acceleration_rad_s2 + self.settle_s + self.hold_s + gap_s
+                     for v in self.speeds_rad_s]  # fmt: skip
+        return float(2 * len(self.joints) * sum(per_speed))
+
+
+@dataclass(frozen=True, kw_only=True)
+class PhaseRun:
+    """One constant-speed phase as it ran (:func:`run_tracking_phases`): the duck type
+    :func:`sampling_times_s` reads (``plan``, ``host_s``, ``controller_s``, ``intake``,
+    ``clock_rate``), the joint and the fit's window.
+
+    Attributes
+    ----------
+    joint : int
+        The moving joint, 1-based.
+    speed_rad_s : float
+        Its commanded speed, signed, rad/s.
+    plan : JointPlan
+        The scheduled plan (``meta["actuation_s"]``: the shifts that ran).
+    window_s : (float, float)
+        Host times of the fit's window (the hold after the settle), s.
+    host_s, controller_s : ndarray (n,)
+        Arrival and controller time of each state package, s.
+    reported_q : ndarray (n, 6)
+        Reported joint angles, rad.
+    truth_s, truth_q : ndarray (n,), (n, 6)
+        Host time and physical angles (simulated driver), else the reported ones.
+    intake : IntakeFix or None
+        The probed command deadline (executor with ``cycle_lock``).
+    clock_rate : float
+        Host/controller clock drift of the executor's clock line, s per s.
+    """
+
+    joint: int
+    speed_rad_s: float
+    plan: JointPlan
+    window_s: tuple[float, float]
+    host_s: FloatArray
+    controller_s: FloatArray
+    reported_q: FloatArray
+    truth_s: FloatArray
+    truth_q: FloatArray
+    intake: Any = None
+    clock_rate: float = 0.0
+
+    @property
+    def shifts_s(self) -> FloatArray:
+        """Per joint, the shift of the command stream that ran, s (6,)."""
+        return np.asarray(self.plan.meta["actuation_s"], dtype=float)
+
+    def window(self, *, physical: bool = False) -> tuple[FloatArray, FloatArray]:
+        """The positions in the fit's window: (times (m,), s; q (m, 6), rad): the reported
+        ones at their sampling instants (:func:`sampling_times_s`), or the physical truth."""
+        if physical:
+            t, q = self.truth_s, self.truth_q
+        else:
+            t, q = sampling_times_s(self), self.reported_q
+        keep = (t >= self.window_s[0]) & (t <= self.window_s[1])
+        return t[keep], q[keep]
+
+
+def run_tracking_phases(
+    executor: TimedExecutor, phases: TrackingPhases | None = None
+) -> list[PhaseRun]:
+    """Run the tracking phases through ``executor`` from where the robot is (at rest).
+
+    Run uncompensated (``compensate=False``) with ``cycle_lock`` on, as the calibration
+    welds are, so that the reported positions are dated by the probed intake. Each joint
+    ends within a few mrad of where it started (each positive phase is followed by its
+    negative mirror).
+
+    Raises
+    ------
+    ConfigError
+        A phase would leave a joint limit (before that phase moves), or Ruckig cannot plan
+        a ramp.
+    """
+    phases = phases or TrackingPhases()
+    spec = executor.spec
+    limits = executor.settings.limits
+    probe = physical_probe(executor)
+    lo, hi = limits.position_range(spec)
+    out: list[PhaseRun] = []
+    for joint in phases.joints:
+        for speed in phases.speeds_rad_s:
+            for sign in (1.0, -1.0):
+                # Every phase starts from rest reached by a short move the other way (as a
+                # task's motion after its approach): the rest the velocity loop holds
+                # depends on the side the joint came from and how it stopped.
+                executor.idle(executor.now() + 2.0, until_rest=True)
+                back = executor.estimate().q_rad.copy()
+                back[joint - 1] -= sign * PRELOAD_RAD
+                executor.execute(executor.plan(back), start_time_s=executor.now() + 0.1)
+                executor.idle(executor.now() + 2.0, until_rest=True)
+                q0 = executor.estimate().q_rad
+                v = np.zeros(6)
+                v[joint - 1] = sign * speed
+                ramp = _ruckig_velocity(spec, limits, q0, np.zeros(6), np.zeros(6), v,
+                                        what=f"the ramp of joint {joint} to {sign * speed:g} rad/s")  # fmt: skip
+                q_ramp = np.asarray(ramp.at_time(float(ramp.duration))[0])
+                travel = q_ramp + v * (phases.settle_s + phases.hold_s + 0.1 + speed / 4.0)
+                if np.any(travel < lo) or np.any(travel > hi):
+                    raise ConfigError(
+                        f"the tracking phase of joint {joint} at {sign * speed:g} rad/s would "
+                        f"take it to {travel[joint - 1]:.3f} rad, beyond "
+                        f"[{lo[joint - 1]:.3f}, {hi[joint - 1]:.3f}] rad; start from a pose "
+                        "farther from the limits"
+                    )
+                plan = JointPlan(ramp, q0, np.zeros(6), q_ramp, v)
+                prepared = executor.prepare(plan)
+                executor.idle(executor.now() + 5 * executor.period_s)
+                lead = float(np.max(prepared.meta["actuation_s"])) + 3 * executor.period_s
+                start = executor.now() + max(lead, 0.1)
+                scheduled = prepared.at(start)
+                begin = scheduled.end_time_s + phases.settle_s
+                end = begin + phases.hold_s
+                rows: list[tuple[float, float, FloatArray, float, FloatArray]] = []
+
+                def record(state: Any) -> None:
+                    t, q = probe() if probe is not None else (math.nan, state.q)
+                    rows.append((state.host_time_s, state.controller_time_s, state.q, t, q))
+
+                executor.execute(scheduled, until_s=end + 0.05, on_step=record)
+                n = len(rows)
+                out.append(
+                    PhaseRun(
+                        joint=joint,
+                        speed_rad_s=sign * speed,
+                        plan=scheduled,
+                        window_s=(begin, end),
+                        host_s=np.array([r[0] for r in rows]),
+                        controller_s=np.array([r[1] for r in rows]),
+                        reported_q=np.array([r[2] for r in rows]).reshape(n, 6),
+                        truth_s=np.array([r[3] for r in rows]),
+                        truth_q=np.array([r[4] for r in rows]).reshape(n, 6),
+                        intake=executor.intake,
+                        clock_rate=line[2] if (line := executor.clock_line) is not None else 0.0,
+                    )
+                )
+    return out
+
+
+def fit_tracking_phases(runs: Sequence[PhaseRun], *, physical: bool = False) -> TrackingFit:
+    """The tracking fit (:func:`fit_tracking`) of constant-speed phases, per joint on the
+    phases that move it (the others' still joints would only add their scatter).
+
+    Per joint: ``q(t) ≈ plan(t + s - D) - e± · sign(v)`` over the holds at two or more
+    speeds, so ``D`` and ``e±`` are separable (the joint's lag ``D + e / |v|`` differs
+    between the speeds). ``physical=True`` fits the simulator's physical angles instead
+    of the reported ones (the truth the reported fit is checked against).
+
+    Raises
+    ------
+    ConfigError
+        No phase, or a phase with fewer than 3 samples in its window.
+    """
+    if not runs:
+        raise ConfigError("fit_tracking_phases needs at least one tracking phase")
+    nan6 = np.full(6, np.nan)
+    parts: dict[str, Any] = {
+        "dead_time_s": nan6.copy(), "friction_rad": np.full((2, 6), np.nan),
+        "rms_rad": nan6.copy(), "dead_time_se_s": nan6.copy(),
+        "separable": np.zeros(6, bool), "speed_rad_s": np.full((2, 6), np.nan),
+    }  # fmt: skip
+    for joint in sorted({r.joint for r in runs}):
+        samples = [(r.plan, *r.window(physical=physical), r.shifts_s)
+                   for r in runs if r.joint == joint]  # fmt: skip
+        fit = fit_tracking(samples)
+        j = joint - 1
+        for name, value in parts.items():
+            value[..., j] = getattr(fit, name)[..., j]
+    return TrackingFit(**parts)
