@@ -33,12 +33,15 @@ from timedexec.evaluation._welding import (
     evaluate_conveyor,
     phase_seeds,
     physical_tracking_delays,
+    TRACKING_SOURCES,
     run_weld,
+    sweep_tracking_model,
     weld_on_twin,
 )
 
 __all__ = [
     "STRATEGIES",
+    "TRACKING_SOURCES",
     "ConveyorEvaluation",
     "Evaluation",
     "SimulatedOracle",
@@ -50,6 +53,7 @@ __all__ = [
     "phase_seeds",
     "physical_tracking_delays",
     "run_weld",
+    "sweep_tracking_model",
     "warm_effects",
     "weld_on_twin",
 ]

@@ -86,6 +86,7 @@ from timedexec.tasks import (
 )
 
 __all__ = [
+    "TRACKING_SOURCES",
     "ConveyorEvaluation",
     "conveyor_cells",
     "evaluate_conveyor",
@@ -568,10 +569,16 @@ def evaluate_conveyor(
         predictor, list(cal_runs), more=calibration_weld, max_runs=most
     )
     tracking_model = dry_model
+    source = "dry runs"
     if sweep:
-        tracking_model = sweep_tracking_model(
-            spec.name, predictor, seed=seed + _PHASE_SEED, phases=phases, effects=effects
-        )
+        stored = TrackingDelays.of_bundle(predictor) if phases is None else None
+        source = "sweep (the model bundle's tracking.json)"
+        if stored is None:
+            source = "sweep (constant-speed phases on the simulator)"
+            stored = sweep_tracking_model(
+                spec.name, predictor, seed=seed + _PHASE_SEED, phases=phases, effects=effects
+            )
+        tracking_model = stored
     tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
     constant = float(np.median(tracks_arr))
     median = np.median(tracks_arr, axis=0)
@@ -634,7 +641,7 @@ def evaluate_conveyor(
         "calibration_runs": len(cal_runs),
         "previous_welds": previous_welds,
         "seed": seed,
-        **({"tracking_source": tracking} if sweep else {}),
+        "tracking_source": source,
         "tracking_ms": {
             "constant": constant * 1e3,
             "median": (median * 1e3).round(3).tolist(),

@@ -43,6 +43,7 @@ from timedexec.tasks._intercept import InterceptResult, intercept, solve_positio
 from timedexec.tasks._tracking import (
     MAX_CALIBRATION_RUNS,
     PHASE_SPEEDS_RAD_S,
+    TRACKING_FILE,
     PhaseRun,
     TrackingDelays,
     TrackingFit,
@@ -67,6 +68,7 @@ __all__ = [
     "PHASE_SPEEDS_RAD_S",
     "SEAM_KINDS",
     "SEAM_POSITION_GAIN_1_S",
+    "TRACKING_FILE",
     "Conveyor",
     "ConveyorRun",
     "InterceptResult",

@@ -51,14 +51,18 @@ other work points) see the speeds the task uses.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._files import write_atomic
 from timedexec._types import FloatArray
 from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
@@ -81,6 +85,7 @@ __all__ = [
     "POSITION_FLOOR_RAD",
     "RUN_AGREEMENT_RAD",
     "RUN_AGREEMENT_S",
+    "TRACKING_FILE",
     "PhaseRun",
     "TrackingDelays",
     "TrackingFit",
@@ -107,6 +112,9 @@ RUN_AGREEMENT_S = 0.005
 #: (UR10 at 0.05 m/s, joint 4: 33.9-43.3 ms at 0.016-0.033 rad/s) while the position,
 #: what the torch feels, differs by 0.1-0.2 mrad. 0.5 mrad is ~0.5 mm at a 1 m reach.
 RUN_AGREEMENT_RAD = 5e-4
+#: The file beside a model bundle's manifest that holds its tracking model
+#: (:meth:`TrackingDelays.save`, :meth:`TrackingDelays.of_bundle`).
+TRACKING_FILE = "tracking.json"
 #: The most calibration runs :meth:`TrackingDelays.calibrate_runs` welds in all when it may
 #: add runs to settle a disagreement.
 MAX_CALIBRATION_RUNS = 7
@@ -485,6 +493,70 @@ class TrackingDelays:
                     f"TrackingDelays.fit_rms_rad={self.fit_rms_rad!r} needs 6 values >= 0 rad"
                 )
             object.__setattr__(self, "fit_rms_rad", tuple(map(float, r)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe: ``{"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}``
+        (the base model is not included: :meth:`from_dict` takes it)."""
+        return {
+            "dead_time_s": list(self.dead_time_s),
+            "friction_rad": None if self.friction_rad is None else [list(r) for r in self.friction_rad],
+            "fit_rms_rad": None if self.fit_rms_rad is None else [
+                None if not math.isfinite(x) else x for x in self.fit_rms_rad],
+            "notes": list(self.notes),
+            "source": self.source,
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, base: DelayPredictor | Any, data: dict[str, Any]) -> TrackingDelays:
+        """The model :meth:`to_dict` wrote, on the onset model ``base``.
+
+        Raises
+        ------
+        ConfigError
+            A key missing or unknown, or a value out of range.
+        """
+        known = {"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}
+        if not isinstance(data, dict) or "dead_time_s" not in data or set(data) - known:
+            raise ConfigError(
+                f"a tracking model needs the keys {sorted(known)} (dead_time_s required), got "
+                f"{sorted(data) if isinstance(data, dict) else type(data).__name__}"
+            )
+        rms = data.get("fit_rms_rad")
+        return cls(
+            base=base,
+            dead_time_s=tuple(data["dead_time_s"]),
+            friction_rad=data.get("friction_rad"),
+            fit_rms_rad=None if rms is None else tuple(math.nan if x is None else x for x in rms),
+            notes=tuple(data.get("notes", ())),
+            source=str(data.get("source", "given")),
+        )
+
+    def save(self, bundle_dir: str | os.PathLike[str]) -> Path:
+        """Write :meth:`to_dict` as ``TRACKING_FILE`` into a model bundle's folder (atomic);
+        return its path."""
+        path = Path(bundle_dir) / TRACKING_FILE
+        write_atomic(path, json.dumps(self.to_dict(), indent=1) + "\n")
+        return path
+
+    @classmethod
+    def of_bundle(cls, base: DelayPredictor | Any) -> TrackingDelays | None:
+        """The tracking model stored beside an onset model's bundle (``TRACKING_FILE`` in
+        its folder, :meth:`save`), on that model; None when it has none.
+
+        Raises
+        ------
+        ConfigError
+            The file is there but not a tracking model.
+        """
+        folder = getattr(base, "path", None)
+        if folder is None or not (Path(folder) / TRACKING_FILE).is_file():
+            return None
+        path = Path(folder) / TRACKING_FILE
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ConfigError(f"{path}: not JSON ({exc}); rewrite it with TrackingDelays.save") from exc
+        return cls.from_dict(base, data)
 
     @property
     def robot(self) -> str:
