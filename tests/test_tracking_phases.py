@@ -74,10 +74,13 @@ def test_phase_fit_recovers_a_known_dead_time_and_friction() -> None:
     assert noisy.dead_time_s[1] == pytest.approx(0.012, abs=1e-4)
     np.testing.assert_allclose(noisy.friction_rad[:, 1], [8e-4, 1.1e-3], atol=1e-5)
     assert noisy.separable[1]
-    model = TrackingDelays.calibrate_phases("ur10-sim", _synthetic_phases(0.012, (8e-4, 1.1e-3), 0.0))
+    model = TrackingDelays.calibrate_phases(
+        "ur10-sim", _synthetic_phases(0.012, (8e-4, 1.1e-3), 0.0)
+    )
     # A joint no phase moves gets the others' median dead time (here joint 2's) and no offset.
     np.testing.assert_allclose(model.dead_time_s, 0.012, atol=1e-6)
-    assert model.source == "sweep" and model.friction_rad is not None
+    assert model.source == "sweep"
+    assert model.friction_rad is not None
     assert model.friction_rad[0][0] == 0.0
     with pytest.raises(ConfigError, match="at least one tracking phase"):
         fit_tracking_phases([])
@@ -106,7 +109,9 @@ def test_phases_on_the_simulator_read_the_physical_lag_from_reported_positions()
     (measured 0.2 ms / 0.000 mrad: the intake's dating of the sampling instant); the
     joint's lag is separable (two speeds); the joint ends within 0.1 rad of its start."""
     q0 = np.array([0.0, -1.6, 1.2, -1.2, -1.5, 0.0])
-    drv = SimDriver("ur10", q0_rad=q0, effects=default_effects("ur10").without("thermal_drift"), seed=3)
+    drv = SimDriver(
+        "ur10", q0_rad=q0, effects=default_effects("ur10").without("thermal_drift"), seed=3
+    )
     settings = ExecutorSettings(compensate=False, cycle_lock=True)
     with TimedExecutor(drv, "ur10-sim", settings) as ex:
         runs = run_tracking_phases(ex, TrackingPhases(joints=(1,)))
@@ -132,9 +137,10 @@ def test_tracking_model_round_trips_beside_a_bundle(tmp_path) -> None:  # type: 
                            notes=("n",), source="sweep")  # fmt: skip
     assert model.save(bundle) == bundle / TRACKING_FILE
     back = TrackingDelays.of_bundle(model.base)
-    assert back is not None and back.to_dict() == model.to_dict()
+    assert back is not None
+    assert back.to_dict() == model.to_dict()
     (bundle / TRACKING_FILE).write_text("{")
-    with pytest.raises(ConfigError, match="tracking.json"):
+    with pytest.raises(ConfigError, match=r"tracking\.json"):
         TrackingDelays.of_bundle(model.base)
     with pytest.raises(ConfigError, match="dead_time_s"):
         TrackingDelays.from_dict(model.base, {"friction_rad": None})
@@ -156,7 +162,8 @@ def test_evaluate_conveyor_uses_the_sweep_model_by_default(tmp_path) -> None:  #
     stored = TrackingDelays.of_bundle(str(bundle))
     assert stored is not None
     assert ev.details["tracking_source"] == "sweep (the model bundle's tracking.json)"
-    assert ev.tracking_model is not None and ev.tracking_model.source == "sweep"
+    assert ev.tracking_model is not None
+    assert ev.tracking_model.source == "sweep"
     np.testing.assert_allclose(ev.tracking_model.dead_time_s, stored.dead_time_s)
     for name in ("model", "model (dry runs)"):
         assert ev.strategies[name]["torch_mean_mm"] < 1.0, ev.strategies[name]

@@ -28,12 +28,12 @@ from timedexec.evaluation._onset import (
 )
 from timedexec.evaluation._twin_weld import evaluate_conveyor_twin
 from timedexec.evaluation._welding import (
+    TRACKING_SOURCES,
     ConveyorEvaluation,
     conveyor_cells,
     evaluate_conveyor,
     phase_seeds,
     physical_tracking_delays,
-    TRACKING_SOURCES,
     run_weld,
     sweep_tracking_model,
     weld_on_twin,

@@ -652,9 +652,18 @@ def evaluate_conveyor(
             "model_fit_rms_mrad": (np.asarray(tracking_model.fit_rms_rad) * 1e3).round(4).tolist(),
             "oracle": (np.mean(oracle_shifts, axis=0) * 1e3).round(3).tolist(),
             "calibration_measured": (tracks_arr * 1e3).round(3).tolist(),
-            **({"dry_runs_dead_time": (np.asarray(dry_model.dead_time_s) * 1e3).round(3).tolist(),
-                "dry_runs_friction_mrad": (np.asarray(dry_model.friction_rad) * 1e3).round(4).tolist()}
-               if sweep else {}),
+            **(
+                {
+                    "dry_runs_dead_time": (np.asarray(dry_model.dead_time_s) * 1e3)
+                    .round(3)
+                    .tolist(),
+                    "dry_runs_friction_mrad": (np.asarray(dry_model.friction_rad) * 1e3)
+                    .round(4)
+                    .tolist(),
+                }
+                if sweep
+                else {}
+            ),
         },
         "shift_ms": shift_log,
         "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
