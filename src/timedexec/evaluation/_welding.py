@@ -498,8 +498,11 @@ def evaluate_conveyor(
         Parts welded the same way before each measured weld (:func:`run_weld`).
     tracking : {"sweep", "dry runs"}
         Where the ``model`` strategy's tracking model comes from: ``"sweep"`` (default) the
-        calibration sweep's constant-speed phases alone (:func:`sweep_tracking_model`; the
-        model fitted on the dry runs is then evaluated too, as ``model (dry runs)``), or
+        calibration sweep's constant-speed phases alone: the model bundle's
+        ``tracking.json`` (:meth:`~timedexec.tasks.TrackingDelays.of_bundle`), else the
+        phases run on the simulator at the cell's seed pose (:func:`sweep_tracking_model`;
+        a sweep over the task's workspace); the model fitted on the dry runs is then
+        evaluated too, as ``model (dry runs)``. Or
         ``"dry runs"`` the uncompensated calibration welds of the task
         (:meth:`~timedexec.tasks.TrackingDelays.calibrate_runs`). The dry runs are welded
         either way: ``constant`` and ``median`` are their measured lags.
@@ -575,8 +578,16 @@ def evaluate_conveyor(
         source = "sweep (the model bundle's tracking.json)"
         if stored is None:
             source = "sweep (constant-speed phases on the simulator)"
+            # Where the task works (a sweep for this cell: its --workspace): the friction
+            # offsets change with the gravity load (KR 5 at 0.5 m/s: 0.43 mm from phases
+            # at the cell's pose, 0.91 mm from the middle of the calibration ranges).
             stored = sweep_tracking_model(
-                spec.name, predictor, seed=seed + _PHASE_SEED, phases=phases, effects=effects
+                spec.name,
+                predictor,
+                seed=seed + _PHASE_SEED,
+                phases=phases,
+                q_rad=eval_cells[0].seed_q_rad,
+                effects=effects,
             )
         tracking_model = stored
     tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
