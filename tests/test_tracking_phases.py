@@ -172,3 +172,34 @@ def test_evaluate_conveyor_uses_the_sweep_model_by_default(tmp_path) -> None:  #
     assert "model (dry runs)" not in dry.strategies
     with pytest.raises(ConfigError, match="tracking='gyro'"):
         evaluate_conveyor("ur10", tracking="gyro")
+
+
+@pytest.mark.slow
+def test_calibrate_fits_the_tracking_phases_and_train_puts_them_into_the_bundle(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """`calibrate` runs the tracking phases after the sweep (default on; ~33 s of the
+    simulated UR10's virtual time, ~10 s wall) and writes OUT.tracking.json; `train
+    --tracking` checks it (another robot's file is refused) and writes it into the bundle
+    as tracking.json, which TrackingDelays.of_bundle then reads on that bundle."""
+    import json
+
+    from timedexec.cli import main
+    from timedexec.learning import DelayModel
+
+    out = tmp_path / "cal.h5"
+    assert main(["calibrate", "--robot-url", "sim://ur10", "--trials", "2", "--seed", "1",
+                 "--out", str(out), "--quiet"]) == 0  # fmt: skip
+    written = json.loads((tmp_path / "cal.tracking.json").read_text())
+    assert written["robot"] == "ur10"
+    assert 20.0 < written["robot_time_s"] < 45.0
+    assert len(written["lags"]) == 24
+    assert main(["extract", str(out), "--out", str(tmp_path / "d.csv"), "--quiet"]) == 0
+    bundle = tmp_path / "bundle"
+    argv = ["train", str(tmp_path / "d.csv"), "--out", str(bundle), "--folds", "0",
+            "--methods", "median", "--quiet", "--tracking"]  # fmt: skip
+    other = tmp_path / "kr5.tracking.json"
+    other.write_text(json.dumps({**written, "robot": "kr5"}))
+    assert main([*argv, str(other)]) == 2
+    assert main([*argv, str(tmp_path / "cal.tracking.json")]) == 0
+    stored = TrackingDelays.of_bundle(DelayModel.load(bundle))
+    assert stored is not None
+    assert stored.to_dict() == written["tracking"]
