@@ -83,7 +83,7 @@ def add_parser(sub: Any) -> None:
         dest="tracking_phases",
         action="store_false",
         help="skip the tracking phases after the sweep (default: per joint, 0.05 and 0.25 "
-        "rad/s both ways, each held 0.8 s, about 40 s of robot time; the dead time and "
+        "rad/s both ways, each held 0.8 s, 30-40 s of robot time; the dead time and "
         "friction offsets they give, the tracking model of conveyor tasks, go to "
         "OUT-stem.tracking.json, which train --tracking puts into the bundle; "
         "docs/calibration.md)",

@@ -42,11 +42,18 @@ the executor shifts each joint's stream by ``D`` and adds ``e * FrictionFeed.sig
 seam) the fit leaves 0.0004-0.003 mrad RMS on joints 1-3, 5 and 6 where the best constant
 shift leaves 0.07-0.33 mrad (0.25-0.33 on joints 1-3 and 6).
 
-Why not from the calibration sweep: its constant-speed phase holds 50 ms, and a KR 5's lag
-settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
-steady); and one sweep speed cannot tell ``D`` from ``e / |v|`` (UR10 joint 2: 19.7 ms at
-0.4 rad/s, 26.0 ms at 0.1 rad/s). Calibration runs of the task (a dry run of the weld at
-other work points) see the speeds the task uses.
+From the calibration sweep (issue 39): the sweep's trial holds its speed 50 ms, and a KR 5's
+lag settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
+steady); and one speed cannot tell ``D`` from ``e / |v|`` (UR10 joint 2: 19.7 ms at 0.4
+rad/s, 26.0 ms at 0.1 rad/s). So ``calibrate`` ends with **tracking phases**
+(:class:`TrackingPhases`, :func:`run_tracking_phases`): per joint, 0.05 and 0.25 rad/s both
+ways, each held 0.8 s (the last 0.4 s fitted), each from rest reached by a short move the
+other way (the rest the velocity loop holds depends on how the joint got there: UR10 joint
+1 at 0.05 rad/s lags 26.8 ms from a fresh start, 35.3 ms after a phase the other way);
+:meth:`TrackingDelays.calibrate_phases` fits ``D`` and ``e±`` per joint on them
+(:func:`fit_tracking_phases`, the same pooled fit as the runs'). Calibration runs of the
+task (dry runs of the weld at other work points, :meth:`TrackingDelays.calibrate_runs`)
+remain: they see the task's own speeds and rest states (docs/welding.md compares both).
 """
 
 from __future__ import annotations
