@@ -110,7 +110,7 @@ PREVIOUS_WELDS = 0
 _ORACLE_SEED = 5_000
 _CAL_SEED = 9_000
 _PHASE_SEED = 11_000
-#: Where the tracking model of :func:`evaluate_conveyor` comes from by default.
+#: Where the ``model`` strategy's tracking model of :func:`evaluate_conveyor` may come from.
 TRACKING_SOURCES = ("sweep", "dry runs")
 #: Warm robot time for the onset oracle and calibration trials (4 h into a sweep), s.
 _WARM_S = 4 * 3600.0
@@ -507,7 +507,8 @@ def evaluate_conveyor(
         (:meth:`~timedexec.tasks.TrackingDelays.calibrate_runs`). The dry runs are welded
         either way: ``constant`` and ``median`` are their measured lags.
     phases : TrackingPhases, optional
-        The sweep's phases (default :class:`~timedexec.tasks.TrackingPhases`).
+        With ``tracking="sweep"``: run these phases on the simulator (instead of the
+        bundle's ``tracking.json``; default :class:`~timedexec.tasks.TrackingPhases`).
 
     Raises
     ------

@@ -794,9 +794,9 @@ def _disagreement(lags_s: FloatArray, n_runs: int, automatic: bool) -> str:
 # ---------------------------------------------------------------- from constant-speed phases
 #: Joint speeds of the tracking phases by default, rad/s: a slow one, where the friction
 #: offset dominates the lag (``e / |v|``: a 0.05 m/s belt moves the joints at 0.01-0.05
-#: rad/s), and a fast one, where the dead time does (a 0.5 m/s belt: 0.1-0.5 rad/s).
+#: rad/s), and a fast one, where the dead time does (a 0.5 m/s belt: 0.1-0.8 rad/s).
 PHASE_SPEEDS_RAD_S = (0.05, 0.25)
-#: The move back before a joint's first phase, rad.
+#: The move the other way before each phase, rad (:func:`run_tracking_phases`).
 PRELOAD_RAD = 0.02
 
 
@@ -853,8 +853,9 @@ class TrackingPhases(DictMixin):
 
     def robot_time_s(self, acceleration_rad_s2: float = 8.0, gap_s: float = 0.3) -> float:
         """Robot time the phases take, s: per phase the ramp up and down at
-        ``acceleration_rad_s2`` (the executor's default cap), the hold, and ``gap_s`` at rest
-        around it (the lead before the send and the wait for rest)."""
+        ``acceleration_rad_s2`` (the executor's default cap), the hold, and ``gap_s`` for
+        the short move the other way, the lead before the send and the waits for rest
+        (measured on the simulator: 30-38 s for the default phases where this says 34)."""
         per_speed = [2 * v / acceleration_rad_s2 + self.settle_s + self.hold_s + gap_s
                      for v in self.speeds_rad_s]  # fmt: skip
         return float(2 * len(self.joints) * sum(per_speed))
