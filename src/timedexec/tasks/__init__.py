@@ -40,21 +40,23 @@ from timedexec.tasks._conveyor import (
     plan_seam,
 )
 from timedexec.tasks._intercept import InterceptResult, intercept, solve_position_ik
+from timedexec.tasks._lag_fit import (
+    TrackingFit,
+    fit_dead_time_and_friction,
+    fit_joint_lags,
+    fit_tracking,
+    measure_tracking_delays,
+    sampling_times_s,
+)
 from timedexec.tasks._tracking import (
     MAX_CALIBRATION_RUNS,
     PHASE_SPEEDS_RAD_S,
     TRACKING_FILE,
     PhaseRun,
     TrackingDelays,
-    TrackingFit,
     TrackingPhases,
-    fit_dead_time_and_friction,
-    fit_joint_lags,
-    fit_tracking,
     fit_tracking_phases,
-    measure_tracking_delays,
     run_tracking_phases,
-    sampling_times_s,
 )
 from timedexec.tasks._welding import (
     ConveyorRun,
