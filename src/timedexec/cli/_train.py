@@ -100,16 +100,14 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _read_tracking(path: str | None, robot: str) -> dict[str, Any] | None:
-    """The tracking model of a ``calibrate`` tracking file, checked (None: no file).
+def _read_tracking(path: str, robot: str) -> dict[str, Any]:
+    """The tracking model of a ``calibrate`` tracking file, checked.
 
     Raises
     ------
     ConfigError
         Not such a file, or one for another robot than the delay table's.
     """
-    if path is None:
-        return None
     from timedexec.execution import FixedDelays
     from timedexec.tasks import TrackingDelays
 
@@ -156,7 +154,9 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     table = DelayTable.read_csv(path)
-    tracking = _read_tracking(args.tracking, ",".join(table.robots))
+    tracking = None
+    if args.tracking is not None:
+        tracking = _read_tracking(args.tracking, ",".join(table.robots))
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     with cluster(args, "train") as client:
         jobs = cluster_jobs("train", args, client)
