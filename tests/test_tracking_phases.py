@@ -132,11 +132,12 @@ def test_tracking_model_round_trips_beside_a_bundle(tmp_path) -> None:  # type: 
     bundle = tmp_path / "ur10"
     shutil.copytree(bundled_model_dir("ur10-sim"), bundle)
     assert TrackingDelays.of_bundle(str(bundle)) is None
+    assert TrackingDelays.of_bundle("ur10-sim") is None  # the shipped models have none
     model = TrackingDelays(base=str(bundle), dead_time_s=[0.011] * 6,
                            friction_rad=[[1e-3] * 6, [2e-3] * 6], fit_rms_rad=[1e-5] * 6,
                            notes=("n",), source="sweep")  # fmt: skip
     assert model.save(bundle) == bundle / TRACKING_FILE
-    back = TrackingDelays.of_bundle(model.base)
+    back = TrackingDelays.of_bundle(str(bundle))  # a folder is loaded
     assert back is not None
     assert back.to_dict() == model.to_dict()
     (bundle / TRACKING_FILE).write_text("{")
@@ -151,8 +152,9 @@ def test_evaluate_conveyor_uses_the_sweep_model_by_default(tmp_path) -> None:  #
     """`evaluate --task conveyor`'s model strategy runs the model of the bundle's
     tracking.json when it has one (its dead times, and the JSON says so), and the dry-run
     model is evaluated beside it; with tracking='dry runs' the model is the dry runs'.
-    One work point, one phase, one calibration weld (~10 s): both models within 1 mm of
-    the seam on the UR10 at 0.5 m/s (measured 0.35 / 0.12 mm; none 6.8)."""
+    One work point, one phase, one calibration weld, twice (50 s on a loaded 2-core
+    machine): both models within 1 mm of the seam on the UR10 at 0.5 m/s (the full
+    evaluation, 8 welds each: 0.63 / 0.12 mm, none 6.8; docs/welding.md)."""
     bundle = tmp_path / "ur10"
     shutil.copytree(bundled_model_dir("ur10-sim"), bundle)
     sweep_tracking_model("ur10", str(bundle), seed=3).save(bundle)
@@ -177,7 +179,7 @@ def test_evaluate_conveyor_uses_the_sweep_model_by_default(tmp_path) -> None:  #
 @pytest.mark.slow
 def test_calibrate_fits_the_tracking_phases_and_train_puts_them_into_the_bundle(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """`calibrate` runs the tracking phases after the sweep (default on; ~33 s of the
-    simulated UR10's virtual time, ~10 s wall) and writes OUT.tracking.json; `train
+    simulated UR10's virtual time; the test 7-36 s wall) and writes OUT.tracking.json; `train
     --tracking` checks it (another robot's file is refused) and writes it into the bundle
     as tracking.json, which TrackingDelays.of_bundle then reads on that bundle."""
     import json

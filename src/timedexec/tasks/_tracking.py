@@ -246,13 +246,15 @@ class TrackingDelays:
     @classmethod
     def of_bundle(cls, base: DelayPredictor | Any) -> TrackingDelays | None:
         """The tracking model stored beside an onset model's bundle (``TRACKING_FILE`` in
-        its folder, :meth:`save`), on that model; None when it has none.
+        its folder, :meth:`save`), on that model (a loaded bundle, its folder or a shipped
+        name); None when it has none.
 
         Raises
         ------
         ConfigError
             The file is there but not a tracking model.
         """
+        base = load_delay_model(base)
         folder = getattr(base, "path", None)
         if folder is None or not (Path(folder) / TRACKING_FILE).is_file():
             return None
