@@ -538,9 +538,10 @@ def test_evaluate_conveyor_json_layout_and_order(tmp_path) -> None:  # type: ign
     torch_rms_mm, torch_max_mm}}}); compensation is > 12x better than none on the KR 5 and
     the tracking strategies are within 3 mm (the phase floor on two phases).
 
-    Bounded form (CI): ``--runs 1``, 14 welds (3 calibration, 1 oracle draw, 10 strategies)
-    instead of the 25 of ``--runs 2`` (TIMEDEXEC_FULL_TESTS=1); the welds are the test's
-    whole cost. One evaluated phase: the publisher phase puts one weld's torch up to
+    Bounded form (CI): ``--runs 1``, 15 welds (3 calibration, 1 oracle draw, 11 strategies:
+    ``model`` runs the sweep phases' model, ``model (dry runs)`` the dry runs') and the 24
+    tracking phases, instead of the 27 welds of ``--runs 2`` (TIMEDEXEC_FULL_TESTS=1); the
+    welds are most of the test's cost. One evaluated phase: the publisher phase puts one weld's torch up to
     ±2.3 mm off on the KR 5 (docs/welding.md, "The oracle"), the shifts measured from the
     calibration welds add a few tenths, so constant, median and model keep the 3 mm
     (and none / 12, none being ~40 mm) bound of a single weld, as in the fast test above.
