@@ -41,7 +41,7 @@ def test_live_runner_on_the_simulator_matches_ground_truth(tmp_path, capsys):
     np.savez(tmp_path / "plan.npz", **plan.to_arrays())
     out = tmp_path / "cal.h5"
     assert main(["calibrate", "--robot-url", "sim://ur10", "--plan", str(tmp_path / "plan.npz"),
-                 "--seed", "1", "--out", str(out), "--quiet"]) == 0  # fmt: skip
+                 "--seed", "1", "--out", str(out), "--quiet", "--no-tracking-phases"]) == 0  # fmt: skip
     table = extract_recording(out, progress=False).table
     assert all(f == "" for f in table["flag"])
     pairs = {(int(j), int(d)) for j, d in zip(table["joint"], table["direction"], strict=True)}
@@ -83,7 +83,8 @@ def test_sigkill_at_random_moments_then_resume_records_each_trial_once(tmp_path)
     def cmd() -> list[str]:
         resume = ["--resume"] if out.exists() else []
         return [sys.executable, "-m", "timedexec.cli", "calibrate", "--robot-url", "sim://ur10",
-                "--plan", str(plan), "--seed", "3", "--out", str(out), "--quiet", *resume]  # fmt: skip
+                "--plan", str(plan), "--seed", "3", "--out", str(out), "--quiet",
+                "--no-tracking-phases", *resume]  # fmt: skip
 
     def recorded() -> int:
         try:
@@ -241,7 +242,7 @@ def test_calibrate_records_the_sensor_constants_given(tmp_path: Path) -> None:
     np.savez(tmp_path / "plan.npz", **plan.to_arrays())
     out = tmp_path / "c.h5"
     argv = ["calibrate", "--robot-url", "sim://ur10", "--plan", str(tmp_path / "plan.npz"),
-            "--seed", "2", "--out", str(out), "--quiet"]  # fmt: skip
+            "--seed", "2", "--out", str(out), "--quiet", "--no-tracking-phases"]  # fmt: skip
     assert main([*argv, "--gyro-group-delay", "2.5", "--gyro-transport-latency", "0.7"]) == 2
     assert not out.exists()
     assert main([*argv, "--gyro-group-delay", "0.98", "--gyro-transport-latency", "0.8"]) == 0
@@ -364,7 +365,8 @@ timedexec.drivers.open_driver = lambda url, **options: Robot()
 timedexec.sensors.open_gyro = lambda url: contextlib.nullcontext()
 timedexec.calibration.run_calibration = run_calibration
 code = main(["calibrate", "--robot-url", "rsi://49152?period=0.004", "--imu", sys.argv[1],
-             "--trials", "2", "--out", sys.argv[2], "--quiet", "--gyro-group-delay", "1",
+             "--trials", "2", "--out", sys.argv[2], "--quiet", "--no-tracking-phases",
+             "--gyro-group-delay", "1",
              "--gyro-transport-latency", "1"])
 print(code, sorted(m for m in sys.modules if m.startswith("timedexec.sim")))
 """

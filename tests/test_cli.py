@@ -197,7 +197,7 @@ COMMANDS: dict[str, tuple[list[str], str, dict[str, Any], str]] = {
              "check_gyro", {"duration_s": 2.0, "full_scale_dps": 1000, "sensor": "mpu6000"},
              "/dev/ttyACM0: meets what calibration needs"),
     "calibrate": (["calibrate", "--robot-url", "sim://ur10", "--trials", "2", "--seed", "3",
-                   "--out", "c.h5", "--quiet"], "run_calibration",
+                   "--out", "c.h5", "--quiet", "--no-tracking-phases"], "run_calibration",
                   {"resume": False, "progress": False, "source": "sim://ur10"},
                   "recorded 2 trials (2 planned) to c.h5"),
     "check": (["check", "r.h5"], "check_recording", {"deep": True},

@@ -171,7 +171,8 @@ def test_calibrate_on_a_full_disk_exits_2_then_resumes(disk: SmallDisk, tmp_path
     n = 6
     plan = tmp_path / "plan.npz"
     np.savez(plan, **SweepPlan.generate("ur10", n, seed=2).to_arrays())
-    args = ["--robot-url", "sim://ur10", "--plan", str(plan), "--seed", "2", "--out", str(out)]
+    args = ["--robot-url", "sim://ur10", "--plan", str(plan), "--seed", "2", "--out", str(out),
+            "--no-tracking-phases"]
     resume = assert_clean_exit_2(timedexec("calibrate", *args, "--quiet"), "calibrate")
     assert Path(str(out) + ".journal").exists()
     with RecordingReader(out) as r:

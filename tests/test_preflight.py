@@ -57,7 +57,8 @@ def pty() -> Iterator[tuple[int, str]]:
 
 def calibrate(tmp_path: Path, *extra: str) -> list[str]:
     out = tmp_path / "cal.h5"
-    return ["calibrate", "--trials", "4", "--seed", "1", "--out", str(out), "--quiet", *extra]
+    return ["calibrate", "--trials", "4", "--seed", "1", "--out", str(out), "--quiet",
+            "--no-tracking-phases", *extra]
 
 
 def test_silent_port_fails_in_a_second_naming_it(

@@ -86,7 +86,8 @@ def test_calibrate_refuses_a_plan_beyond_the_limits_before_anything_moves(
             t = time.monotonic()
             code = main(["calibrate", "--robot-url", f"rsi://{port}", "--max-correction-deg",
                          "30", "--imu", os.ttyname(slave), "--plan", str(tmp_path / "plan.npz"),
-                         "--out", str(tmp_path / "c.h5"), "--quiet", *GYRO_OPTIONS])  # fmt: skip
+                         "--out", str(tmp_path / "c.h5"), "--quiet", "--no-tracking-phases",
+                         *GYRO_OPTIONS])  # fmt: skip
             took = time.monotonic() - t
             moved = float(np.max(np.abs(peer.pose_deg() - SIMULATOR_START_DEG)))
     finally:
@@ -161,7 +162,7 @@ def test_a_sweep_over_rsi_planned_around_the_start_pose_calibrates_and_extracts(
         with peer:
             code = main(["calibrate", "--robot-url", f"rsi://{port}?max_correction_deg=60",
                          "--imu", gyro.slave_path, "--trials", "8", "--seed", "1",
-                         "--out", str(out), *GYRO_OPTIONS])  # fmt: skip
+                         "--out", str(out), "--no-tracking-phases", *GYRO_OPTIONS])  # fmt: skip
         late = peer.late
         # --resume continues the recording's own plan (nothing left to do here), checked
         # against the reach of RSI started 5° further along A1
@@ -169,7 +170,7 @@ def test_a_sweep_over_rsi_planned_around_the_start_pose_calibrates_and_extracts(
         with LockStepRSIPeer(("127.0.0.1", port), start_deg=shifted, wait_for_listener=True):
             again = main(["calibrate", "--robot-url", f"rsi://{port}?max_correction_deg=60",
                           "--imu", gyro.slave_path, "--trials", "8", "--seed", "1", "--out",
-                          str(out), "--resume", "--json", str(tmp_path / "r.json"),
+                          str(out), "--resume", "--no-tracking-phases", "--json", str(tmp_path / "r.json"),
                           *GYRO_OPTIONS])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err

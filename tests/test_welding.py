@@ -340,7 +340,7 @@ def test_tracking_model_is_not_worse_than_none_on_a_slow_belt(robot: str, speed:
     is within 1 mm and no worse than none, and a note says which joints' dead times were
     not separable (measured: 0.03-0.08 mm against 1.0-1.5 mm; one phase, one cell)."""
     ev = evaluate_conveyor(robot, speed_m_s=speed, cells=1, seeds=1, oracle_draws=1,
-                           onset=False, feedback=False)  # fmt: skip
+                           onset=False, feedback=False, tracking="dry runs")  # fmt: skip
     model = ev.strategies["model"]["torch_mean_mm"]
     none = ev.strategies["none"]["torch_mean_mm"]
     assert model <= min(1.0, none), (model, none)
@@ -495,7 +495,8 @@ def test_prepare_shifted_checks_the_shift(kr5_plan) -> None:  # type: ignore[no-
 @pytest.mark.slow
 @pytest.mark.parametrize("robot", full_or_bounded(["kr5", "ur10", "ur10e"], ["kr5"]))
 def test_tracking_model_beats_the_per_joint_median_and_the_oracle(robot: str) -> None:
-    """The tracking model (dead time + friction offsets, fitted on the calibration welds)
+    """The tracking model (dead time + friction offsets, fitted on the calibration welds:
+    ``tracking="dry runs"``; the sweep's model: tests/test_tracking_phases.py)
     puts the physical torch nearer the seam than the per-joint median and than the oracle
     (the best constant shift per joint): a constant shift fits a joint's lag D + e/|v| at
     one speed only. Small evaluation (1 work point, 2 phases, 2 calibration welds, one
@@ -505,7 +506,8 @@ def test_tracking_model_beats_the_per_joint_median_and_the_oracle(robot: str) ->
     another machine's floating point. CI runs the KR 5 (12 s; the three with
     TIMEDEXEC_FULL_TESTS=1)."""
     ev = evaluate_conveyor(robot, f"{robot}-sim", cells=1, seeds=2, oracle_draws=1,
-                           calibration_runs=2, onset=False, feedback=False)  # fmt: skip
+                           calibration_runs=2, onset=False, feedback=False,
+                           tracking="dry runs")  # fmt: skip
     mean = {name: s["torch_mean_mm"] for name, s in ev.strategies.items()}
     assert mean["model"] < 0.8 * min(mean["median"], mean["oracle"]), mean
     assert ev.tracking_model is not None
@@ -536,9 +538,10 @@ def test_evaluate_conveyor_json_layout_and_order(tmp_path) -> None:  # type: ign
     torch_rms_mm, torch_max_mm}}}); compensation is > 12x better than none on the KR 5 and
     the tracking strategies are within 3 mm (the phase floor on two phases).
 
-    Bounded form (CI): ``--runs 1``, 14 welds (3 calibration, 1 oracle draw, 10 strategies)
-    instead of the 25 of ``--runs 2`` (TIMEDEXEC_FULL_TESTS=1); the welds are the test's
-    whole cost. One evaluated phase: the publisher phase puts one weld's torch up to
+    Bounded form (CI): ``--runs 1``, 15 welds (3 calibration, 1 oracle draw, 11 strategies:
+    ``model`` runs the sweep phases' model, ``model (dry runs)`` the dry runs') and the 24
+    tracking phases, instead of the 27 welds of ``--runs 2`` (TIMEDEXEC_FULL_TESTS=1); the
+    welds are most of the test's cost. One evaluated phase: the publisher phase puts one weld's torch up to
     ±2.3 mm off on the KR 5 (docs/welding.md, "The oracle"), the shifts measured from the
     calibration welds add a few tenths, so constant, median and model keep the 3 mm
     (and none / 12, none being ~40 mm) bound of a single weld, as in the fast test above.

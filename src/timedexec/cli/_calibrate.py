@@ -23,6 +23,7 @@ from timedexec.cli._common import (
     int_arg,
     shell_command,
     sweep_stopped,
+    warn,
 )
 from timedexec.errors import ConfigError
 
@@ -68,13 +69,25 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument(
         "--trials",
-        type=int_arg(1, MAX_TRIALS, fix=" (the paper's sweep: 33500; about 1 s of robot time each)"),
+        type=int_arg(
+            1, MAX_TRIALS, fix=" (the paper's sweep: 33500; about 1 s of robot time each)"
+        ),
         help=f"number of trials (with --seed; 1 .. {MAX_TRIALS:,}); not with --adaptive",
     )
     add_seed(p, help="plan seed")
     p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
     p.add_argument("--out", required=True, help="recording to write (HDF5)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep")
+    p.add_argument(
+        "--no-tracking-phases",
+        dest="tracking_phases",
+        action="store_false",
+        help="skip the tracking phases after the sweep (default: per joint, 0.05 and 0.25 "
+        "rad/s both ways, each held 0.8 s, 30-40 s of robot time; the dead time and "
+        "friction offsets they give, the tracking model of conveyor tasks, go to "
+        "OUT-stem.tracking.json, which train --tracking puts into the bundle; "
+        "docs/calibration.md)",
+    )
     p.add_argument(
         "--sensor-profile",
         metavar="FILE.json",
@@ -212,9 +225,7 @@ def read_workspace(path: str) -> Any:
     except (OSError, ValueError, TypeError) as exc:
         raise ConfigError(f"--workspace {path}: cannot read it ({exc}); expected {form}") from exc
     if rows.shape[1] != 6:
-        raise ConfigError(
-            f"--workspace {path}: rows of {rows.shape[1]} values; expected {form}"
-        )
+        raise ConfigError(f"--workspace {path}: rows of {rows.shape[1]} values; expected {form}")
     return Workspace(configurations_rad=tuple(map(tuple, rows.tolist())))
 
 
@@ -313,7 +324,8 @@ def run(args: argparse.Namespace) -> int:
                     resume=args.resume,
                     progress=not args.quiet,
                 )
-                return adaptive_done(args, done)
+                tracking = _tracking_phases(args, driver, protocol)
+                return adaptive_done(args, done, tracking)
             assert plan is not None
             result = run_calibration(
                 driver,
@@ -325,23 +337,94 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 source=args.robot_url,
             )
+            tracking = _tracking_phases(args, driver, protocol)
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("calibrate", exc, args.out, resume_command(args))
     info = result.summary()
+    info["tracking"] = tracking
     emit(
         args,
         info,
-        f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}",
+        f"recorded {info['recorded_now']} trials ({info['planned']} planned) to {info['recording']}"
+        + _tracking_text(tracking),
     )
     return 0
 
 
-def adaptive_done(args: argparse.Namespace, result: Any) -> int:
+def tracking_path(out: str) -> str:
+    """Where ``calibrate --out OUT`` writes the tracking phases' model: OUT's stem +
+    ``.tracking.json``."""
+    return os.path.splitext(out)[0] + ".tracking.json"
+
+
+def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> dict[str, Any] | None:
+    """Run the tracking phases after the sweep (unless ``--no-tracking-phases``) through an
+    uncompensated, cycle-locked executor on the sweep's driver, from where the sweep left
+    the robot; write the fitted tracking model with the phases' settings and lags to
+    :func:`tracking_path`; return what was written (None when skipped)."""
+    if not args.tracking_phases:
+        return None
+    import json
+
+    import numpy as np
+
+    from timedexec._files import write_atomic
+    from timedexec.execution import ExecutorSettings, FixedDelays, TimedExecutor
+    from timedexec.tasks import TrackingDelays, TrackingPhases, fit_joint_lags, run_tracking_phases
+
+    base = FixedDelays(robot=protocol.robot, controller_period_s=protocol.controller_period_s)
+    phases = TrackingPhases()
+    settings = ExecutorSettings(compensate=False, cycle_lock=True)
+    try:
+        with TimedExecutor(driver, base, settings) as ex:
+            t0 = ex.now()
+            runs = run_tracking_phases(ex, phases)
+            robot_time_s = ex.now() - t0
+    except ConfigError as exc:  # e.g. a joint limit near the sweep's last pose
+        warn("calibrate", f"tracking phases skipped ({exc}); the sweep is recorded")
+        return {"skipped": str(exc)}
+    model = TrackingDelays.calibrate_phases(base, runs)
+    lags = [
+        {"joint": r.joint, "speed_rad_s": r.speed_rad_s,
+         "lag_ms": round(float(fit_joint_lags(r.plan, *r.window())[r.joint - 1]) * 1e3, 3)}
+        for r in runs
+    ]  # fmt: skip
+    data = {
+        "robot": protocol.robot,
+        "controller_period_s": protocol.controller_period_s,
+        "source": args.robot_url,
+        "phases": phases.to_dict(),
+        "robot_time_s": round(robot_time_s, 3),
+        "tracking": model.to_dict(),
+        "lags": lags,
+    }
+    path = tracking_path(args.out)
+    write_atomic(path, json.dumps(data, indent=1) + "\n")
+    return {"path": path, "robot_time_s": data["robot_time_s"],
+            "dead_time_ms": (np.asarray(model.dead_time_s) * 1e3).round(3).tolist()}  # fmt: skip
+
+
+def _tracking_text(tracking: dict[str, Any] | None) -> str:
+    """The summary line's part about the tracking phases."""
+    if tracking is None:
+        return ""
+    if "skipped" in tracking:
+        return "; tracking phases skipped"
+    return (
+        f"; tracking phases ({tracking['robot_time_s']:.0f} s of robot time) fitted to "
+        f"{tracking['path']}"
+    )
+
+
+def adaptive_done(
+    args: argparse.Namespace, result: Any, tracking: dict[str, Any] | None = None
+) -> int:
     """Report an adaptive sweep (summary, and the figure of its estimated error against
-    robot time next to the recording); exit code 0."""
+    robot time next to the recording; the tracking phases' model); exit code 0."""
     from timedexec.calibration import plot_design_log
 
     info = result.summary()
+    info["tracking"] = tracking
     figure = plot_design_log(result.path)
     info["figure"] = None if figure is None else str(figure)
     why = {
@@ -358,7 +441,8 @@ def adaptive_done(args: argparse.Namespace, result: Any) -> int:
         f"recorded {info['recorded_now']} trials ({info['trials']} in all, "
         f"{info['robot_time_s'] / 60:.1f} min of robot time) to {info['recording']}{err}; "
         f"stopped by {why}"
-        + (f"; figure {figure}" if figure is not None else ""),
+        + (f"; figure {figure}" if figure is not None else "")
+        + _tracking_text(tracking),
     )
     return 0
 
@@ -386,6 +470,7 @@ def resume_command(args: argparse.Namespace) -> str:
             ("--out", args.out),
             ("--json", args.json),
             ("--quiet", args.quiet),
+            ("--no-tracking-phases", not args.tracking_phases),
             ("--resume", True),
         ],
     )

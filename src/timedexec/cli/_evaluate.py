@@ -49,8 +49,8 @@ def add_parser(sub: Any) -> None:
             "over the cruise for each strategy, each shifting the command streams by the "
             "tracking delay (the lag a moving arm keeps; onset-delay shifts are shown below "
             "them). JSON: {robot, task: conveyor, seam, speed_m_s, strategies: {none|constant|"
-            "median|model|oracle: {torch_mean_mm, torch_rms_mm, torch_max_mm, along_*, "
-            "across_*}}, onset_strategies, ...}.\n\n"
+            "median|model|oracle|model (dry runs): {torch_mean_mm, torch_rms_mm, torch_max_mm, "
+            "along_*, across_*}}, onset_strategies, tracking_source, ...}.\n\n"
             "examples:\n  timedexec evaluate --robot kr5 --json kr5-eval.json\n"
             "  timedexec evaluate --task conveyor --robot kr5 --seam curved --json weld.json\n"
             "  timedexec evaluate --task conveyor --twin --robot ur10 --runs 2 --json twin.json"
@@ -117,6 +117,16 @@ def add_parser(sub: Any) -> None:
         "1 .. 20; default 2)",
     )
     p.add_argument(
+        "--tracking",
+        choices=("sweep", "dry-runs"),
+        default=None,
+        help="--task conveyor: where the model strategy's tracking model (dead time and "
+        "friction offsets) comes from: sweep (default) the calibration sweep's constant-speed "
+        "phases alone, the bundle's tracking.json or, without one, the phases run on the "
+        "simulator (the dry-run model is then shown too); dry-runs the uncompensated "
+        "calibration welds of the task. The JSON's tracking_source says which",
+    )
+    p.add_argument(
         "--previous-welds",
         type=int_arg(0, 20),
         default=None,
@@ -141,11 +151,17 @@ def add_parser(sub: Any) -> None:
 #: refused (they would be ignored without a word).
 _TASK_OPTIONS: dict[str, dict[str, Any]] = {
     "onset": {"configs": 300, "draws": 20, "physics": 0},
-    "conveyor": {"seam": "straight", "runs": 4, "cells": 2, "previous_welds": 0},
+    "conveyor": {
+        "seam": "straight",
+        "runs": 4,
+        "cells": 2,
+        "previous_welds": 0,
+        "tracking": "sweep",
+    },
 }
 #: --twin's own defaults, and the conveyor options it does not take.
 _TWIN_DEFAULTS = {"runs": 2}
-_NOT_ON_TWIN = ("cells", "previous_welds")
+_NOT_ON_TWIN = ("cells", "previous_welds", "tracking")
 
 
 def _task_options(args: argparse.Namespace) -> None:
@@ -218,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 progress=progress,
                 previous_welds=args.previous_welds,
+                tracking=args.tracking.replace("-", " "),
             )
             emit(args, weld.to_dict(), weld.table())
             return 0

@@ -88,9 +88,42 @@ def add_parser(sub: Any) -> None:
         help="add the sweep time (t_start) as an input beside the published ones: separates "
         "warm-up drift from pose dependence; the bundle predicts at the end of the sweep (warm)",
     )
+    p.add_argument(
+        "--tracking",
+        metavar="FILE.tracking.json",
+        help="the tracking model calibrate fitted on its tracking phases (dead time and "
+        "friction offsets per joint): written into the bundle as tracking.json, which "
+        "evaluate --task conveyor then uses (docs/calibration.md)",
+    )
     add_seed(p, help="seed of the folds and the estimators")
     add_quiet(p)
     p.set_defaults(func=run)
+
+
+def _read_tracking(path: str, robot: str) -> dict[str, Any]:
+    """The tracking model of a ``calibrate`` tracking file, checked.
+
+    Raises
+    ------
+    ConfigError
+        Not such a file, or one for another robot than the delay table's.
+    """
+    from timedexec.execution import FixedDelays
+    from timedexec.tasks import TrackingDelays
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except ValueError as exc:
+        raise ConfigError(f"--tracking {path}: not JSON ({exc}); give calibrate's "
+                          "OUT.tracking.json") from exc  # fmt: skip
+    if not isinstance(data, dict) or "tracking" not in data or "robot" not in data:
+        raise ConfigError(f"--tracking {path}: no tracking model in it; give calibrate's "
+                          "OUT.tracking.json")  # fmt: skip
+    if data["robot"] != robot:
+        raise ConfigError(f"--tracking {path} is for {data['robot']!r}, the delay table for "
+                          f"{robot!r}: give the tracking file of the same robot's sweep")  # fmt: skip
+    TrackingDelays.from_dict(FixedDelays(robot=robot), data["tracking"])  # checks it
+    return dict(data["tracking"])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     check_files(
         args,
         "train",
-        inputs={"DELAYS.csv": path},
+        inputs={"DELAYS.csv": path, "--tracking": args.tracking},
         outputs=bundle,
         folders={"--out": out},
         what={
@@ -121,6 +154,9 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     table = DelayTable.read_csv(path)
+    tracking = None
+    if args.tracking is not None:
+        tracking = _read_tracking(args.tracking, ",".join(table.robots))
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     with cluster(args, "train") as client:
         jobs = cluster_jobs("train", args, client)
@@ -145,6 +181,10 @@ def run(args: argparse.Namespace) -> int:
         )
     model = result.model
     model.save(out)
+    if tracking is not None:
+        from timedexec.tasks import TrackingDelays
+
+        TrackingDelays.from_dict(model, tracking).save(out)
     bundle_bytes = int(model.manifest["arrays"]["bytes"])
     text_parts = []
     cv: dict[str, Any] = {}

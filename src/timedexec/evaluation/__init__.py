@@ -28,17 +28,20 @@ from timedexec.evaluation._onset import (
 )
 from timedexec.evaluation._twin_weld import evaluate_conveyor_twin
 from timedexec.evaluation._welding import (
+    TRACKING_SOURCES,
     ConveyorEvaluation,
     conveyor_cells,
     evaluate_conveyor,
     phase_seeds,
     physical_tracking_delays,
     run_weld,
+    sweep_tracking_model,
     weld_on_twin,
 )
 
 __all__ = [
     "STRATEGIES",
+    "TRACKING_SOURCES",
     "ConveyorEvaluation",
     "Evaluation",
     "SimulatedOracle",
@@ -50,6 +53,7 @@ __all__ = [
     "phase_seeds",
     "physical_tracking_delays",
     "run_weld",
+    "sweep_tracking_model",
     "warm_effects",
     "weld_on_twin",
 ]

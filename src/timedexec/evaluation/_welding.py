@@ -64,7 +64,7 @@ from timedexec.execution import (
     check_model_robot,
     load_delay_model,
 )
-from timedexec.recording import SweepPlan
+from timedexec.recording import SweepPlan, calibration_ranges
 from timedexec.robots import get_robot, get_robot_entry
 from timedexec.sim import simulate_delays
 from timedexec.tasks import (
@@ -75,21 +75,25 @@ from timedexec.tasks import (
     Seam,
     SeamPlan,
     TrackingDelays,
+    TrackingPhases,
     WeldCell,
     default_cell,
     fit_joint_lags,
     measure_tracking_delays,
     plan_seam,
+    run_tracking_phases,
     track_conveyor_seam,
 )
 
 __all__ = [
+    "TRACKING_SOURCES",
     "ConveyorEvaluation",
     "conveyor_cells",
     "evaluate_conveyor",
     "phase_seeds",
     "physical_tracking_delays",
     "run_weld",
+    "sweep_tracking_model",
     "weld_on_twin",
 ]
 
@@ -105,6 +109,9 @@ PREVIOUS_WELDS = 0
 #: Seed offsets so that evaluated runs, oracle draws and calibration never share a phase.
 _ORACLE_SEED = 5_000
 _CAL_SEED = 9_000
+_PHASE_SEED = 11_000
+#: Where the ``model`` strategy's tracking model of :func:`evaluate_conveyor` may come from.
+TRACKING_SOURCES = ("sweep", "dry runs")
 #: Warm robot time for the onset oracle and calibration trials (4 h into a sweep), s.
 _WARM_S = 4 * 3600.0
 
@@ -230,6 +237,35 @@ def physical_tracking_delays(run: ConveyorRun) -> FloatArray:
     t = run.truth_s - run.sync_time_s
     keep = (t >= run.settle_s) & (t <= run.settle_s + run.cruise_s)
     return np.asarray(fit_joint_lags(run.plan, run.truth_s[keep], run.truth_q[keep]) + run.shifts_s)
+
+
+def sweep_tracking_model(
+    robot: str,
+    model: Any,
+    *,
+    seed: int,
+    phases: TrackingPhases | None = None,
+    q_rad: Any = None,
+    effects: EffectSet | None = None,
+) -> TrackingDelays:
+    """The tracking model from a simulated sweep's constant-speed phases alone
+    (:func:`~timedexec.tasks.run_tracking_phases`,
+    :meth:`~timedexec.tasks.TrackingDelays.calibrate_phases`): the phases run on ``sim://``
+    (virtual time, warm, uncompensated, cycle-locked) from ``q_rad`` (default: the middle of
+    the sweep's calibration ranges), measured from the reported positions as a real sweep
+    would be."""
+    from timedexec.drivers import SimDriver
+
+    spec = get_robot(robot)
+    if q_rad is None:
+        lo, hi = calibration_ranges(spec)
+        q_rad = 0.5 * (lo + hi)
+    drv = SimDriver(spec.name, q0_rad=np.asarray(q_rad, dtype=float),
+                    effects=effects if effects is not None else warm(spec.name), seed=seed)  # fmt: skip
+    settings = ExecutorSettings(compensate=False, cycle_lock=True)
+    with TimedExecutor(drv, model, settings) as ex:
+        runs = run_tracking_phases(ex, phases)
+    return TrackingDelays.calibrate_phases(model, runs)
 
 
 @dataclass
@@ -425,6 +461,8 @@ def evaluate_conveyor(
     feedback: bool = True,
     progress: bool = False,
     previous_welds: int = PREVIOUS_WELDS,
+    tracking: str = "sweep",
+    phases: TrackingPhases | None = None,
 ) -> ConveyorEvaluation:
     """Physical torch error of the compensation strategies on the simulated conveyor weld.
 
@@ -458,11 +496,24 @@ def evaluate_conveyor(
         correction at :data:`~timedexec.tasks.SEAM_POSITION_GAIN_1_S`).
     previous_welds : int
         Parts welded the same way before each measured weld (:func:`run_weld`).
+    tracking : {"sweep", "dry runs"}
+        Where the ``model`` strategy's tracking model comes from: ``"sweep"`` (default) the
+        calibration sweep's constant-speed phases alone: the model bundle's
+        ``tracking.json`` (:meth:`~timedexec.tasks.TrackingDelays.of_bundle`), else the
+        phases run on the simulator at the cell's seed pose (:func:`sweep_tracking_model`;
+        a sweep over the task's workspace); the model fitted on the dry runs is then
+        evaluated too, as ``model (dry runs)``. Or
+        ``"dry runs"`` the uncompensated calibration welds of the task
+        (:meth:`~timedexec.tasks.TrackingDelays.calibrate_runs`). The dry runs are welded
+        either way: ``constant`` and ``median`` are their measured lags.
+    phases : TrackingPhases, optional
+        With ``tracking="sweep"``: run these phases on the simulator (instead of the
+        bundle's ``tracking.json``; default :class:`~timedexec.tasks.TrackingPhases`).
 
     Raises
     ------
     ConfigError
-        Bad counts, an unknown seam, a model for another robot.
+        Bad counts, an unknown seam or tracking source, a model for another robot.
     """
     spec = get_robot(robot)
     if seam not in SEAM_KINDS:
@@ -473,6 +524,11 @@ def evaluate_conveyor(
     )  # fmt: skip
     if not (math.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"speed_m_s={speed_m_s!r} must be a finite speed > 0 m/s")
+    if tracking not in TRACKING_SOURCES:
+        raise ConfigError(
+            f"tracking={tracking!r}; choose one of {', '.join(map(repr, TRACKING_SOURCES))}"
+        )
+    sweep = tracking == "sweep"
     entry = get_robot_entry(spec.name)
     predictor = load_delay_model(entry.shipped_model if model is None else model)
     check_model_robot(predictor, spec.name, spec.controller_period_s)
@@ -490,7 +546,7 @@ def evaluate_conveyor(
     weld_s = settle_s + cruise_s + 0.05
     n_onset = 4 if onset else 0
     total = calibration_runs + cells * (
-        oracle_draws + seeds * (len(STRATEGIES) + n_onset + int(feedback))
+        oracle_draws + seeds * (len(STRATEGIES) + n_onset + int(feedback) + int(sweep))
     )
     bar = Progress(total, f"conveyor {spec.name}", enabled=progress)
 
@@ -513,9 +569,28 @@ def evaluate_conveyor(
 
     for i in range(calibration_runs):
         calibration_weld(i)
-    tracking_model = TrackingDelays.calibrate_runs(
+    dry_model = TrackingDelays.calibrate_runs(
         predictor, list(cal_runs), more=calibration_weld, max_runs=most
     )
+    tracking_model = dry_model
+    source = "dry runs"
+    if sweep:
+        stored = TrackingDelays.of_bundle(predictor) if phases is None else None
+        source = "sweep (the model bundle's tracking.json)"
+        if stored is None:
+            source = "sweep (constant-speed phases on the simulator)"
+            # Where the task works (a sweep for this cell: its --workspace): the friction
+            # offsets change with the gravity load (KR 5 at 0.5 m/s: 0.43 mm from phases
+            # at the cell's pose, 0.91 mm from the middle of the calibration ranges).
+            stored = sweep_tracking_model(
+                spec.name,
+                predictor,
+                seed=seed + _PHASE_SEED,
+                phases=phases,
+                q_rad=eval_cells[0].seed_q_rad,
+                effects=effects,
+            )
+        tracking_model = stored
     tracks_arr = np.asarray([measure_tracking_delays(run) for run in cal_runs])
     constant = float(np.median(tracks_arr))
     median = np.median(tracks_arr, axis=0)
@@ -548,6 +623,8 @@ def evaluate_conveyor(
             add("constant", weld(sp, k, shift_s=np.full(6, constant)), first)
             add("median", weld(sp, k, shift_s=median), first)
             add("model", weld(sp, k, model=tracking_model), first)
+            if sweep:
+                add("model (dry runs)", weld(sp, k, model=dry_model), first)
             add("oracle", weld(sp, k, shift_s=oracle), first)
             if feedback:
                 add("model + feedback", weld(sp, k, model=tracking_model,
@@ -560,6 +637,8 @@ def evaluate_conveyor(
     bar.close()
     pooled = {name: _pool(runs) for name, runs in results.items()}
     strategies = {name: pooled[name] for name in STRATEGIES}
+    if sweep:
+        strategies["model (dry runs)"] = pooled["model (dry runs)"]
     if feedback:
         strategies["model + feedback"] = pooled["model + feedback"]
     onset_rows = {n.removeprefix("onset "): pooled[n] for n in pooled if n.startswith("onset ")}
@@ -574,6 +653,7 @@ def evaluate_conveyor(
         "calibration_runs": len(cal_runs),
         "previous_welds": previous_welds,
         "seed": seed,
+        "tracking_source": source,
         "tracking_ms": {
             "constant": constant * 1e3,
             "median": (median * 1e3).round(3).tolist(),
@@ -584,10 +664,22 @@ def evaluate_conveyor(
             "model_fit_rms_mrad": (np.asarray(tracking_model.fit_rms_rad) * 1e3).round(4).tolist(),
             "oracle": (np.mean(oracle_shifts, axis=0) * 1e3).round(3).tolist(),
             "calibration_measured": (tracks_arr * 1e3).round(3).tolist(),
+            **(
+                {
+                    "dry_runs_dead_time": (np.asarray(dry_model.dead_time_s) * 1e3)
+                    .round(3)
+                    .tolist(),
+                    "dry_runs_friction_mrad": (np.asarray(dry_model.friction_rad) * 1e3)
+                    .round(4)
+                    .tolist(),
+                }
+                if sweep
+                else {}
+            ),
         },
         "shift_ms": shift_log,
         "cell": conveyor_cells(spec.name, 1, seed, speed_m_s=speed_m_s)[0].to_dict(),
-        "notes": [*cruise_note, *tracking_model.notes],
+        "notes": [*cruise_note, *dry_model.notes, *(tracking_model.notes if sweep else ())],
     }
     details["elapsed_s"] = time.monotonic() - t_begin
     return ConveyorEvaluation(

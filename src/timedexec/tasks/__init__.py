@@ -12,7 +12,9 @@ streams every task); real-robot code, no simulator. docs/welding.md.
   reported positions (:func:`fit_joint_lags`, :func:`sampling_times_s`,
   :func:`measure_tracking_delays`) and modelled as a dead time plus friction offsets
   (:class:`TrackingDelays`, :func:`fit_dead_time_and_friction`, :func:`fit_tracking` ->
-  :class:`TrackingFit`).
+  :class:`TrackingFit`), calibrated on runs of the task or on constant-speed phases
+  (:class:`TrackingPhases`, :func:`run_tracking_phases` -> :class:`PhaseRun`,
+  :func:`fit_tracking_phases`, :meth:`TrackingDelays.calibrate_phases`).
 * **A seam on a carousel** followed with the base joint (:func:`track_seam` ->
   :class:`SeamResult`, :func:`compare_seam_tracking`, :func:`tool_radius_m`).
 * **Interception**: the tool where a moving object will be, by a deadline at a confidence
@@ -38,15 +40,23 @@ from timedexec.tasks._conveyor import (
     plan_seam,
 )
 from timedexec.tasks._intercept import InterceptResult, intercept, solve_position_ik
-from timedexec.tasks._tracking import (
-    MAX_CALIBRATION_RUNS,
-    TrackingDelays,
+from timedexec.tasks._lag_fit import (
     TrackingFit,
     fit_dead_time_and_friction,
     fit_joint_lags,
     fit_tracking,
     measure_tracking_delays,
     sampling_times_s,
+)
+from timedexec.tasks._tracking import (
+    MAX_CALIBRATION_RUNS,
+    PHASE_SPEEDS_RAD_S,
+    TRACKING_FILE,
+    PhaseRun,
+    TrackingDelays,
+    TrackingPhases,
+    fit_tracking_phases,
+    run_tracking_phases,
 )
 from timedexec.tasks._welding import (
     ConveyorRun,
@@ -57,27 +67,33 @@ from timedexec.tasks._welding import (
 
 __all__ = [
     "MAX_CALIBRATION_RUNS",
+    "PHASE_SPEEDS_RAD_S",
     "SEAM_KINDS",
     "SEAM_POSITION_GAIN_1_S",
+    "TRACKING_FILE",
     "Conveyor",
     "ConveyorRun",
     "InterceptResult",
+    "PhaseRun",
     "Seam",
     "SeamPlan",
     "SeamResult",
     "TorchErrors",
     "TrackingDelays",
     "TrackingFit",
+    "TrackingPhases",
     "WeldCell",
     "compare_seam_tracking",
     "default_cell",
     "fit_dead_time_and_friction",
     "fit_joint_lags",
     "fit_tracking",
+    "fit_tracking_phases",
     "intercept",
     "measure_tracking_delays",
     "plan_seam",
     "prepare_shifted",
+    "run_tracking_phases",
     "sampling_times_s",
     "solve_position_ik",
     "tool_radius_m",

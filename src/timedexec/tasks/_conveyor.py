@@ -405,10 +405,18 @@ def _ruckig_to_state(
     raise ConfigError(f"Ruckig cannot plan the approach to the seam (result {result})")
 
 
-def _ruckig_stop(
-    spec: RobotSpec, limits: ExecutionLimits, q: FloatArray, qd: FloatArray, qdd: FloatArray
+def _ruckig_velocity(
+    spec: RobotSpec,
+    limits: ExecutionLimits,
+    q: FloatArray,
+    qd: FloatArray,
+    qdd: FloatArray,
+    target_qd: FloatArray | None = None,
+    *,
+    what: str = "the stop after the seam",
 ) -> Any:
-    """Jerk-limited stop from the state (q, qd, qdd) to rest (velocity interface)."""
+    """Jerk-limited change from the state (q, qd, qdd) to the constant speed ``target_qd``
+    (default: rest), velocity interface, all joints finishing together."""
     from ruckig import ControlInterface, InputParameter, Result, Ruckig, Synchronization, Trajectory
 
     amax, jmax = limits.acceleration(spec), limits.jerk(spec)
@@ -418,7 +426,7 @@ def _ruckig_stop(
     inp.current_position = q.tolist()
     inp.current_velocity = qd.tolist()
     inp.current_acceleration = np.clip(qdd, -0.99 * amax, 0.99 * amax).tolist()
-    inp.target_velocity = [0.0] * 6
+    inp.target_velocity = [0.0] * 6 if target_qd is None else np.asarray(target_qd).tolist()
     inp.target_acceleration = [0.0] * 6
     inp.max_velocity = limits.velocity(spec).tolist()
     inp.max_acceleration = amax.tolist()
@@ -426,7 +434,7 @@ def _ruckig_stop(
     traj = Trajectory(6)
     result = Ruckig(6).calculate(inp, traj)
     if result not in (Result.Working, Result.Finished):
-        raise ConfigError(f"Ruckig cannot plan the stop after the seam (result {result})")
+        raise ConfigError(f"Ruckig cannot plan {what} (result {result})")
     return traj
 
 
@@ -523,7 +531,7 @@ def plan_seam(
     q0 = q_s - qd_s * approach_s
     approach = _ruckig_to_state(spec, lim, q0, q_s, qd_s, qdd_s)
     q_e, qd_e, qdd_e = spline(weld_s), spline(weld_s, 1), spline(weld_s, 2)
-    stop = _ruckig_stop(spec, lim, q_e, qd_e, qdd_e)
+    stop = _ruckig_velocity(spec, lim, q_e, qd_e, qdd_e)
     traj = _SeamTrajectory(approach, spline, 0.0, weld_s, stop)
     q_end = np.asarray(stop.at_time(float(stop.duration))[0])
     lo, hi = lim.position_range(spec)

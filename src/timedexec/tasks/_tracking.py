@@ -42,46 +42,67 @@ the executor shifts each joint's stream by ``D`` and adds ``e * FrictionFeed.sig
 seam) the fit leaves 0.0004-0.003 mrad RMS on joints 1-3, 5 and 6 where the best constant
 shift leaves 0.07-0.33 mrad (0.25-0.33 on joints 1-3 and 6).
 
-Why not from the calibration sweep: its constant-speed phase holds 50 ms, and a KR 5's lag
-settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
-steady); and one sweep speed cannot tell ``D`` from ``e / |v|`` (UR10 joint 2: 19.7 ms at
-0.4 rad/s, 26.0 ms at 0.1 rad/s). Calibration runs of the task (a dry run of the weld at
-other work points) see the speeds the task uses.
+From the calibration sweep (issue 39): the sweep's trial holds its speed 50 ms, and a KR 5's
+lag settles only ~0.3 s after the command (joint 1: 88.7 ms 0.15 s after the send, 75.7 ms
+steady); and one speed cannot tell ``D`` from ``e / |v|`` (UR10 joint 2: 19.7 ms at 0.4
+rad/s, 26.0 ms at 0.1 rad/s). So ``calibrate`` ends with **tracking phases**
+(:class:`TrackingPhases`, :func:`run_tracking_phases`): per joint, 0.05 and 0.25 rad/s both
+ways, each held 0.8 s (the last 0.4 s fitted), each from rest reached by a short move the
+other way (the rest the velocity loop holds depends on how the joint got there: UR10 joint
+1 at 0.05 rad/s lags 26.8 ms from a fresh start, 35.3 ms after a phase the other way);
+:meth:`TrackingDelays.calibrate_phases` fits ``D`` and ``e±`` per joint on them
+(:func:`fit_tracking_phases`, the same pooled fit as the runs'). Calibration runs of the
+task (dry runs of the weld at other work points, :meth:`TrackingDelays.calibrate_runs`)
+remain: they see the task's own speeds and rest states (docs/welding.md compares both).
 """
 
 from __future__ import annotations
 
+import json
+import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from timedexec._files import write_atomic
 from timedexec._types import FloatArray
+from timedexec._validation import DictMixin, check_non_negative, check_positive
 from timedexec.errors import ConfigError
 from timedexec.execution import (
     DelayPredictions,
     DelayPredictor,
     FrictionFeed,
     JointPlan,
+    TimedExecutor,
     load_delay_model,
     predict_delays,
 )
+from timedexec.tasks._conveyor import _ruckig_velocity
+from timedexec.tasks._lag_fit import (
+    TrackingFit,
+    cruise_positions,
+    fit_joint_lags,
+    fit_tracking,
+    sampling_times_s,
+)
+from timedexec.tasks._truth import physical_probe
 
 __all__ = [
-    "DEAD_TIME_SE_S",
     "MAX_CALIBRATION_RUNS",
-    "POSITION_FLOOR_RAD",
+    "PHASE_SPEEDS_RAD_S",
     "RUN_AGREEMENT_RAD",
     "RUN_AGREEMENT_S",
+    "TRACKING_FILE",
+    "PhaseRun",
     "TrackingDelays",
-    "TrackingFit",
-    "fit_dead_time_and_friction",
-    "fit_joint_lags",
-    "fit_tracking",
-    "measure_tracking_delays",
-    "sampling_times_s",
+    "TrackingPhases",
+    "fit_tracking_phases",
+    "run_tracking_phases",
 ]
 
 
@@ -97,310 +118,12 @@ RUN_AGREEMENT_S = 0.005
 #: (UR10 at 0.05 m/s, joint 4: 33.9-43.3 ms at 0.016-0.033 rad/s) while the position,
 #: what the torch feels, differs by 0.1-0.2 mrad. 0.5 mrad is ~0.5 mm at a 1 m reach.
 RUN_AGREEMENT_RAD = 5e-4
+#: The file beside a model bundle's manifest that holds its tracking model
+#: (:meth:`TrackingDelays.save`, :meth:`TrackingDelays.of_bundle`).
+TRACKING_FILE = "tracking.json"
 #: The most calibration runs :meth:`TrackingDelays.calibrate_runs` welds in all when it may
 #: add runs to settle a disagreement.
 MAX_CALIBRATION_RUNS = 7
-
-
-def fit_joint_lags(
-    plan: JointPlan,
-    times_s: ArrayLike,
-    q_rad: ArrayLike,
-    *,
-    iterations: int = 4,
-) -> FloatArray:
-    """Per joint, the time lag ``L`` (s) that best aligns ``q`` with the plan: ``q(t) ≈
-    plan(t - L)`` in the least-squares sense.
-
-    Gauss-Newton on ``L`` per joint from 0 (``iterations`` steps; the lag's error after
-    four is below a microsecond for lags up to 0.1 s on these paths).
-
-    Parameters
-    ----------
-    plan : JointPlan
-        Scheduled (``start_time_s`` host time).
-    times_s : array (n,)
-        Host times the positions describe, s.
-    q_rad : array (n, 6)
-        Joint positions, rad.
-
-    Returns
-    -------
-    ndarray (6,)
-        Lag per joint, s (positive: the joint is late). NaN for a joint that does not move
-        in the window.
-
-    Raises
-    ------
-    ConfigError
-        Fewer than 3 samples, or shapes that do not match.
-    """
-    t = np.asarray(times_s, dtype=float).reshape(-1)
-    q = np.asarray(q_rad, dtype=float).reshape(-1, 6)
-    if len(t) != len(q) or len(t) < 3:
-        raise ConfigError(
-            f"fit_joint_lags needs >= 3 samples with one time each, got {len(t)} times and "
-            f"{len(q)} positions"
-        )
-    lag = np.zeros(6)
-    tp = t - plan.start_time_s
-    for _ in range(int(iterations)):
-        q_p = np.empty((len(t), 6))
-        v_p = np.empty((len(t), 6))
-        # Each joint at its own shifted times.
-        for j in range(6):
-            qq, vv = plan.sample_many(tp - lag[j])
-            q_p[:, j], v_p[:, j] = qq[:, j], vv[:, j]
-        den = np.sum(v_p**2, axis=0)
-        ok = den > 1e-12
-        step = np.where(ok, np.sum((q_p - q) * v_p, axis=0) / np.where(ok, den, 1.0), 0.0)
-        lag = lag + step
-    return np.where(den > 1e-12, lag, np.nan)
-
-
-def fit_dead_time_and_friction(
-    samples: Sequence[tuple[JointPlan, ArrayLike, ArrayLike, ArrayLike]],
-    *,
-    iterations: int = 6,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per joint, the dead time ``D`` (s) and the friction offsets ``e+``, ``e-`` (rad,
-    >= 0; moving in the positive and in the negative direction) that best explain cruising
-    positions over one or more runs: ``q(t) ≈ plan(t + s - D) - e± · FrictionFeed.sign(v)``,
-    ``s`` the shift the run's commands carried.
-
-    A joint that trails its command by a position (kinetic friction over the velocity
-    loop's integral gain; gravity makes it differ with the direction) keeps a time lag
-    ``D + e / |v|``: one constant shift fits it at one speed only. Gauss-Newton on ``D``
-    and the offsets pooled over the runs, from ``e = 0``, with ``D >= 0`` and ``e >= 0``
-    (a bound that binds is held there and the rest refitted); a direction no run moves in
-    gets the other direction's offset.
-
-    Where a joint's speeds are too alike to tell ``D`` from ``e / |v|`` (a slow belt: every
-    joint near one speed; :data:`DEAD_TIME_SE_S`), its dead time is not fitted but taken
-    from the joints where it is separable (their median), or, where none is, the shortest
-    lag of any joint (the dead time can be no longer: every offset is >= 0); either way no
-    longer than the joint's own lag, and its offset is fitted with it. The lag at the
-    speeds the runs saw is the data's either way; :func:`fit_tracking` says which joints
-    were separable.
-
-    Parameters
-    ----------
-    samples : sequence of (plan, times_s (n,), q_rad (n, 6), shift_s (6,))
-        Per run: the scheduled plan, the instants the positions describe (host time, s),
-        the joint positions (rad) and the command shifts that ran (s).
-
-    Returns
-    -------
-    (ndarray (6,), ndarray (2, 6), ndarray (6,))
-        Dead time (s) per joint; friction offset (rad) per direction (row 0: positive,
-        row 1: negative) and joint; the RMS of the positions about the fit per joint (rad:
-        how well ``D`` and ``e`` explain the joint). NaN for a joint no run moves.
-    """
-    fit = fit_tracking(samples, iterations=iterations)
-    return fit.dead_time_s, fit.friction_rad, fit.rms_rad
-
-
-#: A joint's dead time counts as separable from its friction offset when its standard
-#: error in the joint's own fit is below this, s: the shift of ``D`` that a systematic
-#: position misfit of the fit's RMS (at least :data:`POSITION_FLOOR_RAD`) along ``D``'s
-#: column, orthogonal to the offsets', would cause. Measured on three simulated
-#: calibration welds (physical angles): 0.5 m/s belt, UR10e 0.1-0.6 ms (joint 4, which
-#: reverses, 7.5), UR10 0.95-11, KR 5 0.8-7.5; 0.05 m/s, UR10 8.7-142 ms (joint 5 at
-#: 0.013-0.015 rad/s, whose free fit put ``D`` at -6.8 s), UR10e 2.9-90, KR 5 1.6-19.
-DEAD_TIME_SE_S = 0.002
-#: The smallest position scatter a fit is credited with, rad (about an encoder count of a
-#: 19-bit joint encoder: the simulator's positions fit to 1e-9 rad, a real joint's do not).
-POSITION_FLOOR_RAD = 1e-5
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrackingFit:
-    """What :func:`fit_tracking` found, per joint (NaN: no run moves the joint).
-
-    Attributes
-    ----------
-    dead_time_s : ndarray (6,)
-        Dead time, s.
-    friction_rad : ndarray (2, 6)
-        Friction offset per direction (row 0 positive, row 1 negative), rad.
-    rms_rad : ndarray (6,)
-        Position scatter about the fit, rad.
-    dead_time_se_s : ndarray (6,)
-        Standard error of the dead time in the joint's own fit, s (see
-        :data:`DEAD_TIME_SE_S`).
-    separable : ndarray (6,) of bool
-        The dead time came from the joint's own data (its standard error below
-        :data:`DEAD_TIME_SE_S`); False: taken from the other joints (see
-        :func:`fit_dead_time_and_friction`).
-    speed_rad_s : ndarray (2, 6)
-        Smallest and largest joint speed the fit saw, rad/s.
-    """
-
-    dead_time_s: FloatArray
-    friction_rad: FloatArray
-    rms_rad: FloatArray
-    dead_time_se_s: FloatArray
-    separable: NDArray[np.bool_]
-    speed_rad_s: FloatArray
-
-
-def fit_tracking(
-    samples: Sequence[tuple[JointPlan, ArrayLike, ArrayLike, ArrayLike]],
-    *,
-    iterations: int = 6,
-) -> TrackingFit:
-    """:func:`fit_dead_time_and_friction` with what it knows about each joint's fit
-    (:class:`TrackingFit`): the dead time's standard error and whether the joint's own
-    speeds separated it from the friction offset."""
-    runs = [
-        (
-            plan,
-            np.asarray(t, dtype=float).reshape(-1) - plan.start_time_s,
-            np.asarray(q, dtype=float).reshape(-1, 6),
-            np.asarray(shift, dtype=float).reshape(6),
-        )
-        for plan, t, q, shift in samples
-    ]
-    if not runs or any(len(tp) < 3 or len(tp) != len(q) for _, tp, q, _ in runs):
-        raise ConfigError("fit_dead_time_and_friction needs runs of >= 3 samples, one time each")
-    nan6 = np.full(6, np.nan)
-    dead, fric, rms, se = nan6.copy(), np.full((2, 6), np.nan), nan6.copy(), nan6.copy()
-    speeds = np.full((2, 6), np.nan)
-    lag = nan6.copy()
-    joints: dict[int, _JointData] = {}
-    for j in range(6):
-        data = _JointData(runs, j, iterations)
-        if not data.moves:
-            continue
-        joints[j] = data
-        d, e, a, res = data.fit()
-        r = float(np.sqrt(np.mean(res**2)))
-        cov = np.linalg.pinv(a.T @ a)
-        se[j] = max(r, POSITION_FLOOR_RAD) * float(np.sqrt(max(len(res) * cov[0, 0], 0.0)))
-        dead[j], fric[:, j], rms[j] = d, e, r
-        lag[j] = data.fit(e_free=False)[0]
-        speeds[:, j] = data.speed_range
-    separable = np.isfinite(se) & (se < DEAD_TIME_SE_S)
-    if separable.any():
-        prior = float(np.median(dead[separable]))
-    else:
-        prior = float(np.nanmin(lag)) if np.isfinite(lag).any() else 0.0
-    for j, data in joints.items():
-        if separable[j]:
-            continue
-        d_fixed = max(min(prior, float(lag[j])), 0.0)
-        d, e, _, res = data.fit(d_fixed=d_fixed)
-        dead[j], fric[:, j], rms[j] = d, e, float(np.sqrt(np.mean(res**2)))
-    return TrackingFit(
-        dead_time_s=dead,
-        friction_rad=fric,
-        rms_rad=rms,
-        dead_time_se_s=se,
-        separable=separable,
-        speed_rad_s=speeds,
-    )
-
-
-class _JointData:
-    """One joint's cruising positions over the runs, and its bounded least-squares fits."""
-
-    def __init__(self, runs: list[Any], j: int, iterations: int) -> None:
-        self.runs, self.j, self.iterations = runs, j, int(iterations)
-        # Start: the shift that ran (the median over runs).
-        self.d0 = float(np.median([shift[j] for *_, shift in runs]))
-        _, a0 = self.columns(self.d0, np.zeros(2))
-        self.moves = float(a0[:, 0] @ a0[:, 0]) >= 1e-12
-        # A direction moved in for less than 1 % of the samples cannot be fitted.
-        self.seen = np.abs(a0[:, 1:]).sum(axis=0) >= 0.01 * len(a0)
-        v = np.abs(a0[:, 0])
-        self.speed_range = (float(v.min()), float(v.max()))
-
-    def columns(self, d: float, e: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Residual (n,) and the derivatives of the fit by D, e+, e- (n, 3)."""
-        res, cols = [], []
-        j = self.j
-        for plan, tp, q, shift in self.runs:
-            qp, vp = plan.sample_many(tp + shift[j] - d)
-            sgn = FrictionFeed.sign(vp[:, j])
-            split = np.c_[np.maximum(sgn, 0.0), np.minimum(sgn, 0.0)]
-            res.append(q[:, j] - qp[:, j] + split @ e)
-            cols.append(np.c_[-vp[:, j], -split])
-        return np.concatenate(res), np.concatenate(cols)
-
-    def fit(
-        self, *, d_fixed: float | None = None, e_free: bool = True
-    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
-        """Gauss-Newton on D (unless ``d_fixed``) and the offsets seen (unless not
-        ``e_free``: a pure shift), D and e held at 0 where they would go negative.
-        Returns D, e (2,), the Jacobian (n, 3) and the residual (n,) at the solution."""
-        free = np.r_[d_fixed is None, self.seen & e_free]
-        while True:
-            d = self.d0 if d_fixed is None else d_fixed
-            e = np.zeros(2)
-            for _ in range(self.iterations):
-                res, a = self.columns(d, e)
-                if not free.any():
-                    break
-                step = np.linalg.lstsq(a[:, free], res, rcond=None)[0]
-                x = np.r_[d, e]
-                x[free] += step
-                d, e = float(x[0]), x[1:]
-            x = np.r_[d, e]
-            if np.all(x[free] >= 0):
-                break
-            free &= x >= 0  # hold what went negative at 0 and refit the rest
-            d = max(d, 0.0) if d_fixed is None else d_fixed
-            if not free[0] and d_fixed is None:
-                d_fixed = 0.0
-        res, a = self.columns(d, e)
-        if self.seen.sum() == 1:
-            e[~self.seen] = e[self.seen]
-        return d, e, a, res
-
-
-def sampling_times_s(run: Any, *, response_s: float | None = None) -> FloatArray:
-    """Host time at which each state package of a run was sampled, s (n,).
-
-    With the controller's intake probed and dated (``run.intake``): the cycle boundary each
-    package was sampled at (:meth:`~timedexec.execution.IntakeFix.sampled_s`), which does
-    not move with where the publisher sends in its cycle. Without: the arrival minus the
-    response delay (``response_s``, default the executor's, ``run.plan.meta["response_s"]``),
-    which carries the run's publisher phase.
-    """
-    fix = getattr(run, "intake", None)
-    if fix is not None and np.isfinite(fix.sample_offset_s) and response_s is None:
-        stamps = np.asarray(run.controller_s, dtype=float)
-        return np.asarray(fix.sampled_s(stamps, float(getattr(run, "clock_rate", 0.0))))  # type: ignore[arg-type]
-    resp = float(run.plan.meta["response_s"]) if response_s is None else float(response_s)
-    return np.asarray(run.host_s, dtype=float) - resp
-
-
-def measure_tracking_delays(run: Any, *, response_s: float | None = None) -> FloatArray:
-    """Tracking delay per joint (6,), s, from a tracking run's reported positions.
-
-    The reported positions over the run's cruise window, at their sampling instants
-    (:func:`sampling_times_s`: by the probed intake where the run has one, else back-dated
-    by ``response_s``), are aligned with the plan per joint (:func:`fit_joint_lags`); the
-    shift that ran is added back, so the result is the shift that would have put the
-    joints on time (see the module docstring).
-
-    Parameters
-    ----------
-    run : ConveyorRun
-        From :func:`~timedexec.tasks.track_conveyor_seam` (any driver).
-    response_s : float, optional
-        Response delay to back-date by, s (instead of the probed intake's dating).
-    """
-    t, q = _cruise(run, response_s)
-    return np.asarray(fit_joint_lags(run.plan, t, q) + run.shifts_s)
-
-
-def _cruise(run: Any, response_s: float | None = None) -> tuple[FloatArray, FloatArray]:
-    """A run's reported positions over its cruise window, at their sampling instants."""
-    t = sampling_times_s(run, response_s=response_s)
-    since = t - run.sync_time_s
-    keep = (since >= run.settle_s) & (since <= run.settle_s + run.cruise_s)
-    return t[keep], np.asarray(run.reported_q)[keep]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -438,6 +161,10 @@ class TrackingDelays:
         4, against 0.001-0.007 mrad for joints that do not reverse).
     notes : tuple of str
         What the calibration set aside and why (:meth:`calibrate_runs`).
+    source : str
+        Where the dead times and offsets came from: ``"dry runs"`` (:meth:`calibrate_runs`,
+        runs of the task), ``"sweep"`` (:meth:`calibrate_phases`, the calibration sweep's
+        constant-speed phases) or ``"given"``.
     """
 
     base: Any
@@ -445,6 +172,7 @@ class TrackingDelays:
     friction_rad: tuple[tuple[float, ...], ...] | None = None
     fit_rms_rad: tuple[float, ...] | None = None
     notes: tuple[str, ...] = ()
+    source: str = "given"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
@@ -470,6 +198,74 @@ class TrackingDelays:
                     f"TrackingDelays.fit_rms_rad={self.fit_rms_rad!r} needs 6 values >= 0 rad"
                 )
             object.__setattr__(self, "fit_rms_rad", tuple(map(float, r)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe: ``{"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}``
+        (the base model is not included: :meth:`from_dict` takes it)."""
+        return {
+            "dead_time_s": list(self.dead_time_s),
+            "friction_rad": None if self.friction_rad is None else [list(r) for r in self.friction_rad],
+            "fit_rms_rad": None if self.fit_rms_rad is None else [
+                None if not math.isfinite(x) else x for x in self.fit_rms_rad],
+            "notes": list(self.notes),
+            "source": self.source,
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, base: DelayPredictor | Any, data: dict[str, Any]) -> TrackingDelays:
+        """The model :meth:`to_dict` wrote, on the onset model ``base``.
+
+        Raises
+        ------
+        ConfigError
+            A key missing or unknown, or a value out of range.
+        """
+        known = {"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}
+        if not isinstance(data, dict) or "dead_time_s" not in data or set(data) - known:
+            raise ConfigError(
+                f"a tracking model needs the keys {sorted(known)} (dead_time_s required), got "
+                f"{sorted(data) if isinstance(data, dict) else type(data).__name__}"
+            )
+        rms = data.get("fit_rms_rad")
+        return cls(
+            base=base,
+            dead_time_s=tuple(data["dead_time_s"]),
+            friction_rad=data.get("friction_rad"),
+            fit_rms_rad=None if rms is None else tuple(math.nan if x is None else x for x in rms),
+            notes=tuple(data.get("notes", ())),
+            source=str(data.get("source", "given")),
+        )
+
+    def save(self, bundle_dir: str | os.PathLike[str]) -> Path:
+        """Write :meth:`to_dict` as ``TRACKING_FILE`` into a model bundle's folder (atomic);
+        return its path."""
+        path = Path(bundle_dir) / TRACKING_FILE
+        write_atomic(path, json.dumps(self.to_dict(), indent=1) + "\n")
+        return path
+
+    @classmethod
+    def of_bundle(cls, base: DelayPredictor | Any) -> TrackingDelays | None:
+        """The tracking model stored beside an onset model's bundle (``TRACKING_FILE`` in
+        its folder, :meth:`save`), on that model (a loaded bundle, its folder or a shipped
+        name); None when it has none.
+
+        Raises
+        ------
+        ConfigError
+            The file is there but not a tracking model.
+        """
+        base = load_delay_model(base)
+        folder = getattr(base, "path", None)
+        if folder is None or not (Path(folder) / TRACKING_FILE).is_file():
+            return None
+        path = Path(folder) / TRACKING_FILE
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ConfigError(
+                f"{path}: not JSON ({exc}); rewrite it with TrackingDelays.save"
+            ) from exc
+        return cls.from_dict(base, data)
 
     @property
     def robot(self) -> str:
@@ -563,7 +359,7 @@ class TrackingDelays:
                     "calibrate_runs takes runs without friction offsets (compensate=False, or "
                     "an explicit shift_s); one of these ran a model's offsets"
                 )
-            samples = [(run.plan, *_cruise(run), run.shifts_s) for run in runs]
+            samples = [(run.plan, *cruise_positions(run), run.shifts_s) for run in runs]
             lags = np.array([fit_joint_lags(p, t, q) + shift for p, t, q, shift in samples])
             speeds = np.array([_mean_speed(p, t) for p, t, *_ in samples])
             agreement = _agreeing(lags, speeds)
@@ -581,6 +377,41 @@ class TrackingDelays:
                 *notes,
             )
         fit = fit_tracking([x for x, k in zip(samples, keep, strict=True) if k])
+        advice = (
+            "calibrate at a second belt speed, or from a sweep with constant-speed phases, "
+            "to use the model at other speeds"
+        )
+        return cls._from_fit(base, fit, notes, advice, source="dry runs")
+
+    @classmethod
+    def calibrate_phases(
+        cls, base: DelayPredictor | Any, runs: Sequence[PhaseRun]
+    ) -> TrackingDelays:
+        """Dead time and friction offsets from constant-speed phases
+        (:func:`run_tracking_phases`, :func:`fit_tracking_phases`): no run of the task
+        needed. A joint no phase moves gets the median dead time of the others and no
+        offset.
+
+        Raises
+        ------
+        ConfigError
+            No phase.
+        """
+        advice = "run the phases at two or more distinct speeds with longer holds"
+        return cls._from_fit(base, fit_tracking_phases(runs), (), advice, source="sweep")
+
+    @classmethod
+    def _from_fit(
+        cls,
+        base: DelayPredictor | Any,
+        fit: TrackingFit,
+        notes: tuple[str, ...],
+        advice: str,
+        *,
+        source: str,
+    ) -> TrackingDelays:
+        """The model of a fit; a note names the joints whose dead time was not separable
+        (with ``advice``)."""
         dead = fit.dead_time_s
         moved = np.isfinite(dead)
         if (moved & ~fit.separable).any():
@@ -591,9 +422,8 @@ class TrackingDelays:
             )
             notes += (
                 f"dead time not separable from friction on joints {shown}: speeds too "
-                "alike for the positions' scatter about the fit; dead time taken from the other joints (or the shortest lag), "
-                "exact at these speeds only: calibrate at a second belt speed, or from a "
-                "sweep with constant-speed phases, to use the model at other speeds",
+                "alike for the positions' scatter about the fit; dead time taken from the "
+                f"other joints (or the shortest lag), exact at these speeds only: {advice}",
             )
         fallback = float(np.nanmedian(dead)) if moved.any() else 0.0
         return cls(
@@ -602,6 +432,7 @@ class TrackingDelays:
             friction_rad=np.where(np.isfinite(fit.friction_rad), fit.friction_rad, 0.0),  # type: ignore[arg-type]
             fit_rms_rad=tuple(float(x) for x in fit.rms_rad),
             notes=notes,
+            source=source,
         )
 
 
@@ -658,3 +489,250 @@ def _disagreement(lags_s: FloatArray, n_runs: int, automatic: bool) -> str:
         f"{head}; weld at least three calibration runs, each starting at rest on the "
         "approach's start, so that an outlier can be set aside"
     )
+
+
+# ---------------------------------------------------------------- from constant-speed phases
+#: Joint speeds of the tracking phases by default, rad/s: a slow one, where the friction
+#: offset dominates the lag (``e / |v|``: a 0.05 m/s belt moves the joints at 0.01-0.05
+#: rad/s), and a fast one, where the dead time does (a 0.5 m/s belt: 0.1-0.8 rad/s).
+PHASE_SPEEDS_RAD_S = (0.05, 0.25)
+#: The move the other way before each phase, rad (:func:`run_tracking_phases`).
+PRELOAD_RAD = 0.02
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackingPhases(DictMixin):
+    """Constant-speed phases that calibrate the tracking model (dead time and friction
+    offsets per direction) from a sweep: per joint, per speed, per direction (positive
+    first, so the joint comes back), the joint ramps from rest to the speed (jerk-limited,
+    the executor's limits), holds it for ``settle_s + hold_s`` and stops; the others stay
+    still. The lag is fitted over the last ``hold_s`` of each hold (after the velocity
+    loop has settled: ~0.3 s on a KR 5, docs/welding.md).
+
+    Parameters
+    ----------
+    speeds_rad_s : tuple of float
+        At least two distinct speeds > 0, rad/s (one speed cannot tell the dead time ``D``
+        from ``e / |v|``).
+    settle_s : float
+        Time at speed before the fit's window, s (>= 0).
+    hold_s : float
+        The fit's window at speed, s (> 0).
+    joints : tuple of int
+        Joints to calibrate, 1-based (default all six: a tracking task moves every joint).
+    """
+
+    speeds_rad_s: tuple[float, ...] = PHASE_SPEEDS_RAD_S
+    settle_s: float = 0.4
+    hold_s: float = 0.4
+    joints: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+
+    def __post_init__(self) -> None:
+        speeds = tuple(float(v) for v in self.speeds_rad_s)
+        check_positive("TrackingPhases", **{f"speeds_rad_s[{i}]": v for i, v in enumerate(speeds)})
+        if len(set(speeds)) < 2:
+            raise ConfigError(
+                f"TrackingPhases.speeds_rad_s={self.speeds_rad_s!r}: give at least two "
+                "distinct speeds > 0 rad/s (e.g. 0.05 and 0.25): one speed cannot separate the "
+                "dead time from the friction offset"
+            )
+        check_non_negative("TrackingPhases", settle_s=self.settle_s)
+        check_positive("TrackingPhases", hold_s=self.hold_s)
+        joints = tuple(int(j) for j in self.joints)
+        if not joints or len(set(joints)) != len(joints) or not set(joints) <= set(range(1, 7)):
+            raise ConfigError(
+                f"TrackingPhases.joints={self.joints!r} must be distinct joints in 1..6"
+            )
+        object.__setattr__(self, "speeds_rad_s", speeds)
+        object.__setattr__(self, "joints", joints)
+
+    @property
+    def count(self) -> int:
+        """Phases in all (joints x speeds x 2 directions)."""
+        return 2 * len(self.joints) * len(self.speeds_rad_s)
+
+    def robot_time_s(self, acceleration_rad_s2: float = 8.0, gap_s: float = 0.3) -> float:
+        """Robot time the phases take, s: per phase the ramp up and down at
+        ``acceleration_rad_s2`` (the executor's default cap), the hold, and ``gap_s`` for
+        the short move the other way, the lead before the send and the waits for rest
+        (measured on the simulator: 30-38 s for the default phases where this says 34)."""
+        per_speed = [2 * v / acceleration_rad_s2 + self.settle_s + self.hold_s + gap_s
+                     for v in self.speeds_rad_s]  # fmt: skip
+        return float(2 * len(self.joints) * sum(per_speed))
+
+
+@dataclass(frozen=True, kw_only=True)
+class PhaseRun:
+    """One constant-speed phase as it ran (:func:`run_tracking_phases`): the duck type
+    :func:`sampling_times_s` reads (``plan``, ``host_s``, ``controller_s``, ``intake``,
+    ``clock_rate``), the joint and the fit's window.
+
+    Attributes
+    ----------
+    joint : int
+        The moving joint, 1-based.
+    speed_rad_s : float
+        Its commanded speed, signed, rad/s.
+    plan : JointPlan
+        The scheduled plan (``meta["actuation_s"]``: the shifts that ran).
+    window_s : (float, float)
+        Host times of the fit's window (the hold after the settle), s.
+    host_s, controller_s : ndarray (n,)
+        Arrival and controller time of each state package, s.
+    reported_q : ndarray (n, 6)
+        Reported joint angles, rad.
+    truth_s, truth_q : ndarray (n,), (n, 6)
+        Host time and physical angles (simulated driver), else the reported ones.
+    intake : IntakeFix or None
+        The probed command deadline (executor with ``cycle_lock``).
+    clock_rate : float
+        Host/controller clock drift of the executor's clock line, s per s.
+    """
+
+    joint: int
+    speed_rad_s: float
+    plan: JointPlan
+    window_s: tuple[float, float]
+    host_s: FloatArray
+    controller_s: FloatArray
+    reported_q: FloatArray
+    truth_s: FloatArray
+    truth_q: FloatArray
+    intake: Any = None
+    clock_rate: float = 0.0
+
+    @property
+    def shifts_s(self) -> FloatArray:
+        """Per joint, the shift of the command stream that ran, s (6,)."""
+        return np.asarray(self.plan.meta["actuation_s"], dtype=float)
+
+    def window(self, *, physical: bool = False) -> tuple[FloatArray, FloatArray]:
+        """The positions in the fit's window: (times (m,), s; q (m, 6), rad): the reported
+        ones at their sampling instants (:func:`sampling_times_s`), or the physical truth."""
+        if physical:
+            t, q = self.truth_s, self.truth_q
+        else:
+            t, q = sampling_times_s(self), self.reported_q
+        keep = (t >= self.window_s[0]) & (t <= self.window_s[1])
+        return t[keep], q[keep]
+
+
+def run_tracking_phases(
+    executor: TimedExecutor, phases: TrackingPhases | None = None
+) -> list[PhaseRun]:
+    """Run the tracking phases through ``executor`` from where the robot is (at rest).
+
+    Run uncompensated (``compensate=False``) with ``cycle_lock`` on, as the calibration
+    welds are, so that the reported positions are dated by the probed intake. Each joint
+    ends within a few mrad of where it started (each positive phase is followed by its
+    negative mirror).
+
+    Raises
+    ------
+    ConfigError
+        A phase would leave a joint limit (before that phase moves), or Ruckig cannot plan
+        a ramp.
+    """
+    phases = phases or TrackingPhases()
+    return [
+        _run_phase(executor, phases, joint, sign * speed)
+        for joint in phases.joints
+        for speed in phases.speeds_rad_s
+        for sign in (1.0, -1.0)
+    ]
+
+
+def _run_phase(
+    executor: TimedExecutor, phases: TrackingPhases, joint: int, speed_rad_s: float
+) -> PhaseRun:
+    """One phase of :func:`run_tracking_phases`: joint ``joint`` (1-based) at
+    ``speed_rad_s`` (signed)."""
+    spec, limits = executor.spec, executor.settings.limits
+    lo, hi = limits.position_range(spec)
+    j = joint - 1
+    # Every phase starts from rest reached by a short move the other way (as a task's
+    # motion after its approach): the rest the velocity loop holds depends on the side the
+    # joint came from and how it stopped (UR10 joint 1 at 0.05 rad/s: 26.8 ms lag from a
+    # fresh start, 35.3 after a phase the other way at 0.02 rad/s, 29.1 after this move).
+    executor.idle(executor.now() + 2.0, until_rest=True)
+    back = executor.estimate().q_rad.copy()
+    back[j] -= np.sign(speed_rad_s) * PRELOAD_RAD
+    executor.execute(executor.plan(back), start_time_s=executor.now() + 0.1)
+    executor.idle(executor.now() + 2.0, until_rest=True)
+    q0 = executor.estimate().q_rad
+    v = np.zeros(6)
+    v[j] = speed_rad_s
+    what = f"the ramp of joint {joint} to {speed_rad_s:g} rad/s"
+    ramp = _ruckig_velocity(spec, limits, q0, np.zeros(6), np.zeros(6), v, what=what)
+    q_ramp = np.asarray(ramp.at_time(float(ramp.duration))[0])
+    # Where the joint is when the stop after the hold has ended (a generous bound).
+    travel = q_ramp[j] + speed_rad_s * (
+        phases.settle_s + phases.hold_s + 0.1 + abs(speed_rad_s) / 4
+    )
+    if not lo[j] <= travel <= hi[j]:
+        raise ConfigError(
+            f"the tracking phase of joint {joint} at {speed_rad_s:g} rad/s would take it to "
+            f"{travel:.3f} rad, beyond [{lo[j]:.3f}, {hi[j]:.3f}] rad; start from a pose "
+            "farther from the limits"
+        )
+    prepared = executor.prepare(JointPlan(ramp, q0, np.zeros(6), q_ramp, v))
+    executor.idle(executor.now() + 5 * executor.period_s)
+    lead = float(np.max(prepared.meta["actuation_s"])) + 3 * executor.period_s
+    scheduled = prepared.at(executor.now() + max(lead, 0.1))
+    begin = scheduled.end_time_s + phases.settle_s
+    end = begin + phases.hold_s
+    probe = physical_probe(executor)
+    rows: list[tuple[float, float, FloatArray, float, FloatArray]] = []
+
+    def record(state: Any) -> None:
+        t, q = probe() if probe is not None else (math.nan, state.q)
+        rows.append((state.host_time_s, state.controller_time_s, state.q, t, q))
+
+    executor.execute(scheduled, until_s=end + 0.05, on_step=record)
+    n = len(rows)
+    line = executor.clock_line
+    return PhaseRun(
+        joint=joint,
+        speed_rad_s=speed_rad_s,
+        plan=scheduled,
+        window_s=(begin, end),
+        host_s=np.array([r[0] for r in rows]),
+        controller_s=np.array([r[1] for r in rows]),
+        reported_q=np.array([r[2] for r in rows]).reshape(n, 6),
+        truth_s=np.array([r[3] for r in rows]),
+        truth_q=np.array([r[4] for r in rows]).reshape(n, 6),
+        intake=executor.intake,
+        clock_rate=line[2] if line is not None else 0.0,
+    )
+
+
+def fit_tracking_phases(runs: Sequence[PhaseRun], *, physical: bool = False) -> TrackingFit:
+    """The tracking fit (:func:`fit_tracking`) of constant-speed phases, per joint on the
+    phases that move it (the others' still joints would only add their scatter).
+
+    Per joint: ``q(t) ≈ plan(t + s - D) - e± · sign(v)`` over the holds at two or more
+    speeds, so ``D`` and ``e±`` are separable (the joint's lag ``D + e / |v|`` differs
+    between the speeds). ``physical=True`` fits the simulator's physical angles instead
+    of the reported ones (the truth the reported fit is checked against).
+
+    Raises
+    ------
+    ConfigError
+        No phase, or a phase with fewer than 3 samples in its window.
+    """
+    if not runs:
+        raise ConfigError("fit_tracking_phases needs at least one tracking phase")
+    nan6 = np.full(6, np.nan)
+    parts: dict[str, Any] = {
+        "dead_time_s": nan6.copy(), "friction_rad": np.full((2, 6), np.nan),
+        "rms_rad": nan6.copy(), "dead_time_se_s": nan6.copy(),
+        "separable": np.zeros(6, bool), "speed_rad_s": np.full((2, 6), np.nan),
+    }  # fmt: skip
+    for joint in sorted({r.joint for r in runs}):
+        samples = [(r.plan, *r.window(physical=physical), r.shifts_s)
+                   for r in runs if r.joint == joint]  # fmt: skip
+        fit = fit_tracking(samples)
+        j = joint - 1
+        for name, value in parts.items():
+            value[..., j] = getattr(fit, name)[..., j]
+    return TrackingFit(**parts)
