@@ -165,3 +165,21 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
         assert abs(float(np.mean(err))) <= 0.3e-3, (joint, np.mean(err))
     err, se = _response(t, (1, 2, 3, 5))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
+
+
+def test_a_pose_that_loads_the_gear_is_within_its_interval(kr5_table: Any) -> None:
+    """On a KR 5 a few poses load a joint's gear far more than its others (the wrist: a
+    trial whose deflection makes the fit +0.3 ms early while the joint's median change is
+    +0.02 ms). Its age is off by about that much, so its standard error must say so: a
+    trial whose own evidence of a deflection (the probe, or the correction the shrinkage
+    took away) stands out of its joint's counts it. Here (96 trials, seed 2) one usable
+    wrist trial reads 0.3 ms short: main's interval missed it at -7.8 standard errors, now
+    -1.1. Every usable trial off by more than 0.25 ms must lie within 1.96 standard errors
+    (the rule's offset is the probe itself, ~1/1.3 of the error it predicts: about 1.3 sd
+    expected), and the intervals still cover >= 85 % of all usable trials (100 % here)."""
+    t = kr5_table
+    err, se = _response(t, (1, 2, 3, 5))
+    big = np.abs(err) > 0.25e-3
+    assert big.sum() >= 1
+    assert np.all(np.abs(err[big]) <= 1.96 * se[big]), err[big] / se[big]
+    assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
