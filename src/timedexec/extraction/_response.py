@@ -821,7 +821,8 @@ def _unseparated_se(
     88.3 -> 93.3 %; the UR10 wrist 96.8 -> 97.0 %.
     """
     var = se[rest] ** 2
-    bound = np.full(var.size, DEFLECTION_MIN_CHANGE_S / math.sqrt(3.0))
+    floor = DEFLECTION_MIN_CHANGE_S / math.sqrt(3.0)
+    bound = np.full(var.size, floor)
     excess = np.zeros(var.size)
     j_rest = joint[rest]
     p_rest = probe[rest]
@@ -832,10 +833,10 @@ def _unseparated_se(
             continue
         rows = j_rest == key
         med = float(np.median(vote))
-        spread = 1.4826 * float(np.median(np.abs(vote - med)))
         upper = max(float(np.mean(vote)), 0.0) + 2.0 * float(np.std(vote)) / math.sqrt(vote.size)
-        bound[rows] = max(bound[rows][0], upper)
-        out_ = rows & np.isfinite(p_rest) & (p_rest > med + _PROBE_OUTLIER_SD * spread)
+        bound[rows] = max(floor, upper)
+        limit = med + _PROBE_OUTLIER_SD * math.sqrt(_robust_var(vote))
+        out_ = rows & np.isfinite(p_rest) & (p_rest > limit)
         excess[out_] = p_rest[out_]
     out: FloatArray = np.sqrt(var + bound**2 + excess**2)
     return out
