@@ -52,8 +52,9 @@ def test_compliant_response_meets_the_targets_on_the_unflagged_trials(ur10_table
         assert err.size >= 15
         assert np.sqrt(np.mean(err**2)) <= 0.2e-3, (joint, np.sqrt(np.mean(err**2)))
         assert abs(float(np.mean(err))) <= 0.12e-3, (joint, np.mean(err))
-    # The 95 % intervals: 95 % of the usable trials here (before the sharpening 94 %);
-    # heavy joints 2 and 3 94 % (92 %). ~100 trials put a binomial sd of ~2.3 % on the pooled coverage.
+    # The 95 % intervals: 93 % of the usable trials here (main's uniform gear law 95 %);
+    # heavy joints 2 and 3 89 % (94 %). ~100 trials put a binomial sd of ~2.3 % on the pooled
+    # coverage, ~60 trials ~2.8 % on the heavy joints'.
     err, se = _response(t, (1, 2, 3, 5))
     assert 0.88 <= np.mean(np.abs(err) <= 1.96 * se) <= 0.99
     err, se = _response(t, (2, 3))
@@ -148,7 +149,8 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
     joint whose every trial is flagged is flagged as a whole (``deflection_joint``).
     Measured (joints 1/2/3/5): UR10 +0.01 / +0.15 / -0.00 / -0.01 ms, 100 %; KR 5 base and
     elbow flagged as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5
-    -0.01 / -0.05 ms, 96 %. ~25 trials per joint put ~0.06 ms of sampling error on a
+    -0.01 / -0.05 ms, 100 % (main 95 %: one wrist trial 0.3 ms short at -7.8 standard
+    errors, the test below). ~25 trials per joint put ~0.06 ms of sampling error on a
     joint's mean (the UR10 elbow at 5x read -0.03 to +0.00 ms on 200-trial sweeps)."""
     if robot == "ur10":
         p = tmp_path / "ur10.h5"
@@ -164,4 +166,22 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
             continue
         assert abs(float(np.mean(err))) <= 0.3e-3, (joint, np.mean(err))
     err, se = _response(t, (1, 2, 3, 5))
+    assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
+
+
+def test_a_pose_that_loads_the_gear_is_within_its_interval(kr5_table: Any) -> None:
+    """On a KR 5 a few poses load a joint's gear far more than its others (the wrist: a
+    trial whose deflection makes the fit +0.3 ms early while the joint's median change is
+    +0.02 ms). Its age is off by about that much, so its standard error must say so: a
+    trial whose own evidence of a deflection (the probe, or the correction the shrinkage
+    took away) stands out of its joint's counts it. Here (96 trials, seed 2) one usable
+    wrist trial reads 0.3 ms short: main's interval missed it at -7.8 standard errors, now
+    -1.1. Every usable trial off by more than 0.25 ms must lie within 1.96 standard errors
+    (the rule's offset is the probe itself, ~1/1.3 of the error it predicts: about 1.3 sd
+    expected), and the intervals still cover >= 85 % of all usable trials (100 % here)."""
+    t = kr5_table
+    err, se = _response(t, (1, 2, 3, 5))
+    big = np.abs(err) > 0.25e-3
+    assert big.sum() >= 1
+    assert np.all(np.abs(err[big]) <= 1.96 * se[big]), err[big] / se[big]
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
