@@ -62,11 +62,11 @@ PROBE_ROUNDS = 3
 #: Re-tests of the two send phases that bracket the step (alternately the one before and
 #: the one after), until the step has stayed within a quarter step over this many in a
 #: row: 4 where every trial so far fits the step, 8 where any was off it (a loaded host:
-#: each trial is weaker evidence).
+#: each trial is weaker evidence). How far it moved over the last of them widens
+#: ``resolution_s``.
 CONFIRM_STABLE = 4
 CONFIRM_STABLE_LOADED = 8
-#: Re-tests at most (~3 cycles each): where the step still moves, the fix says so by a
-#: wider ``resolution_s`` (one more step).
+#: Re-tests at most (~3 cycles each).
 CONFIRM_TRIALS = 16
 
 
@@ -76,7 +76,8 @@ def find_intake_step(
     """The send phase where the echo latency steps up by one cycle.
 
     ``latencies[m]`` (cycles, None for a lost trial) of a command sent ``phases_s[m]``
-    after a reference (in [0, period), any order, phases may repeat). Over one period the
+    after a reference (in [0, period), any order; trials at one phase are not split).
+    Over one period the
     latency is ``base`` before the deadline and ``base + 1`` after it (the step may also
     lie between the last phase and the period, where every trial shows ``base``). The step
     minimises the trials off it, a trial showing fewer cycles than the step says counting
@@ -98,6 +99,8 @@ def find_intake_step(
     best: tuple[int, int, float, float] | None = None
     for base in sorted(set(lat)):
         for j in range(1, len(ph) + 1):  # the step lies after ph[j - 1] (j == len: wrap)
+            if j < len(ph) and ph[j] == ph[j - 1]:
+                continue  # not between trials sent at one phase
             late = sum(v > base + (i >= j) for i, v in enumerate(lat))
             early = sum(v < base + (i >= j) for i, v in enumerate(lat))
             cost = late + EARLY_WEIGHT * early
@@ -153,21 +156,31 @@ def probe_intake(
             return wait_until(t_s, clock)
 
     # (phase sent at, latency) per trial: the phase is read before the send, so a send the
-    # host made late (preempted between the wait and the call, or in it) is a delay like
-    # any other, which the fit weighs as such.
+    # host made late (preempted in the call) is a delay like any other, which the fit
+    # weighs as such.
     observed: list[tuple[float, int | None]] = []
     leads: list[float] = []
     sign = 1.0
 
     def trial(phase_s: float) -> tuple[float, float, int, int]:
         nonlocal sign
-        seen = _trial(read, send, clock, wait, base_s=reference_offset_s, phase_s=phase_s,
-                      speed=sign * speed_rad_s, period_s=period_s, leads=leads)  # fmt: skip
-        observed.append(seen)
+        if phase_s < 0.5 * step:  # at the earliest arrival the package is rarely read yet:
+            phase_s += period_s  # a period later (the same phase of the intake)
+        sent, lat = _trial(read, send, clock, wait, base_s=reference_offset_s, phase_s=phase_s,
+                           speed=sign * speed_rad_s, period_s=period_s, leads=leads)  # fmt: skip
+        # On the grid, down: repeated phases fall together (the fit cannot split a phase's
+        # trials by their µs of jitter), and a send the host made late by a fraction of a
+        # step is placed earlier, which like any delay can make it miss, never make it.
+        observed.append((math.floor(sent / step + 1e-6) * step % period_s, lat))
         sign = -sign
         return find_intake_step([p for p, _ in observed], [v for _, v in observed], period_s)
 
-    stable = 0
+    positions: list[float] = []  # the step's phase after each re-test
+
+    def settled() -> bool:
+        window = CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE
+        return len(positions) >= window and _span(positions[-window:], period_s) < 0.25 * step
+
     try:
         for _round in range(PROBE_ROUNDS):
             for m in range(phases):
@@ -175,16 +188,15 @@ def probe_intake(
             clean = trials >= len(observed) // 2 and miss <= max(MAX_MISMATCHES, trials // 4)
             if clean:
                 break
-        # Re-test the pair of send phases either side of the step, alternately, until the
-        # step stays put: a run of delayed trials right before the deadline moves it back.
+        # Re-test the send phases either side of the step (alternately) until
+        # the step stays put: a run of delayed trials right before the deadline moves it
+        # back up, an intake that ran late once moves it back down.
         for k in range(CONFIRM_TRIALS if clean else 0):
-            if stable >= (CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE):
+            if settled():
                 break
-            was = phase
-            side = -0.5 if k % 2 == 0 else 0.5
-            phase, gap, miss, trials = trial((phase + side * min(gap, step)) % period_s)
-            moved = abs((phase - was + 0.5 * period_s) % period_s - 0.5 * period_s)
-            stable = stable + 1 if moved < 0.25 * step else 0
+            side = 0.5 * gap if k % 2 else -0.5 * gap  # the pair of phases bracketing it
+            phase, gap, miss, trials = trial((phase + side) % period_s)
+            positions.append(phase)
     finally:
         send(np.zeros(6))
     _settle(read, speed_rad_s)
@@ -197,10 +209,10 @@ def probe_intake(
             "cycle, or the link jitters by more than a period; the cycle lock aims by the "
             "package arrivals instead"
         )
-    # Half a step at best (repeated phases bracket the step no closer than the grid); one
-    # step more where the re-tests kept moving it.
-    settled = stable >= (CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE)
-    resolution = 0.5 * max(gap, step) + (0.0 if settled else step)
+    # Half a step at best (repeated phases bracket the step no closer than the grid), and
+    # half of how far the step still moved over the last re-tests.
+    window = positions[-(CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE) :]
+    resolution = 0.5 * max(gap, step) + 0.5 * _span(window, period_s)
     deadline = reference_offset_s + phase
     lead = (min(leads) - deadline) % period_s
     return IntakeFix(
@@ -213,6 +225,15 @@ def probe_intake(
         mismatches=miss,
         arrival_offset_s=min(leads),
     )
+
+
+def _span(phases_s: Sequence[float], period_s: float) -> float:
+    """The range of phases that may wrap around the period (all within half of one), s (0
+    for none)."""
+    if not phases_s:
+        return 0.0
+    rel = [(p - phases_s[-1] + 0.5 * period_s) % period_s for p in phases_s]
+    return max(rel) - min(rel)
 
 
 def _trial(
