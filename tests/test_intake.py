@@ -253,7 +253,7 @@ def test_an_intake_that_ran_late_once_does_not_move_the_step_late() -> None:
     weighs such a trial three times a delayed one, the re-tests of that phase miss, and
     the step goes back: the same deadline as without the outlier, which is counted."""
     fix, ctl = probe_fake(first_delay_s={15: -1e-4})
-    clean, clean_ctl = probe_fake()
+    clean, _ = probe_fake()
     assert fix.deadline_offset_s == pytest.approx(clean.deadline_offset_s, abs=2e-6)
     assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6
     assert fix.resolution_s == pytest.approx(PERIOD_S / 32)
