@@ -15,10 +15,21 @@ controller tells which cycle took a command. :func:`probe_intake`, with the arm 
 sends one tiny ``speedj`` (1e-4 rad/s, signs alternating: the arm moves by microradians) at
 each of ``phases`` send times spread over a cycle after a package and counts the cycles
 until ``target_qd`` shows it (another round of ``phases``, up to three, while the answer
-is not clean: a loaded host or controller blurs the trials near the deadline). The count
-steps up by one where the send time crosses the intake: that is the deadline of each
-cycle on the host clock, independent of when the packages leave. The lock then aims half a period before it (:class:`IntakeFix`), and a
-clock line keeps it on the host clock as the clocks drift (:class:`~._cycle.BoundaryLine`).
+is not clean). The count steps up by one where the send time crosses the intake: that is
+the deadline of each cycle on the host clock, independent of when the packages leave. The
+lock then aims half a period before it (:class:`IntakeFix`), and a clock line keeps it on
+the host clock as the clocks drift (:class:`~._cycle.BoundaryLine`).
+
+A loaded host or link only ever delays a command (on a two-core host beside two busy
+loops, 0.3-2.4 ms from the send to the independent peer's register, against 0.1 ms idle),
+so a trial right before the deadline can miss its intake, and one round cannot tell that
+from a deadline a step earlier: the CI run of 2026-11-28 dated the samples 0.50 ms early
+that way. The fit therefore weighs a trial that made an intake the step says it missed
+three times one that missed (:data:`EARLY_WEIGHT`), and the probe re-tests the two send
+phases that bracket the step until it stays put (:data:`CONFIRM_STABLE`); how far it still
+moved widens ``resolution_s``. What no probe can see is a link slow on every send (the
+deadline it finds is then the one this host can make, earlier by the extra delay; beside
+the busy loops the dating came out -0.38 to +0.26 ms off the peer's truth).
 """
 
 from __future__ import annotations
@@ -77,9 +88,9 @@ def find_intake_step(
 
     ``latencies[m]`` (cycles, None for a lost trial) of a command sent ``phases_s[m]``
     after a reference (in [0, period), any order; trials at one phase are not split).
-    Over one period the
-    latency is ``base`` before the deadline and ``base + 1`` after it (the step may also
-    lie between the last phase and the period, where every trial shows ``base``). The step
+    Over one period the latency is ``base`` before the deadline and ``base + 1`` after it
+    (the step may also lie between the last phase and the period, where every trial shows
+    ``base``). The step
     minimises the trials off it, a trial showing fewer cycles than the step says counting
     :data:`EARLY_WEIGHT` times (a command is delayed far more often than an intake).
 
@@ -177,9 +188,14 @@ def probe_intake(
 
     positions: list[float] = []  # the step's phase after each re-test
 
+    def last_positions() -> list[float]:
+        return positions[-(CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE) :]
+
     def settled() -> bool:
-        window = CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE
-        return len(positions) >= window and _span(positions[-window:], period_s) < 0.25 * step
+        window = last_positions()
+        return len(window) == (CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE) and (
+            _span(window, period_s) < 0.25 * step
+        )
 
     try:
         for _round in range(PROBE_ROUNDS):
@@ -188,9 +204,9 @@ def probe_intake(
             clean = trials >= len(observed) // 2 and miss <= max(MAX_MISMATCHES, trials // 4)
             if clean:
                 break
-        # Re-test the send phases either side of the step (alternately) until
-        # the step stays put: a run of delayed trials right before the deadline moves it
-        # back up, an intake that ran late once moves it back down.
+        # Re-test the send phases either side of the step (alternately) until the step
+        # stays put: a run of delayed trials right before the deadline moves it back up,
+        # an intake that ran late once moves it back down.
         for k in range(CONFIRM_TRIALS if clean else 0):
             if settled():
                 break
@@ -211,8 +227,7 @@ def probe_intake(
         )
     # Half a step at best (repeated phases bracket the step no closer than the grid), and
     # half of how far the step still moved over the last re-tests.
-    window = positions[-(CONFIRM_STABLE_LOADED if miss else CONFIRM_STABLE) :]
-    resolution = 0.5 * max(gap, step) + 0.5 * _span(window, period_s)
+    resolution = 0.5 * max(gap, step) + 0.5 * _span(last_positions(), period_s)
     deadline = reference_offset_s + phase
     lead = (min(leads) - deadline) % period_s
     return IntakeFix(
