@@ -89,8 +89,9 @@ class FakeController:
     ``hide`` never show (the target reads zero while they are the newest: a lost echo);
     those in ``stray`` are taken one cycle late (host jitter right at the deadline); those
     in ``delay_s`` reach the controller that much later (a loaded host or link; negative:
-    an intake that ran late takes it although sent after the deadline), and so does the
-    first send at each phase (of 16 after the earliest arrival) in ``first_delay_s``."""
+    an intake that ran late takes it although sent after the deadline), and so do the
+    successive sends at each phase (of 16 after the earliest arrival) in
+    ``phase_delays_s`` (then none)."""
 
     def __init__(
         self,
@@ -101,7 +102,7 @@ class FakeController:
         hide: frozenset[int] = frozenset(),
         stray: frozenset[int] = frozenset(),
         delay_s: dict[int, float] | None = None,
-        first_delay_s: dict[int, float] | None = None,
+        phase_delays_s: dict[int, list[float]] | None = None,
     ) -> None:
         self.offset, self.deadline_s, self.publish_s, self.wire_s = (
             100.0,
@@ -115,7 +116,7 @@ class FakeController:
         self.echo = echo
         self.hide, self.stray = hide, stray
         self.delay_s = dict.fromkeys(stray, PERIOD_S) | (delay_s or {})
-        self.first_delay_s = dict(first_delay_s or {})
+        self.phase_delays_s = {m: list(d) for m, d in (phase_delays_s or {}).items()}
         self.target = np.zeros(6)
 
     def clock(self) -> float:
@@ -146,8 +147,8 @@ class FakeController:
 
     def send(self, v: np.ndarray) -> None:
         slot = int((self.t - self.arrival(0)) % PERIOD_S / (PERIOD_S / 16) + 1e-3)
-        if slot in self.first_delay_s:
-            self.delay_s[len(self.sent)] = self.first_delay_s.pop(slot)
+        if self.phase_delays_s.get(slot):
+            self.delay_s[len(self.sent)] = self.phase_delays_s[slot].pop(0)
         self.sent.append((self.t, np.asarray(v, float).copy()))
 
 
@@ -235,7 +236,7 @@ def test_a_delayed_send_right_before_the_deadline_does_not_move_the_step_early()
     early, past the 0.0625 ms resolution); the probe re-tests the phases either side of
     the step it found, the re-sent 15th makes its intake, and the step moves back: the
     deadline within the resolution, and the delayed trial counted off the step."""
-    fix, ctl = probe_fake(first_delay_s={14: 2e-4})
+    fix, ctl = probe_fake(phase_delays_s={14: [2e-4]})
     assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6, deadline_error_s(fix, ctl)
     assert fix.resolution_s == pytest.approx(PERIOD_S / 32)
     assert fix.mismatches == 1
@@ -252,12 +253,29 @@ def test_an_intake_that_ran_late_once_does_not_move_the_step_late() -> None:
     load; the old probe put the step a step late, 0.15 ms, and called it clean). The fit
     weighs such a trial three times a delayed one, the re-tests of that phase miss, and
     the step goes back: the same deadline as without the outlier, which is counted."""
-    fix, ctl = probe_fake(first_delay_s={15: -1e-4})
+    fix, ctl = probe_fake(phase_delays_s={15: [-1e-4]})
     clean, _ = probe_fake()
     assert fix.deadline_offset_s == pytest.approx(clean.deadline_offset_s, abs=2e-6)
     assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6
     assert fix.resolution_s == pytest.approx(PERIOD_S / 32)
     assert fix.mismatches == 1
+
+
+def test_a_link_that_delays_most_sends_at_the_deadline_widens_the_resolution() -> None:
+    """Where the send right before the deadline misses its intake in five of its six
+    trials (delayed 0.2 ms in all but the third), a step after it (one trial that made
+    its intake called an outlier) and a step before it (five delayed misses) score within
+    one outlier of each other: the probe says so by a resolution that covers both, twice
+    the grid's half step, and the deadline lies within it. (Delayed in every trial, the
+    send looks like one after the deadline to any probe: that deadline is the one this
+    host can make, test_a_delayed_send_right_before_the_deadline_...)."""
+    delayed = 2e-4
+    fix, ctl = probe_fake(phase_delays_s={14: [delayed, delayed, 0.0, delayed, delayed, delayed]})
+    assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6, (
+        deadline_error_s(fix, ctl),
+        fix,
+    )
+    assert fix.resolution_s == pytest.approx(2 * PERIOD_S / 32), fix
 
 
 # ------------------------------------------------------------------ against the peer
