@@ -90,9 +90,9 @@ def find_intake_step(
     after a reference (in [0, period), any order; trials at one phase are not split).
     Over one period the latency is ``base`` before the deadline and ``base + 1`` after it
     (the step may also lie between the last phase and the period, where every trial shows
-    ``base``). The step
-    minimises the trials off it, a trial showing fewer cycles than the step says counting
-    :data:`EARLY_WEIGHT` times (a command is delayed far more often than an intake).
+    ``base``). The step minimises the trials off it, a trial showing fewer cycles than the
+    step says counting :data:`EARLY_WEIGHT` times (a command is delayed far more often
+    than an intake runs late).
 
     Returns
     -------
