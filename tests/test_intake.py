@@ -87,7 +87,11 @@ class FakeController:
     packages later (a pipeline). ``echo``: "exact", "smoothed" (a first-order filter on
     the target), "frozen" (always zero) or "none" (no target_qd). The sends numbered in
     ``hide`` never show (the target reads zero while they are the newest: a lost echo);
-    those in ``stray`` are taken one cycle late (host jitter right at the deadline)."""
+    those in ``stray`` are taken one cycle late (host jitter right at the deadline); those
+    in ``delay_s`` reach the controller that much later (a loaded host or link; negative:
+    an intake that ran late takes it although sent after the deadline), and so do the
+    successive sends at each phase (of 16 after the earliest arrival) in
+    ``phase_delays_s`` (then none)."""
 
     def __init__(
         self,
@@ -97,6 +101,8 @@ class FakeController:
         echo: str = "exact",
         hide: frozenset[int] = frozenset(),
         stray: frozenset[int] = frozenset(),
+        delay_s: dict[int, float] | None = None,
+        phase_delays_s: dict[int, list[float]] | None = None,
     ) -> None:
         self.offset, self.deadline_s, self.publish_s, self.wire_s = (
             100.0,
@@ -109,6 +115,8 @@ class FakeController:
         self.sent: list[tuple[float, np.ndarray]] = []
         self.echo = echo
         self.hide, self.stray = hide, stray
+        self.delay_s = dict.fromkeys(stray, PERIOD_S) | (delay_s or {})
+        self.phase_delays_s = {m: list(d) for m, d in (phase_delays_s or {}).items()}
         self.target = np.zeros(6)
 
     def clock(self) -> float:
@@ -125,9 +133,7 @@ class FakeController:
         self.t = max(self.t, self.arrival(self.k))
         cutoff = self.offset + (self.k - 2) * PERIOD_S + self.deadline_s
         taken = [
-            (n, v)
-            for n, (s, v) in enumerate(self.sent)
-            if s + (PERIOD_S if n in self.stray else 0.0) < cutoff
+            (n, v) for n, (s, v) in enumerate(self.sent) if s + self.delay_s.get(n, 0.0) < cutoff
         ]
         newest = taken[-1][1] if taken and taken[-1][0] not in self.hide else np.zeros(6)
         if self.echo == "smoothed":
@@ -140,6 +146,9 @@ class FakeController:
         )  # fmt: skip
 
     def send(self, v: np.ndarray) -> None:
+        slot = int((self.t - self.arrival(0)) % PERIOD_S / (PERIOD_S / 16) + 1e-3)
+        if self.phase_delays_s.get(slot):
+            self.delay_s[len(self.sent)] = self.phase_delays_s[slot].pop(0)
         self.sent.append((self.t, np.asarray(v, float).copy()))
 
 
@@ -161,7 +170,7 @@ def test_probe_finds_the_deadline_wherever_the_packages_arrive(
     ref = ctl.arrival(1) - PERIOD_S  # earliest arrival minus controller time
     fix = probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ref)
     assert fix.mismatches == 0
-    assert fix.trials >= 14  # the first phase can fall before the package: lost
+    assert fix.trials >= 16  # the first phase goes a period later (the package is read late)
     # Deadlines repeat every period: compare modulo one (the spins move the clock by µs).
     off = (fix.deadline_offset_s - (ctl.offset + deadline_s) + PERIOD_S / 2) % PERIOD_S
     assert abs(off - PERIOD_S / 2) <= fix.resolution_s + 2e-6
@@ -195,9 +204,78 @@ def test_a_lost_echo_is_left_out_and_a_stray_trial_counted_not_followed() -> Non
     ctl.read()
     fix = probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ref)
     assert (clean.mismatches, fix.mismatches) == (0, 1)
-    assert fix.trials == clean.trials - 1
+    # Every send but the closing zero speed echoed, except the hidden one (the stray makes
+    # the probe re-test the bracket longer, so the counts of sends differ).
+    assert clean.trials == len(clean_ctl.sent) - 1
+    assert fix.trials == len(ctl.sent) - 2
     # The virtual clock moves by µs as it is read: the same deadline within 2 µs.
     assert fix.deadline_offset_s == pytest.approx(clean.deadline_offset_s, abs=2e-6)
+
+
+def probe_fake(**kwargs: Any) -> tuple[IntakeFix, FakeController]:
+    """The probe on a FakeController with its deadline 1.1 ms into the cycle and the
+    package 1.2 ms (the deadline lies 1.85 ms after the earliest arrival: between the
+    15th and the 16th of the 16 send phases, 0.1 ms after the 15th)."""
+    ctl = FakeController(0.0011, 0.0012, **kwargs)
+    ctl.read()
+    return probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ctl.arrival(1) - PERIOD_S), ctl
+
+
+def deadline_error_s(fix: IntakeFix, ctl: FakeController) -> float:
+    """The fix's deadline minus the controller's, s, modulo one period."""
+    return (
+        fix.deadline_offset_s - (ctl.offset + ctl.deadline_s) + PERIOD_S / 2
+    ) % PERIOD_S - PERIOD_S / 2
+
+
+def test_a_delayed_send_right_before_the_deadline_does_not_move_the_step_early() -> None:
+    """The CI failure of 2026-11-28 on a virtual controller: the send right before the
+    deadline (the 15th, 0.1 ms before it) reaches the controller 0.2 ms late (a loaded
+    host or link), so it misses the intake it was sent for. One round alone cannot tell
+    it from a deadline one step earlier (the fit with equal weights put it there: 0.125 ms
+    early, past the 0.0625 ms resolution); the probe re-tests the phases either side of
+    the step it found, the re-sent 15th makes its intake, and the step moves back: the
+    deadline within the resolution, and the delayed trial counted off the step."""
+    fix, ctl = probe_fake(phase_delays_s={14: [2e-4]})
+    assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6, deadline_error_s(fix, ctl)
+    assert fix.resolution_s == pytest.approx(PERIOD_S / 32)
+    assert fix.mismatches == 1
+    # The same delay on every send at that phase (the link is that slow whenever the probe
+    # sends there): the deadline the host can make is the earlier one, and the probe says
+    # so by finding it; a host cannot tell a slow link from an early deadline.
+    always, ctl = probe_fake(delay_s=dict.fromkeys(range(60), 0.0002))
+    assert deadline_error_s(always, ctl) == pytest.approx(-2e-4, abs=always.resolution_s + 2e-6)
+
+
+def test_an_intake_that_ran_late_once_does_not_move_the_step_late() -> None:
+    """The other way round: the 16th send, 0.025 ms after the deadline, is taken by the
+    intake it was sent after (that intake ran 0.1 ms late, as the peer's cycle does under
+    load; the old probe put the step a step late, 0.15 ms, and called it clean). The fit
+    weighs such a trial three times a delayed one, the re-tests of that phase miss, and
+    the step goes back: the same deadline as without the outlier, which is counted."""
+    fix, ctl = probe_fake(phase_delays_s={15: [-1e-4]})
+    clean, _ = probe_fake()
+    assert fix.deadline_offset_s == pytest.approx(clean.deadline_offset_s, abs=2e-6)
+    assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6
+    assert fix.resolution_s == pytest.approx(PERIOD_S / 32)
+    assert fix.mismatches == 1
+
+
+def test_a_link_that_delays_most_sends_at_the_deadline_widens_the_resolution() -> None:
+    """Where the send right before the deadline misses its intake in five of its six
+    trials (delayed 0.2 ms in all but the third), a step after it (one trial that made
+    its intake called an outlier) and a step before it (five delayed misses) score within
+    one outlier of each other: the probe says so by a resolution that covers both, twice
+    the grid's half step, and the deadline lies within it. (Delayed in every trial, the
+    send looks like one after the deadline to any probe: that deadline is the one this
+    host can make, test_a_delayed_send_right_before_the_deadline_...)."""
+    delayed = 2e-4
+    fix, ctl = probe_fake(phase_delays_s={14: [delayed, delayed, 0.0, delayed, delayed, delayed]})
+    assert abs(deadline_error_s(fix, ctl)) <= fix.resolution_s + 2e-6, (
+        deadline_error_s(fix, ctl),
+        fix,
+    )
+    assert fix.resolution_s == pytest.approx(2 * PERIOD_S / 32), fix
 
 
 # ------------------------------------------------------------------ against the peer

@@ -669,11 +669,14 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
 
     * uncompensated, package 0.5 ms into the cycle: the torch trails by 4-12 mm (measured
       8.2-8.3 mm); the tracking delay measured from the reported positions dated by the
-      probed intake is within 0.4 ms of the peer's physical lag on every joint (the
-      probe's 0.25 ms resolution plus 0.15 ms for the wire time's split; measured -0.22
-      to +0.21 ms over packages 0.5, 4 and 7.5 ms into the cycle); dated by the model's
-      mean response (4.1 ms) the same runs read -3.35, +0.17 and +3.69 ms off: > 2 ms
-      asserted at 0.5 ms;
+      probed intake is within the probe's resolution (0.25 ms, more where its re-tests
+      did not settle) plus 0.15 ms for the wire time's split of the peer's physical lag
+      on every joint (measured -0.22 to +0.21 ms over packages 0.5, 4 and 7.5 ms into
+      the cycle; benchmarks/bench_intake_probe.py, the probe beside two busy loops on
+      both cores: its dating -0.38 to +0.26 ms off the peer's truth, where the probe
+      before 2026-11-28 put the step a whole 0.5 ms early and called it clean, as in
+      that day's CI run); dated by the model's mean response (4.1 ms) the same runs read
+      -3.35, +0.17 and +3.69 ms off: > 2 ms asserted at 0.5 ms;
     * compensated with it on a peer whose package leaves 7 ms into the cycle (another
       phase): within 1 mm (measured 0.22 mm, 37x), every joint's lag within 1 ms of the
       shift (measured 0.3-0.56 ms);
@@ -686,7 +689,11 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     assert none.intake is not None, "the probe must answer on the peer"
     assert 4.0 < none.errors().stats()["torch_mean_mm"] < 12.0
     shift = measure_tracking_delays(none)
-    assert np.all(np.abs(shift - phys) < 4e-4), shift - phys
+    # The probe's own figure (0.25 ms where its re-tests held the step, more by half of how
+    # far they still moved it) plus 0.15 ms for the wire time's split, as in the simulator
+    # test above.
+    bound = none.intake.resolution_s + 1.5e-4
+    assert np.all(np.abs(shift - phys) < bound), (shift - phys, none.intake)
     by_response = measure_tracking_delays(replace(none, intake=None))
     assert np.all(np.abs(by_response - phys) > 2e-3), by_response - phys
     comp, phys_comp = peer_weld(sp, "127.0.0.152", 0.007, shift)

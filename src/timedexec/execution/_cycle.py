@@ -180,7 +180,8 @@ class IntakeFix:
     probed_at_s : float
         Host time of the probe, s.
     resolution_s : float
-        Half the spacing of the send times tried: the deadline's uncertainty, s.
+        The deadline's uncertainty, s: half the spacing of the send times tried, plus half
+        of how far the probe's last re-tests still moved it (a loaded host).
     package_lead_s : float
         Where the packages arrive in the intake cycle: the earliest arrival minus the
         preceding deadline, s, in [0, period) (small: packages arrive just after a deadline,

@@ -622,7 +622,7 @@ class TimedExecutor:
 
     # ------------------------------------------------------------------ probe
     def probe_intake(self) -> IntakeFix:
-        """Find the controller's command deadline by probing it (arm at rest; ~16 tiny
+        """Find the controller's command deadline by probing it (arm at rest; ~20-32 tiny
         ``speedj`` commands, 0.2-0.7 s; :func:`~timedexec.execution.probe_intake`) and aim
         the cycle lock by it from now on. Done at connect with ``cycle_lock`` where the
         state carries ``target_qd`` (UR); call it again after a long idle time if the host
