@@ -53,6 +53,9 @@ PROBE_SPEED_RAD_S = 1e-4
 PROBE_PHASES = 16
 #: Packages to wait for a probe's echo before the trial counts as lost.
 ECHO_PACKAGES = 12
+#: Controller time after which a probe command still without its echo is sent again, s
+#: (half the 100 ms the controller's watchdog allows between commands).
+FEED_S = 0.05
 #: Weight of a trial that made an intake the fitted step says it missed, against 1 for one
 #: that missed an intake the step says it made. A command reaches the controller late or
 #: on time, never early: host preemption around the send and a loaded link or receiver
@@ -288,21 +291,37 @@ def _trial(
         wait(base + phase_s)
         sent = clock() - base
         send(np.full(6, speed))
-        lat = _echo_latency(read, ref.controller_time_s, speed, period_s)
+        lat = _echo_latency(read, send, ref.controller_time_s, speed, period_s)
         wraps = math.floor(sent / period_s)
         return sent - wraps * period_s, None if lat is None else lat - wraps
     return phase_s, None
 
 
 def _echo_latency(
-    read: Callable[[], RobotState], ref_controller_s: float, speed: float, period_s: float
+    read: Callable[[], RobotState],
+    send: Callable[[np.ndarray], None],
+    ref_controller_s: float,
+    speed: float,
+    period_s: float,
 ) -> int | None:
-    """Cycles from the reference package to the first whose ``target_qd`` shows ``speed``."""
+    """Cycles from the reference package to the first whose ``target_qd`` shows ``speed``.
+
+    While the echo is missing the command is sent again every :data:`FEED_S` of controller
+    time: the controller's watchdog wants a command every 100 ms (10 Hz) and 12 packages of
+    a CB3 are 96 ms, so a lost or late echo on a loaded host let it stop the program
+    mid-probe. An echo seen after a repeat may be the repeat's: the trial counts as lost."""
+    command = np.full(6, speed)
+    fed_s = ref_controller_s
     for _ in range(ECHO_PACKAGES):
         state = read()
         tqd = state.target_qd
         if tqd is not None and float(np.mean(tqd)) * math.copysign(1.0, speed) > 0.5 * abs(speed):
+            if fed_s != ref_controller_s:
+                return None
             return round((state.controller_time_s - ref_controller_s) / period_s)
+        if state.controller_time_s - fed_s >= FEED_S:
+            send(command)
+            fed_s = state.controller_time_s
     return None
 
 
