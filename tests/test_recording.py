@@ -463,11 +463,17 @@ def test_ctrl_c_while_a_record_is_synced_keeps_what_a_reader_saw(
             sig.raise_signal(sig.SIGINT)  # Ctrl-C, as the terminal sends it
         real_fsync(fd)
 
+    # Python's own Ctrl-C handler, whatever this process inherited (a shell starts a
+    # background job with SIGINT ignored, and the raised signal then does nothing).
+    previous = sig.signal(sig.SIGINT, sig.default_int_handler)
     w = RecordingWriter(path, header=HEADER, fields=FIELDS)
     w.append(make_batch([0, 1]))
     monkeypatch.setattr(os, "fsync", interrupted_fsync)
-    with pytest.raises(KeyboardInterrupt):
-        w.append(make_batch([2, 3]))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            w.append(make_batch([2, 3]))
+    finally:
+        sig.signal(sig.SIGINT, previous)
     monkeypatch.setattr(os, "fsync", real_fsync)
     assert seen == [4]  # the reader saw the batch before its fsync
     assert w.n_trials == 4
