@@ -309,15 +309,17 @@ def _echo_latency(
     While the echo is missing the command is sent again every :data:`FEED_S` of controller
     time: the controller's watchdog wants a command every 100 ms (10 Hz) and 12 packages of
     a CB3 are 96 ms, so a lost or late echo on a loaded host let it stop the program
-    mid-probe. An echo seen after a repeat may be the repeat's: the trial counts as lost."""
+    mid-probe. A repeat leaves the host after the first send, so the controller takes it in
+    the same cycle or a later one: it cannot make the echo earlier. Where the first send
+    was lost, the repeat's echo comes cycles later than any other trial's and the fit
+    counts it off the step (a long pipeline's echo, the simulated KR 5's ~6 cycles, comes
+    before any repeat could show)."""
     command = np.full(6, speed)
     fed_s = ref_controller_s
     for _ in range(ECHO_PACKAGES):
         state = read()
         tqd = state.target_qd
         if tqd is not None and float(np.mean(tqd)) * math.copysign(1.0, speed) > 0.5 * abs(speed):
-            if fed_s != ref_controller_s:
-                return None
             return round((state.controller_time_s - ref_controller_s) / period_s)
         if state.controller_time_s - fed_s >= FEED_S:
             send(command)
