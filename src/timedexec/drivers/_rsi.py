@@ -80,9 +80,11 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
+from timedexec._realtime import wait_until
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
 from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver
+from timedexec.drivers._rsi_intake import RSIIntake, find_answer_step
 from timedexec.drivers._rsi_link import (
     FirstFrameWait,
     IpocClock,
@@ -100,10 +102,13 @@ from timedexec.drivers._rsi_records import RSICommandRecord, RSIState, RSIStats
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
 
-__all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIState", "RSIStats"]
+__all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSIStats"]
 
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
+#: Window of the arrivals' lower envelope that tells a late frame, s: short against the
+#: drift of a publisher's phase (the RSI twin's 0.4 ms/s), long against single late frames.
+ARRIVAL_ENVELOPE_S = 0.5
 
 
 class KukaRSIDriver(RobotDriver):
@@ -273,6 +278,18 @@ class KukaRSIDriver(RobotDriver):
         self._sequence = -1
         self._sent_corr = np.zeros(6)
         self._stats: dict[str, Any] = dataclasses.asdict(RSIStats())
+        # The intake probe (probe_intake): a request (hold after arrival, s; absolute
+        # offset, rad) for the next frame's answer, the (ipoc, send time) it left with, the
+        # offset in force; then the probed intake and the latest command's placement error.
+        self._probe_request: tuple[float, FloatArray] | None = None
+        self._probe_sent: tuple[int, float, float] | None = None
+        self._probe_offset = np.zeros(6)
+        self.intake: RSIIntake | None = None
+        self._place = False
+        self._lead_rad = np.zeros(6)
+        # Lower envelope of arrival minus controller time over ARRIVAL_ENVELOPE_S: how late
+        # a frame left or travelled against its neighbours (a sender behind its own cycle).
+        self._arrivals: collections.deque[tuple[float, float]] = collections.deque()
         self._latency_sum_s = 0.0
 
     # ------------------------------------------------------------------ properties
@@ -554,6 +571,151 @@ class KukaRSIDriver(RobotDriver):
                         stopped=silent > max(10 * self.controller_period_s, 0.1),
                         late_count=late if isinstance(late, int) else -1)  # fmt: skip
 
+    # ------------------------------------------------------------------ intake probe
+
+    def probe_intake(
+        self,
+        *,
+        phases: int = 16,
+        rounds: int = 3,
+        fine: int = 8,
+        offset_rad: float = 1e-4,
+        place_commands: bool = True,
+    ) -> RSIIntake:
+        """Find where the controller takes an answer on the host clock (module
+        :mod:`timedexec.drivers._rsi_intake`); the arm must be at rest. 0.8-1 s at 12 ms.
+
+        Each trial holds the answer to one frame back by one of ``phases`` times spread over
+        a cycle, with an absolute correction of ``offset_rad`` on every axis (signs
+        alternating; zero again at the end), and counts the cycles until ``ASPos`` shows
+        it; the count steps up by one where the send time crosses the intake. Another round
+        while the step is not clean, ``rounds`` at most.
+
+        With ``place_commands`` (default) every later command is placed on the controller
+        clock: the correction leads by the commanded speed times how much later than
+        :data:`~timedexec.drivers._rsi_intake.PLACE_NOMINAL_PERIODS` after its call the
+        command is taken (:meth:`RSIIntake.placement_error_s`), so a speed stream acts
+        the same time after its calls whatever the frames' phase. The probed intake is in
+        :attr:`intake` (None again after a new RSI session).
+
+        Raises
+        ------
+        DriverError
+            RSI not running, the arm moving, frames without ``ASPos``, or no clean step
+            (the message lists the latencies seen: a controller that takes every in-time
+            answer at the next frame shows none).
+        """
+        period = self.controller_period_s
+        timeout = max(0.5, 20 * period)
+        leads: list[float] = []
+
+        def read() -> RSIState:
+            st = self.read_state(timeout_s=timeout)
+            leads.append(st.host_time_s - st.controller_time_s)
+            return st
+
+        state = read()  # the first frame may take the driver's first-frame wait
+        self._require_active("probe the intake")
+        if float(np.max(np.abs(self._profile.v))) > 0.0 or self._pending is not None:
+            raise DriverError("probe_intake needs the arm at rest with no command pending")
+        if state.q_setpoint is None:
+            raise DriverError(
+                "probe_intake needs the set-point in the frames: add ASPos to the RSI "
+                "configuration's SEND list"
+            )
+        # Per trial: the hold asked for, the send time minus the frame's controller time
+        # (the sender's lateness removed), the cycles until ASPos showed it.
+        trials: list[tuple[float, float, int | None]] = []
+        sign = 1.0
+
+        def trial(hold_s: float) -> None:
+            nonlocal sign
+            trials.append((hold_s, *self._probe_trial(read, hold_s, sign * offset_rad)))
+            sign = -sign
+
+        def fit() -> tuple[float, int, int, int, list[tuple[float, int | None]]]:
+            ref = min(leads)
+            kept = [(o - ref, lat) for _, o, lat in trials if 0.0 <= o - ref < period]
+            found = find_answer_step([k[0] for k in kept], [k[1] for k in kept], period)
+            return (*found, kept)
+
+        clean = False
+        try:
+            for _round in range(rounds):
+                for m in range(phases):
+                    trial(m * period / phases)
+                phase, miss, n, base, kept = fit()
+                clean = n >= len(trials) // 2 and miss <= max(2, n // 8) and base >= 0
+                if clean:
+                    break
+            if clean and fine > 0:  # a finer look at the step: holds within a spacing of it
+                ref = min(leads)
+                lag = float(np.median([o - ref - h for h, o, lat in trials if lat is not None]))
+                spacing = period / phases
+                for hold in np.linspace(-spacing, spacing, fine) + phase - lag:
+                    if 0.0 <= hold < period - spacing:
+                        trial(float(hold))
+                phase, miss, n, base, kept = fit()
+                clean = miss <= max(2, n // 8) and base >= 0
+        finally:
+            self._probe_trial(read, 0.0, 0.0)  # the arm back where it was
+        if not clean:
+            seen = ", ".join("-" if lat is None else str(lat) for _, _, lat in sorted(trials))
+            raise DriverError(
+                f"RSI intake probe: the set-point latencies over {len(trials)} held answers "
+                f"({seen} cycles, by hold) show no single step ({n} echoes, {miss} off "
+                "the best step): the controller takes every in-time answer at the same "
+                "cycle, or the host jitters by more than a period; commands stay placed by "
+                "their calls"
+            )
+        tried = [p for p, _ in kept]
+        before = max((p for p in tried if p < phase), default=max(tried) - period)
+        after = min((p for p in tried if p > phase), default=min(tried) + period)
+        fix = RSIIntake(
+            deadline_offset_s=min(leads) + phase,
+            period_s=period,
+            probed_at_s=time.monotonic(),
+            resolution_s=0.5 * (after - before),
+            arrival_offset_s=min(leads),
+            latency_cycles=base,
+            trials=n,
+            mismatches=miss,
+        )
+        with self._cmd_lock:
+            self.intake = fix
+            self._place = place_commands
+            self._lead_rad = np.zeros(6)
+        return fix
+
+    def _probe_trial(
+        self, read: Callable[[], RSIState], hold_s: float, offset_rad: float
+    ) -> tuple[float, int | None]:
+        """One held answer: (its send time minus its frame's controller time, s; cycles until
+        ASPos moved by half the change, or None within 12 frames)."""
+        offset = np.full(6, offset_rad)
+        change = float(np.max(np.abs(offset - self._probe_offset)))
+        with self._cmd_lock:
+            self._probe_sent = None
+            self._probe_request = (hold_s, offset)
+        baseline = None
+        sent: tuple[int, float, float] | None = None
+        for _ in range(40):
+            st = read()
+            if sent is None:
+                with self._cmd_lock:
+                    sent = self._probe_sent
+            if sent is None or st.ipoc <= sent[0]:
+                baseline = st.q_setpoint
+                continue
+            if baseline is None or st.q_setpoint is None:
+                break
+            cycles = round((st.ipoc - sent[0]) * self._clock.tick_s / self.controller_period_s)
+            if float(np.max(np.abs(st.q_setpoint - baseline))) > 0.5 * change or change == 0:
+                return sent[2] - sent[1], cycles
+            if cycles > 12:
+                break
+        return (math.nan if sent is None else sent[2] - sent[1]), None
+
     # ------------------------------------------------------------------ commands
 
     def _active(self) -> bool:
@@ -678,6 +840,17 @@ class KukaRSIDriver(RobotDriver):
 
     # ------------------------------------------------------------------ receive thread
 
+    def _arrival_lateness(self, t_rx: float, offset_s: float) -> float:
+        """How much later than the fastest frames of the last :data:`ARRIVAL_ENVELOPE_S` a
+        frame with arrival minus controller time ``offset_s`` came, s (>= 0)."""
+        env = self._arrivals
+        while env and env[-1][1] >= offset_s:
+            env.pop()
+        env.append((t_rx, offset_s))
+        while env[0][0] < t_rx - ARRIVAL_ENVELOPE_S:
+            env.popleft()
+        return offset_s - env[0][1]
+
     def _serve(self) -> None:
         sock = self._sock
         assert sock is not None
@@ -784,10 +957,14 @@ class KukaRSIDriver(RobotDriver):
         self._last_ipoc = frame.ipoc
         self._last_rx_s = t_rx
         self._last_q = q
+        controller_s = (frame.ipoc - self._ipoc_origin) * tick_s
+        if new_session:
+            self._arrivals.clear()
+        lateness = self._arrival_lateness(t_rx, t_rx - controller_s)
 
         state = RSIState(
             host_time_s=t_rx,
-            controller_time_s=(frame.ipoc - self._ipoc_origin) * tick_s,
+            controller_time_s=controller_s,
             q=q if q is not None else np.full(6, np.nan),
             qd=qd,
             raw=bytes(data),
@@ -810,15 +987,35 @@ class KukaRSIDriver(RobotDriver):
                 with self._cond:
                     st["last_protocol_error"] = f"packet_callback raised {exc!r}"
 
-        # ---- correction for this cycle, then answer at once
+        # ---- correction for this cycle, then answer at once (or when the probe asks)
         with self._cmd_lock:
             cmd = self._pending
             self._pending = None
+            probe = None if new_session else self._probe_request
+            self._probe_request = None
+            if new_session:
+                self.intake = None
+                self._lead_rad = np.zeros(6)
+                self._probe_offset = np.zeros(6)
+        target_before = prof.target.copy()
         if cmd is not None and not new_session:
             prof.apply(cmd)
         clamped = False if new_session else prof.step(period)
         corr = prof.corr
-        wire = corr if self.mode == "absolute" else corr - self._sent_corr
+        if probe is not None:
+            self._probe_offset = probe[1]
+            if probe[0] > 0.0:
+                wait_until(t_rx + probe[0], time.monotonic)
+        fix = self.intake
+        if fix is not None and self._place and cmd is not None and not new_session:
+            # The speed change this command makes, placed when its call meant it (lead).
+            # Taken by the controller's reckoning: a frame that left late is answered as
+            # if it had left on time (its lateness is the sender's, not the answer's).
+            late_s = fix.placement_error_s(controller_s, time.monotonic() - lateness,
+                                           cmd.call_host_s)  # fmt: skip
+            self._lead_rad = self._lead_rad + (cmd.qd - target_before) * late_s
+        total = np.clip(corr + self._lead_rad, prof.lo, prof.hi) + self._probe_offset
+        wire = total if self.mode == "absolute" else total - self._sent_corr
         answer = build_sen(
             frame.ipoc, wire, sen_type=self.sen_type, correction_tag=self.correction_tag
         )
@@ -833,7 +1030,10 @@ class KukaRSIDriver(RobotDriver):
             except OSError:
                 return  # robot port gone; the robot will time out
             t_tx = time.monotonic()
-            self._sent_corr = corr.copy()
+            self._sent_corr = total.copy()
+            if probe is not None:
+                with self._cmd_lock:
+                    self._probe_sent = (frame.ipoc, controller_s, t_tx - lateness)
         if cmd is not None and not math.isnan(t_tx):
             with self._cmd_lock:
                 rec = self._commands[cmd.index]
@@ -846,7 +1046,7 @@ class KukaRSIDriver(RobotDriver):
                 )
 
         # ---- bookkeeping and publication (after the answer left)
-        state = dataclasses.replace(state, correction=corr.copy(), answer_host_time_s=t_tx)
+        state = dataclasses.replace(state, correction=total.copy(), answer_host_time_s=t_tx)
         with self._cond:
             st["frames"] += 1
             self._frames_since_connect += 1
