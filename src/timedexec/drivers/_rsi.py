@@ -106,9 +106,6 @@ __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSISta
 
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
-#: Window of the arrivals' lower envelope that tells a late frame, s: short against the
-#: drift of a publisher's phase (the RSI twin's 0.4 ms/s), long against single late frames.
-ARRIVAL_ENVELOPE_S = 0.5
 
 
 class KukaRSIDriver(RobotDriver):
@@ -287,9 +284,6 @@ class KukaRSIDriver(RobotDriver):
         self.intake: RSIIntake | None = None
         self._place = False
         self._lead_rad = np.zeros(6)
-        # Lower envelope of arrival minus controller time over ARRIVAL_ENVELOPE_S: how late
-        # a frame left or travelled against its neighbours (a sender behind its own cycle).
-        self._arrivals: collections.deque[tuple[float, float]] = collections.deque()
         self._latency_sum_s = 0.0
 
     # ------------------------------------------------------------------ properties
@@ -623,8 +617,8 @@ class KukaRSIDriver(RobotDriver):
                 "probe_intake needs the set-point in the frames: add ASPos to the RSI "
                 "configuration's SEND list"
             )
-        # Per trial: the hold asked for, the send time minus the frame's controller time
-        # (the sender's lateness removed), the cycles until ASPos showed it.
+        # Per trial: the hold asked for, the send time minus the frame's controller time,
+        # the cycles until ASPos showed it.
         trials: list[tuple[float, float, int | None]] = []
         sign = 1.0
 
@@ -655,8 +649,9 @@ class KukaRSIDriver(RobotDriver):
                 for hold in np.linspace(-spacing, spacing, fine) + phase - lag:
                     if 0.0 <= hold < period - spacing:
                         trial(float(hold))
-                phase, miss, n, base, kept = fit()
-                clean = miss <= max(2, n // 8) and base >= 0
+                refined = fit()
+                if refined[1] <= max(2, refined[2] // 8) and refined[3] >= 0:
+                    phase, miss, n, base, kept = refined  # else the coarse step stands
         finally:
             self._probe_trial(read, 0.0, 0.0)  # the arm back where it was
         if not clean:
@@ -840,17 +835,6 @@ class KukaRSIDriver(RobotDriver):
 
     # ------------------------------------------------------------------ receive thread
 
-    def _arrival_lateness(self, t_rx: float, offset_s: float) -> float:
-        """How much later than the fastest frames of the last :data:`ARRIVAL_ENVELOPE_S` a
-        frame with arrival minus controller time ``offset_s`` came, s (>= 0)."""
-        env = self._arrivals
-        while env and env[-1][1] >= offset_s:
-            env.pop()
-        env.append((t_rx, offset_s))
-        while env[0][0] < t_rx - ARRIVAL_ENVELOPE_S:
-            env.popleft()
-        return offset_s - env[0][1]
-
     def _serve(self) -> None:
         sock = self._sock
         assert sock is not None
@@ -958,9 +942,6 @@ class KukaRSIDriver(RobotDriver):
         self._last_rx_s = t_rx
         self._last_q = q
         controller_s = (frame.ipoc - self._ipoc_origin) * tick_s
-        if new_session:
-            self._arrivals.clear()
-        lateness = self._arrival_lateness(t_rx, t_rx - controller_s)
 
         state = RSIState(
             host_time_s=t_rx,
@@ -1009,10 +990,7 @@ class KukaRSIDriver(RobotDriver):
         fix = self.intake
         if fix is not None and self._place and cmd is not None and not new_session:
             # The speed change this command makes, placed when its call meant it (lead).
-            # Taken by the controller's reckoning: a frame that left late is answered as
-            # if it had left on time (its lateness is the sender's, not the answer's).
-            late_s = fix.placement_error_s(controller_s, time.monotonic() - lateness,
-                                           cmd.call_host_s)  # fmt: skip
+            late_s = fix.placement_error_s(controller_s, time.monotonic(), cmd.call_host_s)
             self._lead_rad = self._lead_rad + (cmd.qd - target_before) * late_s
         total = np.clip(corr + self._lead_rad, prof.lo, prof.hi) + self._probe_offset
         wire = total if self.mode == "absolute" else total - self._sent_corr
@@ -1033,7 +1011,7 @@ class KukaRSIDriver(RobotDriver):
             self._sent_corr = total.copy()
             if probe is not None:
                 with self._cmd_lock:
-                    self._probe_sent = (frame.ipoc, controller_s, t_tx - lateness)
+                    self._probe_sent = (frame.ipoc, controller_s, t_tx)
         if cmd is not None and not math.isnan(t_tx):
             with self._cmd_lock:
                 rec = self._commands[cmd.index]
