@@ -106,6 +106,8 @@ __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSISta
 
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
+#: The intake probe counts a frame late against the fastest frame of this window, s.
+_PROBE_LATE_WINDOW_S = 0.5
 
 
 class KukaRSIDriver(RobotDriver):
@@ -602,10 +604,15 @@ class KukaRSIDriver(RobotDriver):
         period = self.controller_period_s
         timeout = max(0.5, 20 * period)
         leads: list[float] = []
+        late: dict[int, float] = {}  # ipoc -> how late the frame came (see below)
 
         def read() -> RSIState:
             st = self.read_state(timeout_s=timeout)
-            leads.append(st.host_time_s - st.controller_time_s)
+            lead = st.host_time_s - st.controller_time_s
+            leads.append(lead)
+            # Against the fastest of the last half second (a phase drifts, ~0.4 ms/s on the
+            # twin): a frame the controller sent late is answered as if on time there.
+            late[st.ipoc] = lead - min(leads[-round(_PROBE_LATE_WINDOW_S / period) :])
             return st
 
         state = read()  # the first frame may take the driver's first-frame wait
@@ -624,7 +631,8 @@ class KukaRSIDriver(RobotDriver):
 
         def trial(hold_s: float) -> None:
             nonlocal sign
-            trials.append((hold_s, *self._probe_trial(read, hold_s, sign * offset_rad)))
+            offset_s, cycles, ipoc = self._probe_trial(read, hold_s, sign * offset_rad)
+            trials.append((hold_s, offset_s - late.get(ipoc, 0.0), cycles))
             sign = -sign
 
         def fit() -> tuple[float, int, int, int, list[tuple[float, int | None]]]:
@@ -684,9 +692,9 @@ class KukaRSIDriver(RobotDriver):
 
     def _probe_trial(
         self, read: Callable[[], RSIState], hold_s: float, offset_rad: float
-    ) -> tuple[float, int | None]:
+    ) -> tuple[float, int | None, int]:
         """One held answer: (its send time minus its frame's controller time, s; cycles until
-        ASPos moved by half the change, or None within 12 frames)."""
+        ASPos moved by half the change, or None within 12 frames; its frame's IPOC)."""
         offset = np.full(6, offset_rad)
         change = float(np.max(np.abs(offset - self._probe_offset)))
         with self._cmd_lock:
@@ -706,10 +714,10 @@ class KukaRSIDriver(RobotDriver):
                 break
             cycles = round((st.ipoc - sent[0]) * self._clock.tick_s / self.controller_period_s)
             if float(np.max(np.abs(st.q_setpoint - baseline))) > 0.5 * change or change == 0:
-                return sent[2] - sent[1], cycles
+                return sent[2] - sent[1], cycles, sent[0]
             if cycles > 12:
                 break
-        return (math.nan if sent is None else sent[2] - sent[1]), None
+        return (math.nan, None, -1) if sent is None else (sent[2] - sent[1], None, sent[0])
 
     # ------------------------------------------------------------------ commands
 

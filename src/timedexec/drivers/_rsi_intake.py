@@ -25,7 +25,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-__all__ = ["PLACE_NOMINAL_PERIODS", "RSIIntake", "find_answer_step"]
+__all__ = ["PLACE_MARGIN_S", "PLACE_NOMINAL_PERIODS", "RSIIntake", "find_answer_step"]
+
+#: An answer sent less than this before the probed deadline counts as taken at the next
+#: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary (the
+#: largest where the packing phase is smallest: the step then lies at the end of the holds
+#: tried), and answers sent at once to frames that leave just after a boundary (phase
+#: 0.5-1 ms) fall right there; a wrong call moves that command's speed change by a whole
+#: period. Sending less than 1 ms before a real deadline takes a host 2.5 ms or more late.
+PLACE_MARGIN_S = 0.001
 
 #: Nominal time from a ``speedj`` call to the boundary its answer is taken at, in periods:
 #: a command issued right after frame ``k`` arrives leaves with the answer to frame
@@ -116,8 +124,9 @@ class RSIIntake:
     def placement_error_s(self, controller_time_s: float, send_s: float, call_s: float) -> float:
         """How much later than :data:`PLACE_NOMINAL_PERIODS` after its call (``call_s``) a
         command leaving at ``send_s`` in the answer to a frame of ``controller_time_s`` is
-        taken, s (the driver leads the correction by the commanded speed times this)."""
-        taken = self.deadline_after_s(controller_time_s, send_s)
+        taken (within :data:`PLACE_MARGIN_S` of a deadline: at the next), s; the driver
+        leads the command's speed change by this."""
+        taken = self.deadline_after_s(controller_time_s, send_s + PLACE_MARGIN_S)
         return taken - call_s - PLACE_NOMINAL_PERIODS * self.period_s
 
     def summary(self) -> dict[str, float | int]:
