@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from timedexec.drivers import KukaRSIDriver, RSIIntake
+from timedexec.drivers import KukaRSIDriver, RSIIntake, find_answer_step
 from timedexec.twins import RSITwin
 
 T12 = 0.012
@@ -21,8 +21,6 @@ def test_find_answer_step_reads_the_step_where_the_latency_goes_up() -> None:
     """The step of ``base -> base + 1`` cycles is found between the bracketing send phases,
     also with one trial on the wrong side (host jitter at the deadline) and lost echoes;
     when every trial shows ``base`` the step lies between the last phase and the period."""
-    from timedexec.drivers._rsi_intake import find_answer_step
-
     phases = np.arange(16) * T12 / 16  # 0.75 ms apart
     phase, miss, n, base = find_answer_step(phases, _latencies(phases, 0.0064), T12)
     assert (miss, n, base) == (0, 16, 9)

@@ -80,11 +80,10 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from timedexec._realtime import wait_until
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
 from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver
-from timedexec.drivers._rsi_intake import RSIIntake, find_answer_step
+from timedexec.drivers._rsi_intake import AnswerShaping, RSIIntake, probe_intake
 from timedexec.drivers._rsi_link import (
     FirstFrameWait,
     IpocClock,
@@ -106,8 +105,6 @@ __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSISta
 
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
-#: The intake probe counts a frame late against the fastest frame of this window, s.
-_PROBE_LATE_WINDOW_S = 0.5
 
 
 class KukaRSIDriver(RobotDriver):
@@ -277,15 +274,7 @@ class KukaRSIDriver(RobotDriver):
         self._sequence = -1
         self._sent_corr = np.zeros(6)
         self._stats: dict[str, Any] = dataclasses.asdict(RSIStats())
-        # The intake probe (probe_intake): a request (hold after arrival, s; absolute
-        # offset, rad) for the next frame's answer, the (ipoc, send time) it left with, the
-        # offset in force; then the probed intake and the latest command's placement error.
-        self._probe_request: tuple[float, FloatArray] | None = None
-        self._probe_sent: tuple[int, float, float] | None = None
-        self._probe_offset = np.zeros(6)
-        self.intake: RSIIntake | None = None
-        self._place = False
-        self._lead_rad = np.zeros(6)
+        self._shaping = AnswerShaping()  # the intake probe's trials, command placement
         self._latency_sum_s = 0.0
 
     # ------------------------------------------------------------------ properties
@@ -567,157 +556,17 @@ class KukaRSIDriver(RobotDriver):
                         stopped=silent > max(10 * self.controller_period_s, 0.1),
                         late_count=late if isinstance(late, int) else -1)  # fmt: skip
 
-    # ------------------------------------------------------------------ intake probe
-
-    def probe_intake(
-        self,
-        *,
-        phases: int = 16,
-        rounds: int = 3,
-        fine: int = 8,
-        offset_rad: float = 1e-4,
-        place_commands: bool = True,
-    ) -> RSIIntake:
-        """Find where the controller takes an answer on the host clock (module
-        :mod:`timedexec.drivers._rsi_intake`); the arm must be at rest. 0.8-1 s at 12 ms.
-
-        Each trial holds the answer to one frame back by one of ``phases`` times spread over
-        a cycle, with an absolute correction of ``offset_rad`` on every axis (signs
-        alternating; zero again at the end), and counts the cycles until ``ASPos`` shows
-        it; the count steps up by one where the send time crosses the intake. Another round
-        while the step is not clean, ``rounds`` at most.
-
-        With ``place_commands`` (default) every later command is placed on the controller
-        clock: the correction leads by the commanded speed times how much later than
-        :data:`~timedexec.drivers._rsi_intake.PLACE_NOMINAL_PERIODS` after its call the
-        command is taken (:meth:`RSIIntake.placement_error_s`), so a speed stream acts
-        the same time after its calls whatever the frames' phase. The probed intake is in
-        :attr:`intake` (None again after a new RSI session).
-
-        Raises
-        ------
-        DriverError
-            RSI not running, the arm moving, frames without ``ASPos``, or no clean step
-            (the message lists the latencies seen: a controller that takes every in-time
-            answer at the next frame shows none).
-        """
-        period = self.controller_period_s
-        timeout = max(0.5, 20 * period)
-        leads: list[float] = []
-        late: dict[int, float] = {}  # ipoc -> how late the frame came (see below)
-
-        def read() -> RSIState:
-            st = self.read_state(timeout_s=timeout)
-            lead = st.host_time_s - st.controller_time_s
-            leads.append(lead)
-            # Against the fastest of the last half second (a phase drifts, ~0.4 ms/s on the
-            # twin): a frame the controller sent late is answered as if on time there.
-            late[st.ipoc] = lead - min(leads[-round(_PROBE_LATE_WINDOW_S / period) :])
-            return st
-
-        state = read()  # the first frame may take the driver's first-frame wait
-        self._require_active("probe the intake")
-        if float(np.max(np.abs(self._profile.v))) > 0.0 or self._pending is not None:
-            raise DriverError("probe_intake needs the arm at rest with no command pending")
-        if state.q_setpoint is None:
-            raise DriverError(
-                "probe_intake needs the set-point in the frames: add ASPos to the RSI "
-                "configuration's SEND list"
-            )
-        # Per trial: the hold asked for, the send time minus the frame's controller time,
-        # the cycles until ASPos showed it.
-        trials: list[tuple[float, float, int | None]] = []
-        sign = 1.0
-
-        def trial(hold_s: float) -> None:
-            nonlocal sign
-            offset_s, cycles, ipoc = self._probe_trial(read, hold_s, sign * offset_rad)
-            trials.append((hold_s, offset_s - late.get(ipoc, 0.0), cycles))
-            sign = -sign
-
-        def fit() -> tuple[float, int, int, int, list[tuple[float, int | None]]]:
-            ref = min(leads)
-            kept = [(o - ref, lat) for _, o, lat in trials if 0.0 <= o - ref < period]
-            found = find_answer_step([k[0] for k in kept], [k[1] for k in kept], period)
-            return (*found, kept)
-
-        clean = False
-        try:
-            for _round in range(rounds):
-                for m in range(phases):
-                    trial(m * period / phases)
-                phase, miss, n, base, kept = fit()
-                clean = n >= len(trials) // 2 and miss <= max(2, n // 8) and base >= 0
-                if clean:
-                    break
-            if clean and fine > 0:  # a finer look at the step: holds within a spacing of it
-                ref = min(leads)
-                lag = float(np.median([o - ref - h for h, o, lat in trials if lat is not None]))
-                spacing = period / phases
-                for hold in np.linspace(-spacing, spacing, fine) + phase - lag:
-                    if 0.0 <= hold < period - spacing:
-                        trial(float(hold))
-                refined = fit()
-                if refined[1] <= max(2, refined[2] // 8) and refined[3] >= 0:
-                    phase, miss, n, base, kept = refined  # else the coarse step stands
-        finally:
-            self._probe_trial(read, 0.0, 0.0)  # the arm back where it was
-        if not clean:
-            seen = ", ".join("-" if lat is None else str(lat) for _, _, lat in sorted(trials))
-            raise DriverError(
-                f"RSI intake probe: the set-point latencies over {len(trials)} held answers "
-                f"({seen} cycles, by hold) show no single step ({n} echoes, {miss} off "
-                "the best step): the controller takes every in-time answer at the same "
-                "cycle, or the host jitters by more than a period; commands stay placed by "
-                "their calls"
-            )
-        tried = [p for p, _ in kept]
-        before = max((p for p in tried if p < phase), default=max(tried) - period)
-        after = min((p for p in tried if p > phase), default=min(tried) + period)
-        fix = RSIIntake(
-            deadline_offset_s=min(leads) + phase,
-            period_s=period,
-            probed_at_s=time.monotonic(),
-            resolution_s=0.5 * (after - before),
-            arrival_offset_s=min(leads),
-            latency_cycles=base,
-            trials=n,
-            mismatches=miss,
-        )
+    def probe_intake(self, *, place_commands: bool = True, **settings: Any) -> RSIIntake:
+        """Find where the controller takes an answer, the arm at rest (2-3.5 s at 12 ms;
+        ``settings``: ``phases``, ``rounds``, ``fine``, ``offset_rad`` of
+        :func:`timedexec.drivers._rsi_intake.probe_intake`, which raises DriverError when
+        RSI is not running, the arm moves, the frames lack ``ASPos`` or no clean step
+        shows). With ``place_commands`` each later command's speed change is led by how
+        much later than 1.5 periods after its call it is taken."""
+        fix = probe_intake(self, **settings)
         with self._cmd_lock:
-            self.intake = fix
-            self._place = place_commands
-            self._lead_rad = np.zeros(6)
+            self._shaping.use(fix, place_commands)
         return fix
-
-    def _probe_trial(
-        self, read: Callable[[], RSIState], hold_s: float, offset_rad: float
-    ) -> tuple[float, int | None, int]:
-        """One held answer: (its send time minus its frame's controller time, s; cycles until
-        ASPos moved by half the change, or None within 12 frames; its frame's IPOC)."""
-        offset = np.full(6, offset_rad)
-        change = float(np.max(np.abs(offset - self._probe_offset)))
-        with self._cmd_lock:
-            self._probe_sent = None
-            self._probe_request = (hold_s, offset)
-        baseline = None
-        sent: tuple[int, float, float] | None = None
-        for _ in range(40):
-            st = read()
-            if sent is None:
-                with self._cmd_lock:
-                    sent = self._probe_sent
-            if sent is None or st.ipoc <= sent[0]:
-                baseline = st.q_setpoint
-                continue
-            if baseline is None or st.q_setpoint is None:
-                break
-            cycles = round((st.ipoc - sent[0]) * self._clock.tick_s / self.controller_period_s)
-            if float(np.max(np.abs(st.q_setpoint - baseline))) > 0.5 * change or change == 0:
-                return sent[2] - sent[1], cycles, sent[0]
-            if cycles > 12:
-                break
-        return (math.nan, None, -1) if sent is None else (sent[2] - sent[1], None, sent[0])
 
     # ------------------------------------------------------------------ commands
 
@@ -980,27 +829,15 @@ class KukaRSIDriver(RobotDriver):
         with self._cmd_lock:
             cmd = self._pending
             self._pending = None
-            probe = None if new_session else self._probe_request
-            self._probe_request = None
+            probe, self._shaping.request = None if new_session else self._shaping.request, None
             if new_session:
-                self.intake = None
-                self._lead_rad = np.zeros(6)
-                self._probe_offset = np.zeros(6)
+                self._shaping.reset()
         target_before = prof.target.copy()
         if cmd is not None and not new_session:
             prof.apply(cmd)
         clamped = False if new_session else prof.step(period)
-        corr = prof.corr
-        if probe is not None:
-            self._probe_offset = probe[1]
-            if probe[0] > 0.0:
-                wait_until(t_rx + probe[0], time.monotonic)
-        fix = self.intake
-        if fix is not None and self._place and cmd is not None and not new_session:
-            # The speed change this command makes, placed when its call meant it (lead).
-            late_s = fix.placement_error_s(controller_s, time.monotonic(), cmd.call_host_s)
-            self._lead_rad = self._lead_rad + (cmd.qd - target_before) * late_s
-        total = np.clip(corr + self._lead_rad, prof.lo, prof.hi) + self._probe_offset
+        total = self._shaping.total(prof.corr, prof.lo, prof.hi, t_rx, controller_s, probe,
+                                    None if new_session else cmd, target_before)  # fmt: skip
         wire = total if self.mode == "absolute" else total - self._sent_corr
         answer = build_sen(
             frame.ipoc, wire, sen_type=self.sen_type, correction_tag=self.correction_tag
@@ -1019,7 +856,7 @@ class KukaRSIDriver(RobotDriver):
             self._sent_corr = total.copy()
             if probe is not None:
                 with self._cmd_lock:
-                    self._probe_sent = (frame.ipoc, controller_s, t_tx)
+                    self._shaping.sent = (frame.ipoc, controller_s, t_tx)
         if cmd is not None and not math.isnan(t_tx):
             with self._cmd_lock:
                 rec = self._commands[cmd.index]

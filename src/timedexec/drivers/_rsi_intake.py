@@ -22,10 +22,30 @@ the next frame (no step within the cycle) leaves no step: the probe says so.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
-__all__ = ["PLACE_MARGIN_S", "PLACE_NOMINAL_PERIODS", "RSIIntake", "find_answer_step"]
+import numpy as np
+
+from timedexec._realtime import wait_until
+from timedexec._types import FloatArray
+from timedexec.errors import DriverError
+
+__all__ = [
+    "PLACE_MARGIN_S",
+    "PLACE_NOMINAL_PERIODS",
+    "PROBE_LATE_WINDOW_S",
+    "AnswerShaping",
+    "RSIIntake",
+    "find_answer_step",
+    "probe_intake",
+]
+
+#: The probe counts a frame late against the fastest frame of this window, s (a phase
+#: drifts, ~0.4 ms/s on the twin).
+PROBE_LATE_WINDOW_S = 0.5
 
 #: An answer sent less than this before the probed deadline counts as taken at the next
 #: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary (the
@@ -139,3 +159,204 @@ class RSIIntake:
             "trials": self.trials,
             "mismatches": self.mismatches,
         }
+
+
+class AnswerShaping:
+    """What the RSI driver's answer thread adds to the integrated correction: the intake
+    probe's held answers and offsets, and, once probed, each command's placement (the
+    driver's command lock guards ``request``, ``sent`` and :meth:`use`).
+
+    Attributes
+    ----------
+    request : (float, ndarray) or None
+        For the next frame's answer: hold it this long after the frame's arrival, s, with
+        this absolute offset, rad (6,).
+    sent : (int, float, float) or None
+        The held answer's frame IPOC, its controller time and its send time, s.
+    offset_rad : ndarray (6,)
+        The probe's offset in force, rad.
+    intake : RSIIntake or None
+        The probed intake; ``place``: whether commands are placed by it.
+    lead_rad : ndarray (6,)
+        The sum of the commands' speed changes times their placement errors, rad.
+    """
+
+    def __init__(self) -> None:
+        self.request: tuple[float, FloatArray] | None = None
+        self.sent: tuple[int, float, float] | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """A new RSI session: no intake, no lead, no probe offset."""
+        self.intake: RSIIntake | None = None
+        self.place = False
+        self.lead_rad = np.zeros(6)
+        self.offset_rad = np.zeros(6)
+
+    def use(self, intake: RSIIntake, place: bool) -> None:
+        """Place the commands from now on by ``intake`` (if ``place``)."""
+        self.intake, self.place, self.lead_rad = intake, place, np.zeros(6)
+
+    def total(
+        self,
+        corr: FloatArray,
+        lo: FloatArray,
+        hi: FloatArray,
+        t_rx: float,
+        controller_s: float,
+        probe: tuple[float, FloatArray] | None,
+        cmd: Any,
+        target_before: FloatArray,
+    ) -> FloatArray:
+        """The absolute correction of this answer, rad (6,): ``corr`` (the profile's) plus
+        the lead inside [``lo``, ``hi``], plus the probe's offset; holds the answer as the
+        probe asked (``probe``: its request for this frame, arrived at ``t_rx``). ``cmd``:
+        the command applied at this frame (None: none), ``target_before`` the speeds it
+        replaced, rad/s."""
+        if probe is not None:
+            self.offset_rad = probe[1]
+            if probe[0] > 0.0:
+                wait_until(t_rx + probe[0], time.monotonic)
+        if self.intake is not None and self.place and cmd is not None:
+            # The speed change this command makes, placed when its call meant it.
+            late_s = self.intake.placement_error_s(controller_s, time.monotonic(), cmd.call_host_s)
+            self.lead_rad = self.lead_rad + (np.asarray(cmd.qd) - target_before) * late_s
+        return np.asarray(np.clip(corr + self.lead_rad, lo, hi) + self.offset_rad)
+
+
+def probe_intake(
+    drv: Any, *, phases: int = 16, rounds: int = 3, fine: int = 8, offset_rad: float = 1e-4
+) -> RSIIntake:
+    """Find where the controller takes an answer (module docstring) through a connected
+    :class:`~timedexec.drivers.KukaRSIDriver` ``drv``, the arm at rest.
+
+    Each trial holds the answer to one frame back by one of ``phases`` times spread over a
+    cycle, with an absolute correction of ``offset_rad`` on every axis (signs alternating;
+    zero again at the end), and counts the cycles until ``ASPos`` shows it; the count steps
+    up by one where the send time crosses the intake. Another round while the step is not
+    clean (``rounds`` at most), then ``fine`` trials within a spacing of it (kept if clean).
+    A trial's phase is its send time less its frame's IPOC time, less how late that frame
+    came against the fastest of the last :data:`PROBE_LATE_WINDOW_S` (the RSI twin answers
+    a frame it sent late as if it had left on time).
+
+    Raises
+    ------
+    DriverError
+        RSI not running, the arm moving, frames without ``ASPos``, or no clean step (the
+        message lists the latencies seen: a controller that takes every in-time answer at
+        the next frame shows none).
+    """
+    period = drv.controller_period_s
+    timeout = max(0.5, 20 * period)
+    leads: list[float] = []
+    late: dict[int, float] = {}  # ipoc -> how late the frame came (see below)
+
+    def read() -> Any:
+        st = drv.read_state(timeout_s=timeout)
+        lead = st.host_time_s - st.controller_time_s
+        leads.append(lead)
+        # Against the fastest of the last half second (a phase drifts, ~0.4 ms/s on the
+        # twin): a frame the controller sent late is answered as if on time there.
+        late[st.ipoc] = lead - min(leads[-round(PROBE_LATE_WINDOW_S / period) :])
+        return st
+
+    state = read()  # the first frame may take the driver's first-frame wait
+    drv._require_active("probe the intake")
+    if float(np.max(np.abs(drv._profile.v))) > 0.0 or drv._pending is not None:
+        raise DriverError("probe_intake needs the arm at rest with no command pending")
+    if state.q_setpoint is None:
+        raise DriverError(
+            "probe_intake needs the set-point in the frames: add ASPos to the RSI "
+            "configuration's SEND list"
+        )
+    # Per trial: the hold asked for, the send time minus the frame's controller time,
+    # the cycles until ASPos showed it.
+    trials: list[tuple[float, float, int | None]] = []
+    sign = 1.0
+
+    def trial(hold_s: float) -> None:
+        nonlocal sign
+        offset_s, cycles, ipoc = _trial(drv, read, hold_s, sign * offset_rad)
+        trials.append((hold_s, offset_s - late.get(ipoc, 0.0), cycles))
+        sign = -sign
+
+    def fit() -> tuple[float, int, int, int, list[tuple[float, int | None]]]:
+        ref = min(leads)
+        kept = [(o - ref, lat) for _, o, lat in trials if 0.0 <= o - ref < period]
+        found = find_answer_step([k[0] for k in kept], [k[1] for k in kept], period)
+        return (*found, kept)
+
+    clean = False
+    try:
+        for _round in range(rounds):
+            for m in range(phases):
+                trial(m * period / phases)
+            phase, miss, n, base, kept = fit()
+            clean = n >= len(trials) // 2 and miss <= max(2, n // 8) and base >= 0
+            if clean:
+                break
+        if clean and fine > 0:  # a finer look at the step: holds within a spacing of it
+            ref = min(leads)
+            lag = float(np.median([o - ref - h for h, o, lat in trials if lat is not None]))
+            spacing = period / phases
+            for hold in np.linspace(-spacing, spacing, fine) + phase - lag:
+                if 0.0 <= hold < period - spacing:
+                    trial(float(hold))
+            refined = fit()
+            if refined[1] <= max(2, refined[2] // 8) and refined[3] >= 0:
+                phase, miss, n, base, kept = refined  # else the coarse step stands
+    finally:
+        _trial(drv, read, 0.0, 0.0)  # the arm back where it was
+    if not clean:
+        seen = ", ".join("-" if lat is None else str(lat) for _, _, lat in sorted(trials))
+        raise DriverError(
+            f"RSI intake probe: the set-point latencies over {len(trials)} held answers "
+            f"({seen} cycles, by hold) show no single step ({n} echoes, {miss} off "
+            "the best step): the controller takes every in-time answer at the same "
+            "cycle, or the host jitters by more than a period; commands stay placed by "
+            "their calls"
+        )
+    tried = [p for p, _ in kept]
+    before = max((p for p in tried if p < phase), default=max(tried) - period)
+    after = min((p for p in tried if p > phase), default=min(tried) + period)
+    fix = RSIIntake(
+        deadline_offset_s=min(leads) + phase,
+        period_s=period,
+        probed_at_s=time.monotonic(),
+        resolution_s=0.5 * (after - before),
+        arrival_offset_s=min(leads),
+        latency_cycles=base,
+        trials=n,
+        mismatches=miss,
+    )
+    return fix
+
+
+def _trial(
+    drv: Any, read: Callable[[], Any], hold_s: float, offset_rad: float
+) -> tuple[float, int | None, int]:
+    """One held answer: (its send time minus its frame's controller time, s; cycles until
+    ASPos moved by half the change, or None within 12 frames; its frame's IPOC)."""
+    offset = np.full(6, offset_rad)
+    change = float(np.max(np.abs(offset - drv._shaping.offset_rad)))
+    with drv._cmd_lock:
+        drv._shaping.sent = None
+        drv._shaping.request = (hold_s, offset)
+    baseline = None
+    sent: tuple[int, float, float] | None = None
+    for _ in range(40):
+        st = read()
+        if sent is None:
+            with drv._cmd_lock:
+                sent = drv._shaping.sent
+        if sent is None or st.ipoc <= sent[0]:
+            baseline = st.q_setpoint
+            continue
+        if baseline is None or st.q_setpoint is None:
+            break
+        cycles = round((st.ipoc - sent[0]) * drv._clock.tick_s / drv.controller_period_s)
+        if float(np.max(np.abs(st.q_setpoint - baseline))) > 0.5 * change or change == 0:
+            return sent[2] - sent[1], cycles, sent[0]
+        if cycles > 12:
+            break
+    return (math.nan, None, -1) if sent is None else (sent[2] - sent[1], None, sent[0])
