@@ -48,8 +48,8 @@ def test_placement_error_counts_from_the_deadline_the_answer_makes() -> None:
     assert fix.deadline_after_s(c, c - 0.005) == pytest.approx(c - 0.0015)
     call = c + 0.004 - T12  # a call right after the previous frame, answered with this one
     assert fix.placement_error_s(c, c + 0.0045, call) == pytest.approx(0.0105 - 0.004 + T12 - 0.018)
-    # within 1 ms of a deadline: counted at the next (the probed deadline lies late)
-    assert fix.placement_error_s(c, c + 0.0098, call) == pytest.approx(0.0225 - 0.004 + T12 - 0.018)
+    # within 0.5 ms of a deadline: counted at the next (the probed deadline lies late)
+    assert fix.placement_error_s(c, c + 0.0102, call) == pytest.approx(0.0225 - 0.004 + T12 - 0.018)
 
 
 @pytest.mark.slow

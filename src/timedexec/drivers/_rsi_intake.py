@@ -49,11 +49,12 @@ PROBE_LATE_WINDOW_S = 0.5
 
 #: An answer sent less than this before the probed deadline counts as taken at the next
 #: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary (the
-#: largest where the packing phase is smallest: the step then lies at the end of the holds
+#: most where the packing phase is smallest: the step then lies at the end of the holds
 #: tried), and answers sent at once to frames that leave just after a boundary (phase
 #: 0.5-1 ms) fall right there; a wrong call moves that command's speed change by a whole
-#: period. Sending less than 1 ms before a real deadline takes a host 2.5 ms or more late.
-PLACE_MARGIN_S = 0.001
+#: period. With 1 ms, a host 2 ms late on frames that leave 9 ms into the cycle was
+#: miscounted the other way (8 ms too little lag on joints 1, 4, 6 in one weld).
+PLACE_MARGIN_S = 0.0005
 
 #: Nominal time from a ``speedj`` call to the boundary its answer is taken at, in periods:
 #: a command issued right after frame ``k`` arrives leaves with the answer to frame
