@@ -610,30 +610,30 @@ def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
 @pytest.mark.slow
 def test_weld_through_rsi_against_the_rsi_twin() -> None:
     """The KR 5 weld through RSI XML against the RSI twin (a fresh twin per weld, each weld
-    starting with the approach move): uncompensated the torch trails by 30-50 mm (measured
-    35.0-43.6 mm over four welds); RSI corrections are positions (the twin's position loop
-    follows them), so the tracking delay is measured through RSI from the uncompensated
-    run's reported positions: 65-100 ms (measured 80.7-91.8 ms per joint over three runs,
-    83.4-91.8 over six more; RSI has no intake probe, so the measurement is dated by the
-    package's arrival minus the mean response and carries the publisher's phase, up to
-    half of 12 ms, and any delay of the host in taking the package: in a loaded CI run
-    joint 1 read 73.2 ms); with it the torch is at least 4x nearer the seam than without
-    (measured 0.5-2.8 mm, 0.7-2.1 mm over nine more pairs on an idle machine; 5.5 mm once
-    in CI and 7.5 mm once right after the KR 5 evaluation test, against 35-44 mm). The
-    bound: the calibration weld's and the compensated weld's phases are independent, so
-    their dating can differ by a whole 12 ms period (6 mm at 0.5 m/s), and a host late in
-    taking packages adds its delay on top, without limit; so this asserts that the RSI
-    weld removes most of the lag, not a precision (that is the speedj welds' with the
-    intake probe). It had 4 mm, then 7 mm: both tighter than the dating allows."""
+    starting with the approach move, the RSI intake probed at rest first): uncompensated
+    the torch trails by 30-50 mm (measured 45.0-46.7 mm); RSI corrections are positions
+    (the twin's position loop follows them), so the tracking delay is measured through RSI
+    from the uncompensated run's reported positions, dated at the controller's cycle
+    boundary by the probe (``KukaRSIDriver.probe_intake``), with every command placed
+    1.5 periods after its call: 85-100 ms (measured 89.4-95.0 ms per joint over 20 welds of
+    10 seeds, within 0.0-0.7 ms of the twin's physical lag; dated by arrival it was
+    73.2-91.8 ms, carrying the publisher's 0.5-9.5 ms phase and the host's delays); with
+    it the torch is at least 8x nearer the seam than without (measured 0.09-3.4 mm per
+    weld against 45-47 mm: a command whose deadline the placement misjudges by a period
+    leaves its speed change a period off; 81-89 ms measured once with a 1 ms margin). The
+    bound was 4x (7.5 mm once) while the dating carried the phase: the calibration and
+    compensated welds' phases are independent, up to a whole 12 ms period (6 mm at
+    0.5 m/s) apart."""
     from timedexec.evaluation import weld_on_twin
 
     sp = plan_seam(default_cell("kr5"), Seam(), weld_s=0.8)
     none = weld_on_twin(sp, "kr5-sim", {"none": None})["none"]
     assert 30.0 < none.errors().stats()["torch_mean_mm"] < 50.0
     shift = measure_tracking_delays(none)
-    assert np.all((shift > 0.065) & (shift < 0.10)), shift
+    assert np.all((shift > 0.085) & (shift < 0.10)), shift
     comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
-    assert comp.errors().stats()["torch_mean_mm"] < none.errors().stats()["torch_mean_mm"] / 4
+    torch_mm = comp.errors().stats()["torch_mean_mm"]
+    assert torch_mm < none.errors().stats()["torch_mean_mm"] / 8, torch_mm
 
 
 def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim", extra=()):  # type: ignore[no-untyped-def]

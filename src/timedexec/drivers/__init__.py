@@ -23,6 +23,7 @@ from timedexec.drivers._url import (
 
 if TYPE_CHECKING:
     from timedexec.drivers._rsi import KukaRSIDriver
+    from timedexec.drivers._rsi_intake import RSIIntake, find_answer_step
     from timedexec.drivers._sim import SimDriver, VirtualGyro
     from timedexec.drivers._ur import URDriver, ur_robot_named
 
@@ -33,6 +34,7 @@ __all__ = [
     "URL_PARAMS",
     "HostTimeTap",
     "KukaRSIDriver",
+    "RSIIntake",
     "RSIState",
     "RobotDriver",
     "RobotState",
@@ -40,11 +42,14 @@ __all__ = [
     "SimDriver",
     "URDriver",
     "VirtualGyro",
+    "find_answer_step",
     "open_driver",
     "ur_robot_named",
 ]
 
 _LAZY = {
+    "RSIIntake": "timedexec.drivers._rsi_intake",
+    "find_answer_step": "timedexec.drivers._rsi_intake",
     "RSIState": "timedexec.drivers._rsi",
     "SimDriver": "timedexec.drivers._sim",
     "VirtualGyro": "timedexec.drivers._sim",

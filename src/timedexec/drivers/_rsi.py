@@ -83,6 +83,7 @@ from numpy.typing import ArrayLike
 from timedexec._rsi_xml import MAX_FRAME_BYTES, build_sen, parse_rob
 from timedexec._types import FloatArray
 from timedexec.drivers._base import RobotDriver
+from timedexec.drivers._rsi_intake import AnswerShaping, RSIIntake, probe_intake
 from timedexec.drivers._rsi_link import (
     FirstFrameWait,
     IpocClock,
@@ -100,7 +101,7 @@ from timedexec.drivers._rsi_records import RSICommandRecord, RSIState, RSIStats
 from timedexec.errors import ConfigError, DriverError, DriverTimeout, ProtocolError
 from timedexec.robots import RobotSpec, get_robot
 
-__all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIState", "RSIStats"]
+__all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSIStats"]
 
 
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
@@ -273,6 +274,7 @@ class KukaRSIDriver(RobotDriver):
         self._sequence = -1
         self._sent_corr = np.zeros(6)
         self._stats: dict[str, Any] = dataclasses.asdict(RSIStats())
+        self._shaping = AnswerShaping()  # the intake probe's trials, command placement
         self._latency_sum_s = 0.0
 
     # ------------------------------------------------------------------ properties
@@ -554,6 +556,18 @@ class KukaRSIDriver(RobotDriver):
                         stopped=silent > max(10 * self.controller_period_s, 0.1),
                         late_count=late if isinstance(late, int) else -1)  # fmt: skip
 
+    def probe_intake(self, *, place_commands: bool = True, **settings: Any) -> RSIIntake:
+        """Find where the controller takes an answer, the arm at rest (2-3.5 s at 12 ms;
+        ``settings``: ``phases``, ``rounds``, ``fine``, ``offset_rad`` of
+        :func:`timedexec.drivers._rsi_intake.probe_intake`, which raises DriverError when
+        RSI is not running, the arm moves, the frames lack ``ASPos`` or no clean step
+        shows). With ``place_commands`` each later command's speed change is led by how
+        much later than 1.5 periods after its call it is taken."""
+        fix = probe_intake(self, **settings)
+        with self._cmd_lock:
+            self._shaping.use(fix, place_commands)
+        return fix
+
     # ------------------------------------------------------------------ commands
 
     def _active(self) -> bool:
@@ -784,10 +798,11 @@ class KukaRSIDriver(RobotDriver):
         self._last_ipoc = frame.ipoc
         self._last_rx_s = t_rx
         self._last_q = q
+        controller_s = (frame.ipoc - self._ipoc_origin) * tick_s
 
         state = RSIState(
             host_time_s=t_rx,
-            controller_time_s=(frame.ipoc - self._ipoc_origin) * tick_s,
+            controller_time_s=controller_s,
             q=q if q is not None else np.full(6, np.nan),
             qd=qd,
             raw=bytes(data),
@@ -810,15 +825,20 @@ class KukaRSIDriver(RobotDriver):
                 with self._cond:
                     st["last_protocol_error"] = f"packet_callback raised {exc!r}"
 
-        # ---- correction for this cycle, then answer at once
+        # ---- correction for this cycle, then answer at once (or when the probe asks)
         with self._cmd_lock:
             cmd = self._pending
             self._pending = None
+            probe, self._shaping.request = None if new_session else self._shaping.request, None
+            if new_session:
+                self._shaping.reset()
+        target_before = prof.target.copy()
         if cmd is not None and not new_session:
             prof.apply(cmd)
         clamped = False if new_session else prof.step(period)
-        corr = prof.corr
-        wire = corr if self.mode == "absolute" else corr - self._sent_corr
+        total = self._shaping.total(prof.corr, prof.lo, prof.hi, t_rx, controller_s, probe,
+                                    None if new_session else cmd, target_before)  # fmt: skip
+        wire = total if self.mode == "absolute" else total - self._sent_corr
         answer = build_sen(
             frame.ipoc, wire, sen_type=self.sen_type, correction_tag=self.correction_tag
         )
@@ -833,7 +853,10 @@ class KukaRSIDriver(RobotDriver):
             except OSError:
                 return  # robot port gone; the robot will time out
             t_tx = time.monotonic()
-            self._sent_corr = corr.copy()
+            self._sent_corr = total.copy()
+            if probe is not None:
+                with self._cmd_lock:
+                    self._shaping.sent = (frame.ipoc, controller_s, t_tx)
         if cmd is not None and not math.isnan(t_tx):
             with self._cmd_lock:
                 rec = self._commands[cmd.index]
@@ -846,7 +869,7 @@ class KukaRSIDriver(RobotDriver):
                 )
 
         # ---- bookkeeping and publication (after the answer left)
-        state = dataclasses.replace(state, correction=corr.copy(), answer_host_time_s=t_tx)
+        state = dataclasses.replace(state, correction=total.copy(), answer_host_time_s=t_tx)
         with self._cond:
             st["frames"] += 1
             self._frames_since_connect += 1

@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -59,6 +59,7 @@ from timedexec.evaluation._onset import STRATEGIES, SimulatedOracle
 from timedexec.execution import (
     DelayPredictor,
     ExecutorSettings,
+    IntakeFix,
     StalenessLimits,
     TimedExecutor,
     check_model_robot,
@@ -776,11 +777,30 @@ def weld_on_twin(
             drv.port, robot=spec.name, effects=effects, q0_rad=q0, seed=seed, truth_path=truth,
             timeout_packets=2000,
         ) as twin:  # fmt: skip
+            # The controller's intake, probed at rest: commands placed and states dated
+            # by the controller's cycle, not by the frames' wandering phase.
+            probed = drv.probe_intake()
             ex = TimedExecutor(drv, by, settings.replace(compensate=value is not None))
             ex.connect()
             run = _weld_in_turn(ex, seam_plan, shift, settle_s, cruise_s, previous_welds)
+            run = replace(run, intake=_rsi_dating(probed, float(run.plan.meta["response_s"])))
             last: Any = ex.last_state
             # Driver controller time counts from its first IPOC; the twin's from its start.
             offset = twin.controller_time_of_ipoc(int(last.ipoc)) - last.controller_time_s
             out[name] = run.with_truth(twin.t0_host_s + offset)
     return out
+
+
+def _rsi_dating(probed: Any, response_s: float) -> IntakeFix:
+    """The RSI intake probe as the run's dating (:meth:`IntakeFix.dated`: each frame
+    sampled at its cycle boundary, the whole periods back chosen by ``response_s``)."""
+    return IntakeFix(
+        deadline_offset_s=probed.deadline_offset_s,
+        period_s=probed.period_s,
+        probed_at_s=probed.probed_at_s,
+        resolution_s=probed.resolution_s,
+        package_lead_s=(probed.arrival_offset_s - probed.deadline_offset_s) % probed.period_s,
+        trials=probed.trials,
+        mismatches=probed.mismatches,
+        arrival_offset_s=probed.arrival_offset_s,
+    ).dated(response_s)

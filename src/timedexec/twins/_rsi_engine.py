@@ -35,6 +35,12 @@ from timedexec.robots import forward_kinematics, get_robot
 from timedexec.twins._rsi_config import STOP_REASONS, RSITwinConfig
 
 _LATE_SEND_S = 0.001  # a frame leaving more than this after its send time counts as late
+#: The physics of a cycle waits for frames due up to this long after its boundary to leave
+#: first, s. Computing a cycle takes the twin's interpreter for 2-5 ms right after the
+#: boundary; where the packing phase was small (a frame due 0.5-3 ms after it) the I/O
+#: thread then sent 11 % of the frames 1-7 ms late on a loaded machine (a real controller
+#: sends on time). The physics' result does not change: its intake is by arrival time.
+_SEND_GUARD_S = 0.003
 _SWITCH_INTERVAL_S = 0.0002
 _T0_LEAD_S = 0.02  # controller time 0 lies this far after the twin is ready
 #: Below this joint speed (max over the joints, mean over a cycle) the arm is at rest, rad/s
@@ -325,8 +331,10 @@ class _Engine:
             now = time.monotonic()
             wait = 0.0
             with self.lock:
-                if self.heap and self.heap[0].send_time_s < boundary:
-                    wait = 0.0002  # a frame due before the boundary is about to leave
+                if self.heap and self.heap[0].send_time_s < boundary + _SEND_GUARD_S:
+                    # A frame due before the boundary, or just after it, is about to leave:
+                    # let it go before the cycle's physics takes the interpreter.
+                    wait = 0.0002
                 for _deadline, departed, send in self.pending.values():
                     if send >= boundary:
                         break

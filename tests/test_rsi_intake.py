@@ -1,0 +1,83 @@
+"""The RSI intake probe: where the controller takes an answer, found by holding answers
+back (``KukaRSIDriver.probe_intake``, ``timedexec.drivers._rsi_intake``), and the command
+placement it enables."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from timedexec.drivers import KukaRSIDriver, RSIIntake, find_answer_step
+from timedexec.twins import RSITwin
+
+T12 = 0.012
+
+
+def _latencies(phases: np.ndarray, step_s: float, base: int = 9) -> list[int | None]:
+    return [base + int(p > step_s) for p in phases]
+
+
+def test_find_answer_step_reads_the_step_where_the_latency_goes_up() -> None:
+    """The step of ``base -> base + 1`` cycles is found between the bracketing send phases,
+    also with one trial on the wrong side (host jitter at the deadline) and lost echoes;
+    when every trial shows ``base`` the step lies between the last phase and the period."""
+    phases = np.arange(16) * T12 / 16  # 0.75 ms apart
+    phase, miss, n, base = find_answer_step(phases, _latencies(phases, 0.0064), T12)
+    assert (miss, n, base) == (0, 16, 9)
+    assert phase == pytest.approx(0.5 * (phases[8] + phases[9]))  # 6.375 ms, 6.4 ms true
+    noisy = _latencies(phases, 0.0064)
+    noisy[10], noisy[3] = 9, None  # one trial late across the deadline, one echo lost
+    phase, miss, n, base = find_answer_step(phases, noisy, T12)
+    assert (miss, n, base) == (1, 15, 9)
+    assert abs(phase - 0.0064) < 0.75e-3
+    phase, miss, _, base = find_answer_step(phases, [9] * 16, T12)
+    assert miss == 0
+    assert base == 9
+    assert phase == pytest.approx(0.5 * (phases[-1] + T12))  # the wrap: 11.625 ms
+    assert np.isnan(find_answer_step(phases, [None] * 16, T12)[0])
+
+
+def test_placement_error_counts_from_the_deadline_the_answer_makes() -> None:
+    """An answer sent before a deadline is taken there, one sent after at the next; the
+    placement error is that deadline less the call less 1.5 periods."""
+    fix = RSIIntake(deadline_offset_s=0.0105, period_s=T12, probed_at_s=0.0, resolution_s=1e-4,
+                    arrival_offset_s=0.004, latency_cycles=9, trials=16, mismatches=0)  # fmt: skip
+    c = 2.0  # any frame's controller time
+    assert fix.deadline_after_s(c, c + 0.010) == pytest.approx(c + 0.0105)
+    assert fix.deadline_after_s(c, c + 0.011) == pytest.approx(c + 0.0225)
+    assert fix.deadline_after_s(c, c - 0.005) == pytest.approx(c - 0.0015)
+    call = c + 0.004 - T12  # a call right after the previous frame, answered with this one
+    assert fix.placement_error_s(c, c + 0.0045, call) == pytest.approx(0.0105 - 0.004 + T12 - 0.018)
+    # within 0.5 ms of a deadline: counted at the next (the probed deadline lies late)
+    assert fix.placement_error_s(c, c + 0.0102, call) == pytest.approx(0.0225 - 0.004 + T12 - 0.018)
+
+
+@pytest.mark.slow
+def test_probe_finds_the_twins_boundary_whatever_its_packing_phase() -> None:
+    """Against the RSI twin, the probed deadline lies at the twin's cycle boundary (mod a
+    period) for seeds whose packing phase differs by several ms, while the frames' earliest
+    arrival moves with that phase: dated by arrival, the states would carry it.
+
+    Measured on the shared two-core machine (load 3-5): deadline minus the twin's boundary
+    0.04-0.6 ms over 12 probes (the answer's trip to the twin, about 0.1 ms, is in it),
+    earliest arrival minus the boundary 12.7-21.3 ms. The bound, 1.5 ms: the coarse round
+    resolves a quarter of 1.5 ms around the step, the fine round a quarter of that, and a
+    twin behind its own cycle on a loaded machine (up to 11 % of its frames sent 1-7 ms late
+    where the phase is small) can still move a trial near the step."""
+    arrivals = []
+    for seed in (1, 3):
+        with KukaRSIDriver(0, robot="kr5", progress=False) as drv, RSITwin(
+            drv.port, robot="kr5", seed=seed, timeout_packets=2000
+        ) as twin:  # fmt: skip
+            state = drv.read_state(timeout_s=5.0)
+            fix = drv.probe_intake()
+            # Host time of the twin's boundary at the driver's controller time 0.
+            boundary = twin.t0_host_s + twin.controller_time_of_ipoc(state.ipoc)
+            boundary -= state.controller_time_s
+            off = (fix.deadline_offset_s - boundary + 0.5 * T12) % T12 - 0.5 * T12
+            assert abs(off) < 1.5e-3, (seed, off, fix.summary())
+            assert fix.trials >= 12
+            assert fix.latency_cycles >= 1
+            arrivals.append(fix.arrival_offset_s - boundary)
+            assert np.allclose(drv.read_state(timeout_s=1.0).correction, 0.0)  # put back
+    assert abs(arrivals[0] - arrivals[1]) > 3e-3, arrivals  # the phases differ (seeds 1, 3)
