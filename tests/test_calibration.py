@@ -68,7 +68,9 @@ def test_sigkill_at_random_moments_then_resume_records_each_trial_once(tmp_path)
     machine, 3 runs and an in-process resume take ~21 s. The first kill used to come 1-3 s
     after the start, during the imports, before the recording existed (here, every time);
     it now waits for the recording, so each of the 3 kills interrupts a run that writes to
-    it. The plan (that of ``--trials N --seed 3``) is given as a ``--plan`` file: drawing
+    it. A simulated trial takes ~75 ms, so a kill is placed by trials recorded (1-2 new
+    ones) plus a random moment inside the next (0-60 ms), not by wall time: a sleep of up
+    to 1 s after the first new trial let a run finish all 12 (CI, 2 kills of 3). The plan (that of ``--trials N --seed 3``) is given as a ``--plan`` file: drawing
     it imports scipy.stats, ~1.5 s of every run's start-up (the Ctrl-C test below resumes
     a ``--trials`` run)."""
     out = tmp_path / "resume.h5"
@@ -103,10 +105,11 @@ def test_sigkill_at_random_moments_then_resume_records_each_trial_once(tmp_path)
         proc = subprocess.Popen(cmd(), env=env)
         if attempt == 0:  # in the still recording (right after the file is created) or so
             wait_for(out.exists, proc)
-            time.sleep(rng.uniform(0.0, 1.5))
-        else:  # mid-sweep: after it recorded something new, at a random moment
-            wait_for(lambda before=before: recorded() > before, proc)
-            time.sleep(rng.uniform(0.0, 1.0))
+            time.sleep(rng.uniform(0.0, 0.3))
+        else:  # mid-sweep: after it recorded 1-2 new trials, at a random moment inside one
+            k = rng.randint(1, 2)
+            wait_for(lambda before=before, k=k: recorded() >= before + k, proc)
+            time.sleep(rng.uniform(0.0, 0.06))
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
             kills += 1
