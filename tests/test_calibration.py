@@ -65,13 +65,15 @@ def test_sigkill_at_random_moments_then_resume_records_each_trial_once(tmp_path)
     16 trials. Each run of the command costs several seconds before its first trial
     (start-up, the move to the start configuration, the pre-flight) whatever it then
     records, so the runs, not the trials, are the test's time: 6 runs took 32 s on a quiet
-    machine, 3 runs and an in-process resume take ~21 s. The first kill used to come 1-3 s
+    machine; 3 runs and an in-process resume took 7.2-7.4 s idle, 10.3-10.6 s with
+    both cores busy. The first kill used to come 1-3 s
     after the start, during the imports, before the recording existed (here, every time);
     it now waits for the recording, so each of the 3 kills interrupts a run that writes to
     it. A simulated trial takes ~75 ms, so a kill is placed by trials recorded (1-2 new
     ones) plus a random moment inside the next (0-60 ms), not by wall time: a sleep of up
-    to 1 s after the first new trial let a run finish all 12 (CI, 2 kills of 3). The plan (that of ``--trials N --seed 3``) is given as a ``--plan`` file: drawing
-    it imports scipy.stats, ~1.5 s of every run's start-up (the Ctrl-C test below resumes
+    to 1 s after the first new trial let a run finish all 12 (CI, 2 kills of 3). The plan
+    (that of ``--trials N --seed 3``) is given as a ``--plan`` file: drawing it imports
+    scipy.stats, ~1.5 s of every run's start-up (the Ctrl-C test below resumes
     a ``--trials`` run)."""
     out = tmp_path / "resume.h5"
     rng = random.Random(12345)
