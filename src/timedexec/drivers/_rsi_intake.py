@@ -49,9 +49,10 @@ __all__ = [
 PROBE_LATE_WINDOW_S = 0.5
 
 #: An answer sent less than this before the probed deadline counts as taken at the next
-#: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary (the
-#: most where the packing phase is smallest: the step then lies at the end of the holds
-#: tried), and answers sent at once to frames that leave just after a boundary (phase
+#: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary with an
+#: equal-weight step fit (the most where the packing phase is smallest: the step then lies
+#: at the end of the holds tried; -0.18 to +0.48 ms over seeds 1-4 with the weighted fit of
+#: :func:`~timedexec.drivers.find_latency_step`), and answers sent at once to frames that leave just after a boundary (phase
 #: 0.5-1 ms) fall right there; a wrong call moves that command's speed change by a whole
 #: period. With 1 ms, a host 2 ms late on frames that leave 9 ms into the cycle was
 #: miscounted the other way (8 ms too little lag on joints 1, 4, 6 in one weld).
