@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from timedexec.drivers import KukaRSIDriver, RSIIntake, find_answer_step
+from timedexec.drivers import KukaRSIDriver, RSIIntake, find_latency_step
 from timedexec.twins import RSITwin
 
 T12 = 0.012
@@ -17,24 +17,29 @@ def _latencies(phases: np.ndarray, step_s: float, base: int = 9) -> list[int | N
     return [base + int(p > step_s) for p in phases]
 
 
-def test_find_answer_step_reads_the_step_where_the_latency_goes_up() -> None:
+def test_the_rsi_probe_shares_the_step_search_and_its_weighting() -> None:
     """The step of ``base -> base + 1`` cycles is found between the bracketing send phases,
-    also with one trial on the wrong side (host jitter at the deadline) and lost echoes;
-    when every trial shows ``base`` the step lies between the last phase and the period."""
+    also with a delayed answer before the deadline and a lost echo; a trial that made a
+    cycle the step says it missed weighs 3x (an answer is delayed, never early), and when
+    every trial shows ``base`` the step lies between the last phase and the period."""
     phases = np.arange(16) * T12 / 16  # 0.75 ms apart
-    phase, miss, n, base = find_answer_step(phases, _latencies(phases, 0.0064), T12)
-    assert (miss, n, base) == (0, 16, 9)
-    assert phase == pytest.approx(0.5 * (phases[8] + phases[9]))  # 6.375 ms, 6.4 ms true
+    step = find_latency_step(phases, _latencies(phases, 0.0064), T12)
+    assert (step.mismatches, step.trials, step.base) == (0, 16, 9)
+    assert step.phase_s == pytest.approx(0.5 * (phases[8] + phases[9]))  # 6.375 ms, 6.4 true
     noisy = _latencies(phases, 0.0064)
-    noisy[10], noisy[3] = 9, None  # one trial late across the deadline, one echo lost
-    phase, miss, n, base = find_answer_step(phases, noisy, T12)
-    assert (miss, n, base) == (1, 15, 9)
-    assert abs(phase - 0.0064) < 0.75e-3
-    phase, miss, _, base = find_answer_step(phases, [9] * 16, T12)
-    assert miss == 0
-    assert base == 9
-    assert phase == pytest.approx(0.5 * (phases[-1] + T12))  # the wrap: 11.625 ms
-    assert np.isnan(find_answer_step(phases, [None] * 16, T12)[0])
+    noisy[7], noisy[3] = 10, None  # one answer delayed across the deadline, one echo lost
+    step = find_latency_step(phases, noisy, T12)
+    assert (step.mismatches, step.trials, step.base) == (1, 15, 9)
+    assert abs(step.phase_s - 0.0064) < 0.75e-3  # one spacing
+    early = _latencies(phases, 0.0064)
+    early[10] = 9  # made a cycle past the step: cheaper as 1 delayed trial before a later step
+    assert find_latency_step(phases, early, T12).phase_s == pytest.approx(
+        0.5 * (phases[10] + phases[11])
+    )
+    step = find_latency_step(phases, [9] * 16, T12)
+    assert (step.mismatches, step.base) == (0, 9)
+    assert step.phase_s == pytest.approx(0.5 * (phases[-1] + T12))  # the wrap: 11.625 ms
+    assert np.isnan(find_latency_step(phases, [None] * 16, T12).phase_s)
 
 
 def test_placement_error_counts_from_the_deadline_the_answer_makes() -> None:

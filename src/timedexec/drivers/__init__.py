@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from timedexec.drivers._base import RobotDriver, RobotState
+from timedexec.drivers._step import EARLY_WEIGHT, LatencyStep, find_latency_step
 from timedexec.drivers._tap import HostTimeTap
 from timedexec.drivers._url import (
     DEFAULT_SIM_ROBOT,
@@ -23,17 +24,19 @@ from timedexec.drivers._url import (
 
 if TYPE_CHECKING:
     from timedexec.drivers._rsi import KukaRSIDriver
-    from timedexec.drivers._rsi_intake import RSIIntake, find_answer_step
+    from timedexec.drivers._rsi_intake import RSIIntake
     from timedexec.drivers._sim import SimDriver, VirtualGyro
     from timedexec.drivers._ur import URDriver, ur_robot_named
 
 __all__ = [
     "DEFAULT_SIM_ROBOT",
+    "EARLY_WEIGHT",
     "SCHEMES",
     "SWEEP_PARAMS",
     "URL_PARAMS",
     "HostTimeTap",
     "KukaRSIDriver",
+    "LatencyStep",
     "RSIIntake",
     "RSIState",
     "RobotDriver",
@@ -42,14 +45,13 @@ __all__ = [
     "SimDriver",
     "URDriver",
     "VirtualGyro",
-    "find_answer_step",
+    "find_latency_step",
     "open_driver",
     "ur_robot_named",
 ]
 
 _LAZY = {
     "RSIIntake": "timedexec.drivers._rsi_intake",
-    "find_answer_step": "timedexec.drivers._rsi_intake",
     "RSIState": "timedexec.drivers._rsi",
     "SimDriver": "timedexec.drivers._sim",
     "VirtualGyro": "timedexec.drivers._sim",

@@ -7,7 +7,8 @@ packing phase wanders through 0.5-9.5 ms of the KR 5's 12 ms cycle over 47 s): d
 arrival, or by the lower envelope of arrival minus IPOC time over a weld's few seconds, a
 state's sampling instant and a command's action move with that phase from run to run.
 
-The boundary itself does not move with it. :func:`find_answer_step` reads it from answers
+The boundary itself does not move with it. :func:`~timedexec.drivers.find_latency_step` (the
+UR probe's step search too, a delayed answer weighed as such) reads it from answers
 the driver holds back on purpose (:meth:`~timedexec.drivers.KukaRSIDriver.probe_intake`,
 the arm at rest): each trial answers one frame a chosen time after its arrival with a tiny
 absolute correction (1e-4 rad, signs alternating) and counts the cycles until the
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +32,7 @@ import numpy as np
 
 from timedexec._realtime import wait_until
 from timedexec._types import FloatArray
+from timedexec.drivers._step import LatencyStep, find_latency_step
 from timedexec.errors import DriverError
 
 __all__ = [
@@ -39,7 +41,6 @@ __all__ = [
     "PROBE_LATE_WINDOW_S",
     "AnswerShaping",
     "RSIIntake",
-    "find_answer_step",
     "probe_intake",
 ]
 
@@ -48,9 +49,10 @@ __all__ = [
 PROBE_LATE_WINDOW_S = 0.5
 
 #: An answer sent less than this before the probed deadline counts as taken at the next
-#: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary (the
-#: most where the packing phase is smallest: the step then lies at the end of the holds
-#: tried), and answers sent at once to frames that leave just after a boundary (phase
+#: boundary, s. The probed deadline lay 0.07-0.84 ms after the RSI twin's boundary with an
+#: equal-weight step fit (the most where the packing phase is smallest: the step then lies
+#: at the end of the holds tried; -0.18 to +0.48 ms over seeds 1-4 with the weighted fit of
+#: :func:`~timedexec.drivers.find_latency_step`), and answers sent at once to frames that leave just after a boundary (phase
 #: 0.5-1 ms) fall right there; a wrong call moves that command's speed change by a whole
 #: period. With 1 ms, a host 2 ms late on frames that leave 9 ms into the cycle was
 #: miscounted the other way (8 ms too little lag on joints 1, 4, 6 in one weld).
@@ -62,41 +64,6 @@ PLACE_MARGIN_S = 0.0005
 #: probed, the driver places each command as if taken this long after its call
 #: (:meth:`RSIIntake.placement_error_s`), whatever the frames' phase.
 PLACE_NOMINAL_PERIODS = 1.5
-
-
-def find_answer_step(
-    phases_s: Sequence[float], latencies: Sequence[int | None], period_s: float
-) -> tuple[float, int, int, int]:
-    """The send phase where the answers' latency steps up by one cycle.
-
-    ``latencies[m]`` (cycles until the set-point showed the answer, None if never) of an
-    answer sent ``phases_s[m]`` (in [0, period)) after a fixed reference of its frame's
-    cycle. Over one period the latency is ``base`` before the intake and ``base + 1`` after
-    it; the step may also lie between the last phase and the period, where every trial
-    shows ``base``. (The same search as the UR probe's, which lives in a layer above.)
-
-    Returns
-    -------
-    (phase_s, mismatches, trials, base) : the step's phase (the middle of the bracketing
-        pair, in [0, period)), the trials off the fitted step, the trials with an echo, the
-        latency before the step (-1 without echoes; the phase is then NaN).
-    """
-    pairs = sorted(
-        (float(p), int(v)) for p, v in zip(phases_s, latencies, strict=True) if v is not None
-    )
-    if not pairs:
-        return math.nan, 0, 0, -1
-    ph = [p[0] for p in pairs]
-    lat = [p[1] for p in pairs]
-    best: tuple[int, float, int] | None = None
-    for base in sorted(set(lat)):
-        for j in range(1, len(ph) + 1):  # the step lies after ph[j - 1] (j == len: wrap)
-            miss = sum(v != base + (i >= j) for i, v in enumerate(lat))
-            edge = ph[j] if j < len(ph) else period_s + ph[0]
-            if best is None or miss < best[0]:
-                best = (miss, 0.5 * (ph[j - 1] + edge) % period_s, base)
-    assert best is not None
-    return best[1], best[0], len(ph), best[2]
 
 
 @dataclass(frozen=True)
@@ -281,56 +248,59 @@ def probe_intake(
         trials.append((hold_s, offset_s - late.get(ipoc, 0.0), cycles))
         sign = -sign
 
-    def fit() -> tuple[float, int, int, int, list[tuple[float, int | None]]]:
+    def fit() -> LatencyStep:
         ref = min(leads)
         kept = [(o - ref, lat) for _, o, lat in trials if 0.0 <= o - ref < period]
-        found = find_answer_step([k[0] for k in kept], [k[1] for k in kept], period)
-        return (*found, kept)
+        return find_latency_step([k[0] for k in kept], [k[1] for k in kept], period)
 
     clean = False
     try:
         for _round in range(rounds):
             for m in range(phases):
                 trial(m * period / phases)
-            phase, miss, n, base, kept = fit()
-            clean = n >= len(trials) // 2 and miss <= max(2, n // 8) and base >= 0
+            step = fit()
+            clean = step.trials >= len(trials) // 2 and _few_off(step)
             if clean:
                 break
         if clean and fine > 0:  # a finer look at the step: holds within a spacing of it
             ref = min(leads)
             lag = float(np.median([o - ref - h for h, o, lat in trials if lat is not None]))
             spacing = period / phases
-            for hold in np.linspace(-spacing, spacing, fine) + phase - lag:
+            for hold in np.linspace(-spacing, spacing, fine) + step.phase_s - lag:
                 if 0.0 <= hold < period - spacing:
                     trial(float(hold))
             refined = fit()
-            if refined[1] <= max(2, refined[2] // 8) and refined[3] >= 0:
-                phase, miss, n, base, kept = refined  # else the coarse step stands
+            if _few_off(refined):
+                step = refined  # else the coarse step stands
     finally:
         _trial(drv, read, 0.0, 0.0)  # the arm back where it was
     if not clean:
         seen = ", ".join("-" if lat is None else str(lat) for _, _, lat in sorted(trials))
         raise DriverError(
             f"RSI intake probe: the set-point latencies over {len(trials)} held answers "
-            f"({seen} cycles, by hold) show no single step ({n} echoes, {miss} off "
+            f"({seen} cycles, by hold) show no single step ({step.trials} echoes, "
+            f"{step.mismatches} off "
             "the best step): the controller takes every in-time answer at the same "
             "cycle, or the host jitters by more than a period; commands stay placed by "
             "their calls"
         )
-    tried = [p for p, _ in kept]
-    before = max((p for p in tried if p < phase), default=max(tried) - period)
-    after = min((p for p in tried if p > phase), default=min(tried) + period)
-    fix = RSIIntake(
-        deadline_offset_s=min(leads) + phase,
+    # Half the bracketing pair's distance, or as far as a rival step the trials hardly tell
+    # from it (the UR probe's rule).
+    return RSIIntake(
+        deadline_offset_s=min(leads) + step.phase_s,
         period_s=period,
         probed_at_s=time.monotonic(),
-        resolution_s=0.5 * (after - before),
+        resolution_s=0.5 * step.gap_s + step.rival_s,
         arrival_offset_s=min(leads),
-        latency_cycles=base,
-        trials=n,
-        mismatches=miss,
+        latency_cycles=step.base,
+        trials=step.trials,
+        mismatches=step.mismatches,
     )
-    return fix
+
+
+def _few_off(step: LatencyStep) -> bool:
+    """Whether a fit is clean: echoes, and at most 2 trials or one in 8 off the step."""
+    return step.base >= 0 and step.mismatches <= max(2, step.trials // 8)
 
 
 def _trial(

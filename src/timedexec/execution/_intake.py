@@ -24,10 +24,10 @@ A loaded host or link only ever delays a command (on a two-core host beside two 
 loops, 0.3-2.4 ms from the send to the independent peer's register, against 0.1 ms idle),
 so a trial right before the deadline can miss its intake, and one round cannot tell that
 from a deadline a step earlier: the CI run of 2026-11-28 dated the samples 0.50 ms early
-that way. The fit therefore weighs a trial that made an intake the step says it missed
-three times one that missed (:data:`EARLY_WEIGHT`), and the probe re-tests the two send
-phases that bracket the step until it stays put (:data:`CONFIRM_STABLE`); how far it still
-moved widens ``resolution_s``. What no probe can see is a link slow on every send (the
+that way. The fit (:func:`timedexec.drivers.find_latency_step`, the RSI probe's too)
+therefore weighs a trial that made an intake the step says it missed three times one that
+missed, and the probe re-tests the two send phases that bracket the step until it stays
+put (:data:`CONFIRM_STABLE`); how far it still moved widens ``resolution_s``. What no probe can see is a link slow on every send (the
 deadline it finds is then the one this host can make, earlier by the extra delay; beside
 the busy loops the dating came out -0.38 to +0.26 ms off the peer's truth).
 """
@@ -40,11 +40,11 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from timedexec._realtime import wait_until
-from timedexec.drivers import RobotState
+from timedexec.drivers import RobotState, find_latency_step
 from timedexec.errors import DriverError
 from timedexec.execution._cycle import IntakeFix
 
-__all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "find_intake_step", "probe_intake"]
+__all__ = ["PROBE_PHASES", "PROBE_SPEED_RAD_S", "probe_intake"]
 
 #: Speed of each probe command, rad/s (every joint; 1e-4 rad/s for a few cycles moves a
 #: joint by microradians, and signs alternate so the arm ends where it started).
@@ -56,17 +56,6 @@ ECHO_PACKAGES = 12
 #: Controller time after which a probe command still without its echo is sent again, s
 #: (half the 100 ms the controller's watchdog allows between commands).
 FEED_S = 0.05
-#: Weight of a trial that made an intake the fitted step says it missed, against 1 for one
-#: that missed an intake the step says it made. A command reaches the controller late or
-#: on time, never early: host preemption around the send and a loaded link or receiver
-#: delay it (on a loaded two-core host, 0.3-2 ms to the independent peer's register where
-#: idle 0.1 ms), so a miss is often a delay; a hit past the deadline needs the intake
-#: itself to run late (the peer's cycle, 0.1-0.35 ms in one trial in five under load;
-#: never on a controller with a real-time intake): rarer. Equal weights put the step at
-#: the first of a run of delayed trials before the deadline (a whole step early, the CI
-#: failure of 2026-11-28); the fit now calls a hit an outlier only where explaining it as
-#: the step would take more than three delayed misses.
-EARLY_WEIGHT = 3
 #: Trials off the fitted step that a clean coarse round may hold, or one in four where
 #: more (a link too loaded to trust, or a target that does not follow the commands):
 #: then another round of ``phases``.
@@ -82,53 +71,6 @@ CONFIRM_STABLE = 4
 CONFIRM_STABLE_LOADED = 8
 #: Re-tests at most (~3 cycles each).
 CONFIRM_TRIALS = 16
-
-
-def find_intake_step(
-    phases_s: Sequence[float], latencies: Sequence[int | None], period_s: float
-) -> tuple[float, float, int, int, float]:
-    """The send phase where the echo latency steps up by one cycle.
-
-    ``latencies[m]`` (cycles, None for a lost trial) of a command sent ``phases_s[m]``
-    after a reference (in [0, period), any order; trials at one phase are not split).
-    Over one period the latency is ``base`` before the deadline and ``base + 1`` after it
-    (the step may also lie between the last phase and the period, where every trial shows
-    ``base``). The step minimises the trials off it, a trial showing fewer cycles than the
-    step says counting :data:`EARLY_WEIGHT` times (a command is delayed far more often
-    than an intake runs late).
-
-    Returns
-    -------
-    (phase_s, gap_s, mismatches, trials, rival_s) : the deadline's phase (middle of the
-        bracketing pair of trials), the distance between that pair, s, the trials off the
-        fitted step, the trials with an echo, and how far from it the farthest rival step
-        lies that the trials favour less than one outlier would (a cost within
-        :data:`EARLY_WEIGHT` of the best; 0 where none: one clear step), s.
-    """
-    obs = sorted(
-        (float(p), int(v)) for p, v in zip(phases_s, latencies, strict=True) if v is not None
-    )
-    if not obs:
-        return math.nan, math.nan, 0, 0, 0.0
-    ph = [p for p, _ in obs]
-    lat = [v for _, v in obs]
-    fits: list[tuple[int, int, float, float]] = []  # (cost, off, phase, gap) per step
-    for base in sorted(set(lat)):
-        for j in range(1, len(ph) + 1):  # the step lies after ph[j - 1] (j == len: wrap)
-            if j < len(ph) and ph[j] == ph[j - 1]:
-                continue  # not between trials sent at one phase
-            late = sum(v > base + (i >= j) for i, v in enumerate(lat))
-            early = sum(v < base + (i >= j) for i, v in enumerate(lat))
-            edge = ph[j] if j < len(ph) else period_s + ph[0]
-            phase = 0.5 * (ph[j - 1] + edge) % period_s
-            fits.append((late + EARLY_WEIGHT * early, late + early, phase, edge - ph[j - 1]))
-    best = min(fits, key=lambda f: f[0])  # the first of equals
-    rival = max(
-        abs((f[2] - best[2] + 0.5 * period_s) % period_s - 0.5 * period_s)
-        for f in fits
-        if f[0] < best[0] + EARLY_WEIGHT
-    )
-    return best[2], best[3], best[1], len(ph), rival
 
 
 def probe_intake(
@@ -193,7 +135,8 @@ def probe_intake(
         # step is placed earlier, which like any delay can make it miss, never make it.
         observed.append((math.floor(sent / step + 1e-6) * step % period_s, lat))
         sign = -sign
-        return find_intake_step([p for p, _ in observed], [v for _, v in observed], period_s)
+        fit = find_latency_step([p for p, _ in observed], [v for _, v in observed], period_s)
+        return fit.phase_s, fit.gap_s, fit.mismatches, fit.trials, fit.rival_s
 
     positions: list[float] = []  # the step's phase after each re-test
 
