@@ -21,10 +21,11 @@ from timedexec.learning._bundle import (
     ARRAYS_NAME,
     BUNDLE_FORMAT,
     MANIFEST_NAME,
+    DelayBounds,
     DelayModel,
     DelayPrediction,
 )
-from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
+from timedexec.learning._calibrate import bound_quantile, gaussian_coverage, std_scale_factor
 from timedexec.learning._features import (
     Collapsed,
     collapse_replicates,
@@ -87,6 +88,7 @@ __all__ = [
     "WARM_AFTER_S",
     "CVResult",
     "Collapsed",
+    "DelayBounds",
     "DelayGP",
     "DelayMethod",
     "DelayModel",
@@ -101,6 +103,7 @@ __all__ = [
     "PhysicalLinearModel",
     "Predictor",
     "TrainResult",
+    "bound_quantile",
     "build_predictor",
     "bundled_model_dir",
     "check_methods",
