@@ -21,11 +21,15 @@ from timedexec.learning._bundle import (
     ARRAYS_NAME,
     BUNDLE_FORMAT,
     MANIFEST_NAME,
-    DelayBounds,
     DelayModel,
     DelayPrediction,
 )
-from timedexec.learning._calibrate import bound_quantile, gaussian_coverage, std_scale_factor
+from timedexec.learning._calibrate import (
+    DelayBounds,
+    bound_quantile,
+    gaussian_coverage,
+    std_scale_factor,
+)
 from timedexec.learning._features import (
     Collapsed,
     collapse_replicates,

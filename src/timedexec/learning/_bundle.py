@@ -28,7 +28,6 @@ import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from statistics import NormalDist
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -42,7 +41,10 @@ from timedexec.learning._calibrate import (
     BOUND_CONFIDENCE,
     BOUND_RULE,
     CALIBRATED_METHOD,
+    GAUSSIAN_Z95,
     STD_SCALE_RULE,
+    DelayBounds,
+    read_per_model,
 )
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._gpcore import GPPredictor
@@ -56,7 +58,6 @@ __all__ = [
     "ARRAYS_NAME",
     "BUNDLE_FORMAT",
     "MANIFEST_NAME",
-    "DelayBounds",
     "DelayModel",
     "DelayPrediction",
 ]
@@ -106,24 +107,6 @@ class DelayPrediction(NamedTuple):
             for k, v in self._asdict().items()
         }
 
-
-class DelayBounds(NamedTuple):
-    """95 % prediction bounds of single future trials' delays (:meth:`DelayModel.predict_bounds`).
-
-    Attributes
-    ----------
-    actuation_lower_s, actuation_upper_s, response_lower_s, response_upper_s : ndarray
-        Shape (n,), s.
-    """
-
-    actuation_lower_s: Any
-    actuation_upper_s: Any
-    response_lower_s: Any
-    response_upper_s: Any
-
-
-#: The Gaussian two-sided 95 % quantile: the bound of methods and bundles without ``bound_z``.
-_GAUSSIAN_Z95 = NormalDist().inv_cdf(0.975)
 
 # ------------------------------------------------------------------ files
 
@@ -232,35 +215,6 @@ def _default_method(methods: Sequence[str], cv: Mapping[str, Any] | None) -> str
     return methods[0]
 
 
-def _read_per_model(raw: Any, keys: Sequence[str], name: str) -> dict[str, dict[str, float]]:
-    """A manifest's ``{delay: {key: positive number}}`` entry ``name`` (``std_scale``: the
-    GP std's factors, ``bound_z``: its bounds' half-widths); missing entries mean none."""
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise ModelError(f"manifest {name} must map delays to {{model: number}}, got {raw!r}")
-    out: dict[str, dict[str, float]] = {}
-    for delay, by_key in raw.items():
-        if delay not in _DELAYS or not isinstance(by_key, dict):
-            raise ModelError(
-                f"manifest {name}: entry {delay!r}: {by_key!r} must be one of "
-                f"{', '.join(_DELAYS)} mapping models ({', '.join(keys)}) to numbers"
-            )
-        out[delay] = {}
-        for key, value in by_key.items():
-            try:
-                c = float(value)
-            except (TypeError, ValueError):
-                c = float("nan")
-            if not (math.isfinite(c) and c > 0):
-                raise ModelError(
-                    f"manifest {name}[{delay!r}][{key!r}] = {value!r}: it must be a finite "
-                    "number > 0 (training writes them); fix or delete the entry"
-                )
-            out[delay][str(key)] = c
-    return out
-
-
 # ------------------------------------------------------------------ model
 
 
@@ -307,12 +261,12 @@ class DelayModel:
         self._mean_std: dict[tuple[str, str, str], float] = {}
         # (method, joint, combined) -> (act, resp, fused pair or None, c_act², c_resp²)
         self._fast: dict[tuple[str, int, bool], tuple[Any, Any, Any, float, float]] = {}
-        self.std_scale: dict[str, dict[str, float]] = _read_per_model(
+        self.std_scale: dict[str, dict[str, float]] = read_per_model(
             manifest.get("std_scale"), self.keys, "std_scale"
         )
         # half-widths of the GP's 95 % bounds in calibrated stds (``bound_z[delay][key]``
         # in the manifest, see bound_z()); empty for older bundles
-        self._bound_z_table: dict[str, dict[str, float]] = _read_per_model(
+        self._bound_z_table: dict[str, dict[str, float]] = read_per_model(
             manifest.get("bound_z"), self.keys, "bound_z"
         )
         self.default_method: str = _default_method(self.methods, self.cv_scores_ms)
@@ -874,8 +828,8 @@ class DelayModel:
         """``bound_z`` of the calibrated method (the Gaussian 1.96 without one)."""
         calibration = self.manifest.get("std_calibration") or {}
         if method != calibration.get("method", CALIBRATED_METHOD):
-            return _GAUSSIAN_Z95
-        return self._bound_z_table.get(delay, {}).get(key, _GAUSSIAN_Z95)
+            return GAUSSIAN_Z95
+        return self._bound_z_table.get(delay, {}).get(key, GAUSSIAN_Z95)
 
     def predict_bounds(
         self,

@@ -46,14 +46,19 @@ uniform cycle wait to a Gaussian, keep taking the second moment.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from statistics import NormalDist
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from timedexec.errors import ModelError
+
 __all__ = [
     "BOUND_CONFIDENCE",
     "CALIBRATED_METHOD",
+    "DelayBounds",
     "bound_quantile",
     "gaussian_coverage",
     "std_scale_factor",
@@ -72,6 +77,55 @@ BOUND_RULE = (
     "split-conformal: the ceil((n+1)*0.95)-th smallest |z|, z = held-out (y - mean) / "
     "(c * std) over the configuration-grouped CV folds; bound = mean +- q * c * std"
 )
+
+
+#: The Gaussian two-sided 95 % quantile: the bound of methods and bundles without ``bound_z``.
+GAUSSIAN_Z95 = NormalDist().inv_cdf(0.975)
+DELAYS = ("actuation_delay", "response_delay")
+
+
+class DelayBounds(NamedTuple):
+    """95 % prediction bounds of single future trials' delays (``DelayModel.predict_bounds``).
+
+    Attributes
+    ----------
+    actuation_lower_s, actuation_upper_s, response_lower_s, response_upper_s : ndarray
+        Shape (n,), s.
+    """
+
+    actuation_lower_s: Any
+    actuation_upper_s: Any
+    response_lower_s: Any
+    response_upper_s: Any
+
+
+def read_per_model(raw: Any, keys: Sequence[str], name: str) -> dict[str, dict[str, float]]:
+    """A manifest's ``{delay: {key: positive number}}`` entry ``name`` (``std_scale``: the
+    GP std's factors, ``bound_z``: its bounds' half-widths); missing entries mean none."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ModelError(f"manifest {name} must map delays to {{model: number}}, got {raw!r}")
+    out: dict[str, dict[str, float]] = {}
+    for delay, by_key in raw.items():
+        if delay not in DELAYS or not isinstance(by_key, dict):
+            raise ModelError(
+                f"manifest {name}: entry {delay!r}: {by_key!r} must be one of "
+                f"{', '.join(DELAYS)} mapping models ({', '.join(keys)}) to numbers"
+            )
+        out[delay] = {}
+        for key, value in by_key.items():
+            try:
+                c = float(value)
+            except (TypeError, ValueError):
+                c = float("nan")
+            if not (math.isfinite(c) and c > 0):
+                raise ModelError(
+                    f"manifest {name}[{delay!r}][{key!r}] = {value!r}: it must be a finite "
+                    "number > 0 (training writes them); fix or delete the entry"
+                )
+            out[delay][str(key)] = c
+    return out
 
 
 def _standardised(residual_s: ArrayLike, std_s: ArrayLike) -> np.ndarray:
