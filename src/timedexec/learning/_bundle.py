@@ -41,6 +41,7 @@ from timedexec.learning._calibrate import (
     BOUND_CONFIDENCE,
     BOUND_RULE,
     CALIBRATED_METHOD,
+    DELAYS,
     GAUSSIAN_Z95,
     STD_SCALE_RULE,
     DelayBounds,
@@ -54,20 +55,14 @@ from timedexec.learning._shipped import BUNDLED_MODELS, bundled_model_dir
 from timedexec.learning._thermal import thermal_mismatch
 from timedexec.learning._threads import BLAS_PIN, BlasPin
 
-__all__ = [
-    "ARRAYS_NAME",
-    "BUNDLE_FORMAT",
-    "MANIFEST_NAME",
-    "DelayModel",
-    "DelayPrediction",
-]
+__all__ = ["ARRAYS_NAME", "BUNDLE_FORMAT", "MANIFEST_NAME", "DelayModel", "DelayPrediction"]
 
 
 BUNDLE_FORMAT = "timedexec-delay-model"
 BUNDLE_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 ARRAYS_NAME = "arrays.npz"
-_DELAYS = ("actuation_delay", "response_delay")
+_DELAYS = DELAYS
 
 
 class DelayPrediction(NamedTuple):

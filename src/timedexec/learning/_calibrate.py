@@ -31,8 +31,8 @@ model that is already conservative, and shrinking the GP's own variance on that 
 would trade a known-safe bound for an unverified one.
 
 **Bounds with the right shape.** A Gaussian ``mean ± 1.96 std`` at the calibrated std
-over-covers short-tailed delays: on the UR10e (2 ms cycle) 98-99.5 % of held-out trials on
-new configurations, on the KR 5 (12 ms) 97-100 % (issue 39). The GP's 95 % *prediction
+over-covers short-tailed delays: on the UR10e (2 ms cycle) 97.3-99.5 % of held-out trials
+on new configurations, on the KR 5 (12 ms) 99.5-100 % (issue 39). The GP's 95 % *prediction
 bounds* (:meth:`~timedexec.learning.DelayModel.predict_bounds`) therefore take their width
 from the same held-out residuals, split-conformal over the configuration-grouped folds:
 per delay and model, ``q`` is the ``ceil((n + 1) · 0.95)``-th smallest of the ``n``
@@ -53,7 +53,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from timedexec.errors import ModelError
+from timedexec.errors import ConfigError, ModelError
 
 __all__ = [
     "BOUND_CONFIDENCE",
@@ -81,6 +81,7 @@ BOUND_RULE = (
 
 #: The Gaussian two-sided 95 % quantile: the bound of methods and bundles without ``bound_z``.
 GAUSSIAN_Z95 = NormalDist().inv_cdf(0.975)
+#: The delays a bundle models (its manifest's per-delay entries).
 DELAYS = ("actuation_delay", "response_delay")
 
 
@@ -198,7 +199,7 @@ def bound_quantile(
         the caller then keeps a Gaussian bound.
     """
     if not 0.0 < float(confidence) < 1.0:
-        raise ValueError(f"confidence={confidence!r} must lie in (0, 1), e.g. 0.95")
+        raise ConfigError(f"confidence={confidence!r} must lie in (0, 1), e.g. 0.95")
     z = np.sort(np.abs(_standardised(residual_s, std_s)))
     rank = math.ceil((len(z) + 1) * float(confidence))
     if rank > len(z):
