@@ -119,7 +119,7 @@ def main() -> None:
             row[name] = score(model, h)
         rows.append(row)
         print(json.dumps(row), flush=True)
-    print(f"\n{args.robot}: bundle | held-out | answers for | RMSE ms | Gaussian 1.96 std | bounds (joints)")
+    print(f"\n{args.robot}: bundle | held-out | answers for | RMSE ms | Gaussian | bounds (joints)")
     for r in rows:
         for name in held:
             s = r[name]
