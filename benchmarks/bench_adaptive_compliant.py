@@ -14,7 +14,9 @@ Three sweeps on the same arm, each a recording of the same runner: the adaptive 
 ``SweepPlan.generate``, the paper's layout) run for ``--full-min`` and scored both stopped
 at the adaptive sweep's robot time and whole, and a held-out sweep (another random plan,
 ``--heldout-trials``) whose **true** actuation delays score the GP bundles (``gpr``, 5-fold
-CV) trained on each sweep's extracted delays. Reduced sizes: say so when quoting.
+CV) trained on each sweep's extracted delays. Reduced sizes: say so when quoting. The
+fixed sweep is generated in one call: ~12 GB of memory for 4 hours (13,000 trials); run one
+at a time.
 
     python benchmarks/bench_adaptive_compliant.py --robot ur10 --out runs/compliant \\
         --budget-min 20 --full-min 180 --heldout-trials 2000 --seed 1
