@@ -547,6 +547,209 @@ def usb_stream(
     return p[order], t[order]
 
 
+class CompliantSession:
+    """One sweep's sensor, clock and USB state: the still recording and trials of any layout.
+
+    :func:`write_compliant_sweep` draws its own layout; a caller with a plan (an adaptive
+    design choosing configurations as it goes) asks for trials of given start poses,
+    joints and directions at given sweep times, batch after batch, from the same session.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Every draw of the session, in call order.
+    robot : {"ur10", "kr5"}
+    cond : CompliantConditions
+    sweep_end_s : float
+        The sweep's host-clock length, s (the oscillator's drift runs over it).
+    """
+
+    def __init__(
+        self, rng: np.random.Generator, robot: str, cond: CompliantConditions, sweep_end_s: float
+    ) -> None:
+        self.rng, self.robot, self.cond = rng, robot, cond
+        self.arm = arm = ARMS[robot]
+        self.period = arm.period_s
+        self.lsb = 65.5
+        self.prof = {"speed_rad_s": 0.4, "acceleration_rad_s2": 8.0, "hold_s": 0.05,
+                     "pause_s": 0.15, "pre_s": 0.05, "record_s": 0.65}  # fmt: skip
+        self.n_pk = math.floor(self.prof["record_s"] / self.period)
+        n_g = round((self.prof["pre_s"] + self.prof["record_s"]) * FS_GYRO)
+        self.n_g = n_g - n_g % BLOCK
+        self.alpha, self.group_delay = sensor_filter()
+        self.osc = Oscillator(cond.clock_offset_ppm, cond.clock_drift_ppm, float(sweep_end_s),
+                              float(rng.uniform(0, 2 * math.pi)))  # fmt: skip
+        self.sigma_lsb = BASE_NOISE_DPS_RTHZ * cond.noise_factor * math.sqrt(FS_GYRO / 2) * self.lsb
+        self.bias0 = rng.uniform(-2.0, 2.0, 3)  # °/s
+        mix = np.eye(3) + np.diag(rng.uniform(-0.03, 0.03, 3))
+        self.mix = mix + (1 - np.eye(3)) * rng.uniform(-0.02, 0.02, (3, 3))
+        self.mount, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        self.counter0 = int(rng.integers(0, 65536))
+
+    def _bias_at(self, t: FloatArray) -> FloatArray:
+        """Zero-rate, °/s: a slow wander (0.005 °/s over ~10 min), smooth at the trial scale."""
+        return self.bias0 + 0.005 * np.sin(t[..., None] / 97.0 + np.arange(3))
+
+    def _sensor_counts(self, rate_dps: FloatArray, t_host: FloatArray) -> NDArray[np.int16]:
+        x = rate_dps @ self.mix.T + self._bias_at(t_host)
+        x = x * self.lsb + self.rng.standard_normal(x.shape) * self.sigma_lsb
+        return np.clip(np.rint(x), -32768, 32767).astype(np.int16)
+
+    def header(self, seed: int) -> dict[str, Any]:
+        """The recording header."""
+        return {
+            "source": "compliant_sweep (tests/compliant_sweep.py)",
+            "robot": {"name": self.robot, "vendor": self.arm.vendor},
+            "profile": self.prof,
+            "controller_period_s": self.period,
+            "gyro": {
+                "full_scale_dps": 500,
+                "nominal_rate_hz": FS_GYRO,
+                "block_samples": BLOCK,
+                "lsb_per_dps": self.lsb,
+                "group_delay_s": self.group_delay,
+                "transport_latency_s": 0.0006,
+            },
+            "conditions": json.loads(json.dumps(dataclasses.asdict(self.cond))),
+            "truth": {"seed": seed, "response": "age of the motor-side sample on arrival"},
+        }
+
+    def fields(self) -> list[Field]:
+        """The per-trial fields."""
+        n_pk, n_g = self.n_pk, self.n_g
+        return [
+            Field("trial", (), "int64", "", "plan index"),
+            Field("t0_s", (), "float64", "s", "host sweep time of trial time 0"),
+            Field("cmd_send_time_s", (), "float64", "s", "command send time, trial time"),
+            Field("cmd_qd_rad_s", (6,), "float64", "rad/s", "commanded joint speeds"),
+            Field("state_host_time_s", (n_pk,), "float64", "s", "package arrival, trial time"),
+            Field("state_q_rad", (n_pk, 6), "float64", "rad", "reported (motor-side) positions"),
+            Field("state_qd_rad_s", (n_pk, 6), "float32", "rad/s", "reported joint speeds"),
+            Field("gyro_raw", (n_g, 3), "int16", "LSB", "gyro counts"),
+            Field("gyro_counter", (n_g,), "uint16", "", "sample counter"),
+            Field("gyro_block_host_time_s", (n_g // BLOCK,), "float64", "s", "block arrival"),
+            Field("true_actuation_delay_s", (), "float64", "s", "ground truth (link speed)"),
+            Field("true_response_delay_s", (), "float64", "s", "ground truth (motor sample age)"),
+            Field("true_payload_kg", (), "float64", "kg", "payload (for studies)"),
+            Field("true_link_inertia_kgm2", (), "float64", "kg m2", "link inertia (for studies)"),
+            Field("true_gravity_nm", (), "float64", "N m", "gravity torque held at the start"),
+        ]
+
+    def still(self, still_s: float) -> dict[str, Any]:
+        """The still recording's statics (``still_gyro_*``) of ``still_s`` seconds."""
+        rng, osc, cond = self.rng, self.osc, self.cond
+        k_lo = int(np.ceil(osc.index(np.array(0.0))))
+        m_still = int(still_s * FS_GYRO)
+        taken = osc.time_of(k_lo + np.arange(m_still))
+        pos_s, arr_s = usb_stream(rng, k_lo, taken, cond)
+        pos_s = pos_s[: len(pos_s) - len(pos_s) % BLOCK]
+        arr_s = arr_s[: len(pos_s)]
+        return {
+            "still_gyro_raw": self._sensor_counts(np.zeros((m_still, 3)), taken)[pos_s],
+            "still_gyro_counter": ((self.counter0 + k_lo + pos_s) % 65536).astype(np.uint16),
+            "still_gyro_block_host_time_s": arr_s[BLOCK - 1 :: BLOCK],
+        }
+
+    def trials(
+        self,
+        q_start: FloatArray,
+        joint: NDArray[np.int64],
+        direction: NDArray[np.int64],
+        t0: FloatArray,
+    ) -> dict[str, Any]:
+        """Per-trial arrays (every field but ``trial``) of trials at host times ``t0``, s."""
+        rng, arm, cond, prof, osc = self.rng, self.arm, self.cond, self.prof, self.osc
+        period, n_pk, n_g = self.period, self.n_pk, self.n_g
+        n_trials = len(joint)
+        # ---- controller timing ------------------------------------------------------------------
+        latch = rng.uniform(1e-4, 4e-4, n_trials)  # encoder latched this long before the boundary
+        pack = (rng.uniform(0.1, 0.9, n_trials) + arm.extra_cycle) * period
+        net = np.exp(rng.normal(math.log(3e-4), 0.35, (n_trials, n_pk)))
+        c0 = -(pack + net[:, 0])  # cycle boundary of package 0, which arrives at t = 0
+        boundary = c0[:, None] + np.arange(n_pk) * period
+        sampled = boundary - latch[:, None]
+        arrival = boundary + pack[:, None] + net
+        arrival[:, 0] = 0.0
+        arrival[:, 1:][rng.random((n_trials, n_pk - 1)) < cond.package_loss] = np.nan
+        t_send = 1e-4 + rng.exponential(5e-5, n_trials)
+        at_ctrl = t_send + 2e-4 + rng.gamma(2.0, 1e-4, n_trials)
+        intake = c0 + np.ceil((at_ctrl - c0) / period) * period
+        t_ref = intake + arm.pipeline * period + 3e-4
+
+        # ---- physics ----------------------------------------------------------------------------
+        par = joint_params(rng, arm, q_start, joint, cond)
+        grid = -prof["pre_s"] - 0.02 + np.arange(
+            round((prof["pre_s"] + prof["record_s"] + 0.04) / DT_PHYS)) * DT_PHYS  # fmt: skip
+        phys = simulate_joints(par, t_ref, direction.astype(float), period, arm.ratio, grid, prof)
+        w_link = phys["w_link"]
+        level = ONSET_FRACTION * prof["speed_rad_s"]
+        v_dir = w_link * direction[:, None]
+        above = (v_dir >= level) & (grid > 0)
+        k = np.argmax(above, axis=1)
+        ii = np.arange(n_trials)
+        v0, v1 = v_dir[ii, k - 1], v_dir[ii, k]
+        onset = grid[k - 1] + (level - v0) / (v1 - v0) * DT_PHYS
+        true_act = onset - (t_send + level / prof["acceleration_rad_s2"])
+        got = np.isfinite(arrival)
+        true_resp = np.sum(np.where(got, arrival - sampled, 0.0), axis=1) / got.sum(axis=1)
+        quantum = 2 * np.pi / (2**17 * arm.ratio)
+        q_motor = np.array([np.interp(sampled[i], grid, phys["q_motor"][i]) for i in ii])
+        q_rep = q_start[ii, joint - 1][:, None] + phys["deflection0"][:, None] + q_motor
+        q_rep = np.round(q_rep / quantum) * quantum  # the encoder's resolution
+        qd_rep = np.diff(q_rep, axis=1, prepend=q_rep[:, :1]) / period
+        state_q = np.repeat(q_start[:, None, :], n_pk, axis=1)
+        state_q[ii, :, joint - 1] = q_rep
+        state_qd = np.zeros_like(state_q)
+        state_qd[ii, :, joint - 1] = qd_rep
+        state_q[~got] = np.nan
+        state_qd[~got] = np.nan
+
+        # ---- gyro per trial ---------------------------------------------------------------------
+        margin = 480 + int(n_g * 6 * cond.transfer_loss)
+        warm = 64  # output samples before the window: the filter starts settled
+        gyro_raw = np.empty((n_trials, n_g, 3), np.int16)
+        gyro_counter = np.empty((n_trials, n_g), np.uint16)
+        gyro_blocks = np.empty((n_trials, n_g // BLOCK), np.float32)
+        sub = (
+            np.arange(OVERSAMPLE) - (OVERSAMPLE - 1)
+        ) / OVERSAMPLE  # internal samples of one output
+        for i in range(n_trials):
+            k_first = int(np.ceil(osc.index(np.array(t0[i] - prof["pre_s"]))))
+            k_all = k_first - warm + np.arange(n_g + margin + warm)
+            t_in = osc.time_of((k_all[:, None] + sub).ravel()) - t0[i]
+            w_in = np.interp(t_in, grid, w_link[i], left=0.0, right=0.0)
+            avg = w_in.reshape(-1, OVERSAMPLE).mean(axis=1)
+            out = signal.lfilter([self.alpha], [1.0, self.alpha - 1.0], avg)
+            axis = self.mount @ par["axis"][i]
+            t_host = osc.time_of(k_all.astype(np.float64))
+            counts = self._sensor_counts(np.degrees(out)[:, None] * axis, t_host)
+            pos, arr = usb_stream(rng, int(k_all[0]), t_host, cond)
+            inside = k_all[pos] >= k_first
+            sel, arr = pos[inside][:n_g], arr[inside][:n_g]
+            if sel.size < n_g:
+                raise RuntimeError("margin too small for the transfer loss; raise it")
+            gyro_raw[i] = counts[sel]
+            gyro_counter[i] = (self.counter0 + k_all[sel]) % 65536
+            gyro_blocks[i] = arr[BLOCK - 1 :: BLOCK] - t0[i]
+        return {
+            "t0_s": t0,
+            "cmd_send_time_s": t_send,
+            "cmd_qd_rad_s": np.where(np.arange(6) == (joint - 1)[:, None],
+                                     direction[:, None] * prof["speed_rad_s"], 0.0),
+            "state_host_time_s": arrival,
+            "state_q_rad": state_q,
+            "state_qd_rad_s": state_qd.astype(np.float32),
+            "gyro_raw": gyro_raw,
+            "gyro_counter": gyro_counter,
+            "gyro_block_host_time_s": gyro_blocks,
+            "true_actuation_delay_s": true_act,
+            "true_response_delay_s": true_resp,
+            "true_payload_kg": par["payload"],
+            "true_link_inertia_kgm2": par["jl"],
+            "true_gravity_nm": par["grav_a"],
+        }  # fmt: skip
+
+
 def write_compliant_sweep(
     path: str | Path,
     robot: str,
@@ -580,15 +783,6 @@ def write_compliant_sweep(
     """
     cond = cond or CompliantConditions()
     rng = np.random.default_rng([seed, 0xC0317])
-    arm = ARMS[robot]
-    period = arm.period_s
-    lsb = 65.5
-    prof = {"speed_rad_s": 0.4, "acceleration_rad_s2": 8.0, "hold_s": 0.05, "pause_s": 0.15,
-            "pre_s": 0.05, "record_s": 0.65}  # fmt: skip
-    n_pk = math.floor(prof["record_s"] / period)
-    n_g = round((prof["pre_s"] + prof["record_s"]) * FS_GYRO)
-    n_g -= n_g % BLOCK
-    alpha, group_delay = sensor_filter()
 
     # Sweep layout.
     joint = np.array([1, 2, 3, 5])[rng.integers(0, 4, n_trials)]
@@ -599,161 +793,20 @@ def write_compliant_sweep(
     q_start = q_pose[pose]
     gap = 1.05 + rng.uniform(0, 0.02, n_trials) + np.where(np.arange(n_trials) % 8 == 0, 0.5, 0)
     t0 = still_s + 0.7 + np.cumsum(gap) - gap[0]
-    osc = Oscillator(cond.clock_offset_ppm, cond.clock_drift_ppm, float(t0[-1] + 1.0),
-                     float(rng.uniform(0, 2 * math.pi)))  # fmt: skip
-    sigma_lsb = BASE_NOISE_DPS_RTHZ * cond.noise_factor * math.sqrt(FS_GYRO / 2) * lsb
-    bias0 = rng.uniform(-2.0, 2.0, 3)  # °/s
-    mix = np.eye(3) + np.diag(rng.uniform(-0.03, 0.03, 3))
-    mix += (1 - np.eye(3)) * rng.uniform(-0.02, 0.02, (3, 3))
-    mount, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    counter0 = int(rng.integers(0, 65536))
-
-    def bias_at(t: FloatArray) -> FloatArray:
-        """Zero-rate, °/s: a slow wander (0.005 °/s over ~10 min), smooth at the trial scale."""
-        return bias0 + 0.005 * np.sin(t[..., None] / 97.0 + np.arange(3))
-
-    def sensor_counts(rate_dps: FloatArray, t_host: FloatArray) -> NDArray[np.int16]:
-        x = rate_dps @ mix.T + bias_at(t_host)
-        x = x * lsb + rng.standard_normal(x.shape) * sigma_lsb
-        return np.clip(np.rint(x), -32768, 32767).astype(np.int16)
-
-    # ---- still recording --------------------------------------------------------------------
-    k_lo = int(np.ceil(osc.index(np.array(0.0))))
-    m_still = int(still_s * FS_GYRO)
-    taken = osc.time_of(k_lo + np.arange(m_still))
-    pos_s, arr_s = usb_stream(rng, k_lo, taken, cond)
-    pos_s = pos_s[: len(pos_s) - len(pos_s) % BLOCK]
-    arr_s = arr_s[: len(pos_s)]
-    still_raw = sensor_counts(np.zeros((m_still, 3)), taken)[pos_s]
-    still_counter = ((counter0 + k_lo + pos_s) % 65536).astype(np.uint16)
-    still_blocks = arr_s[BLOCK - 1 :: BLOCK]
-
-    # ---- controller timing ------------------------------------------------------------------
-    latch = rng.uniform(1e-4, 4e-4, n_trials)  # encoder latched this long before the boundary
-    pack = (rng.uniform(0.1, 0.9, n_trials) + arm.extra_cycle) * period
-    net = np.exp(rng.normal(math.log(3e-4), 0.35, (n_trials, n_pk)))
-    c0 = -(pack + net[:, 0])  # cycle boundary of package 0, which arrives at t = 0
-    boundary = c0[:, None] + np.arange(n_pk) * period
-    sampled = boundary - latch[:, None]
-    arrival = boundary + pack[:, None] + net
-    arrival[:, 0] = 0.0
-    arrival[:, 1:][rng.random((n_trials, n_pk - 1)) < cond.package_loss] = np.nan
-    t_send = 1e-4 + rng.exponential(5e-5, n_trials)
-    at_ctrl = t_send + 2e-4 + rng.gamma(2.0, 1e-4, n_trials)
-    intake = c0 + np.ceil((at_ctrl - c0) / period) * period
-    t_ref = intake + arm.pipeline * period + 3e-4
-
-    # ---- physics ----------------------------------------------------------------------------
-    par = joint_params(rng, arm, q_start, joint, cond)
-    grid = -prof["pre_s"] - 0.02 + np.arange(
-        round((prof["pre_s"] + prof["record_s"] + 0.04) / DT_PHYS)) * DT_PHYS  # fmt: skip
-    phys = simulate_joints(par, t_ref, direction.astype(float), period, arm.ratio, grid, prof)
-    w_link = phys["w_link"]
-    level = ONSET_FRACTION * prof["speed_rad_s"]
-    v_dir = w_link * direction[:, None]
-    above = (v_dir >= level) & (grid > 0)
-    k = np.argmax(above, axis=1)
-    ii = np.arange(n_trials)
-    v0, v1 = v_dir[ii, k - 1], v_dir[ii, k]
-    onset = grid[k - 1] + (level - v0) / (v1 - v0) * DT_PHYS
-    true_act = onset - (t_send + level / prof["acceleration_rad_s2"])
-    got = np.isfinite(arrival)
-    true_resp = np.sum(np.where(got, arrival - sampled, 0.0), axis=1) / got.sum(axis=1)
-    quantum = 2 * np.pi / (2**17 * arm.ratio)
-    q_motor = np.array([np.interp(sampled[i], grid, phys["q_motor"][i]) for i in ii])
-    q_rep = q_start[ii, joint - 1][:, None] + phys["deflection0"][:, None] + q_motor
-    q_rep = np.round(q_rep / quantum) * quantum  # the encoder's resolution
-    qd_rep = np.diff(q_rep, axis=1, prepend=q_rep[:, :1]) / period
-    state_q = np.repeat(q_start[:, None, :], n_pk, axis=1)
-    state_q[ii, :, joint - 1] = q_rep
-    state_qd = np.zeros_like(state_q)
-    state_qd[ii, :, joint - 1] = qd_rep
-    state_q[~got] = np.nan
-    state_qd[~got] = np.nan
-
-    # ---- gyro per trial ---------------------------------------------------------------------
-    margin = 480 + int(n_g * 6 * cond.transfer_loss)
-    warm = 64  # output samples before the window: the filter starts settled
-    gyro_raw = np.empty((n_trials, n_g, 3), np.int16)
-    gyro_counter = np.empty((n_trials, n_g), np.uint16)
-    gyro_blocks = np.empty((n_trials, n_g // BLOCK), np.float32)
-    sub = (np.arange(OVERSAMPLE) - (OVERSAMPLE - 1)) / OVERSAMPLE  # internal samples of one output
-    for i in range(n_trials):
-        k_first = int(np.ceil(osc.index(np.array(t0[i] - prof["pre_s"]))))
-        k_all = k_first - warm + np.arange(n_g + margin + warm)
-        t_in = osc.time_of((k_all[:, None] + sub).ravel()) - t0[i]
-        w_in = np.interp(t_in, grid, w_link[i], left=0.0, right=0.0)
-        avg = w_in.reshape(-1, OVERSAMPLE).mean(axis=1)
-        out = signal.lfilter([alpha], [1.0, alpha - 1.0], avg)
-        axis = mount @ par["axis"][i]
-        t_host = osc.time_of(k_all.astype(np.float64))
-        counts = sensor_counts(np.degrees(out)[:, None] * axis, t_host)
-        pos, arr = usb_stream(rng, int(k_all[0]), t_host, cond)
-        inside = k_all[pos] >= k_first
-        sel, arr = pos[inside][:n_g], arr[inside][:n_g]
-        if sel.size < n_g:
-            raise RuntimeError("margin too small for the transfer loss; raise it")
-        gyro_raw[i] = counts[sel]
-        gyro_counter[i] = (counter0 + k_all[sel]) % 65536
-        gyro_blocks[i] = arr[BLOCK - 1 :: BLOCK] - t0[i]
-
-    header = {
-        "source": "compliant_sweep (tests/compliant_sweep.py)",
-        "robot": {"name": robot, "vendor": arm.vendor},
-        "profile": prof,
-        "controller_period_s": period,
-        "gyro": {
-            "full_scale_dps": 500,
-            "nominal_rate_hz": FS_GYRO,
-            "block_samples": BLOCK,
-            "lsb_per_dps": lsb,
-            "group_delay_s": group_delay,
-            "transport_latency_s": 0.0006,
-        },
-        "conditions": json.loads(json.dumps(dataclasses.asdict(cond))),
-        "truth": {"seed": seed, "response": "age of the motor-side sample on arrival"},
-    }
-    fields = [
-        Field("trial", (), "int64", "", "plan index"),
-        Field("t0_s", (), "float64", "s", "host sweep time of trial time 0"),
-        Field("cmd_send_time_s", (), "float64", "s", "command send time, trial time"),
-        Field("cmd_qd_rad_s", (6,), "float64", "rad/s", "commanded joint speeds"),
-        Field("state_host_time_s", (n_pk,), "float64", "s", "package arrival, trial time"),
-        Field("state_q_rad", (n_pk, 6), "float64", "rad", "reported (motor-side) positions"),
-        Field("state_qd_rad_s", (n_pk, 6), "float32", "rad/s", "reported joint speeds"),
-        Field("gyro_raw", (n_g, 3), "int16", "LSB", "gyro counts"),
-        Field("gyro_counter", (n_g,), "uint16", "", "sample counter"),
-        Field("gyro_block_host_time_s", (n_g // BLOCK,), "float64", "s", "block arrival"),
-        Field("true_actuation_delay_s", (), "float64", "s", "ground truth (link speed)"),
-        Field("true_response_delay_s", (), "float64", "s", "ground truth (motor sample age)"),
-        Field("true_payload_kg", (), "float64", "kg", "payload (for studies)"),
-        Field("true_link_inertia_kgm2", (), "float64", "kg m2", "link inertia (for studies)"),
-        Field("true_gravity_nm", (), "float64", "N m", "gravity torque held at the start"),
-    ]
+    session = CompliantSession(rng, robot, cond, float(t0[-1] + 1.0))
+    still = session.still(still_s)
+    arrays = session.trials(q_start, joint, direction, t0)
     path = Path(path)
-    with RecordingWriter(path, header=header, fields=fields, fsync=False) as w:
+    with RecordingWriter(
+        path, header=session.header(seed), fields=session.fields(), fsync=False
+    ) as w:
         w.write_static("plan_q_start_rad", q_start, unit="rad")
         w.write_static("plan_joint", joint.astype(np.int64))
         w.write_static("plan_direction", direction.astype(np.int64))
-        w.write_static("still_gyro_raw", still_raw, unit="LSB")
-        w.write_static("still_gyro_counter", still_counter)
-        w.write_static("still_gyro_block_host_time_s", still_blocks, unit="s")
-        w.append({
-            "trial": np.arange(n_trials, dtype=np.int64),
-            "t0_s": t0,
-            "cmd_send_time_s": t_send,
-            "cmd_qd_rad_s": np.where(np.arange(6) == (joint - 1)[:, None],
-                                     direction[:, None] * prof["speed_rad_s"], 0.0),
-            "state_host_time_s": arrival,
-            "state_q_rad": state_q,
-            "state_qd_rad_s": state_qd.astype(np.float32),
-            "gyro_raw": gyro_raw,
-            "gyro_counter": gyro_counter,
-            "gyro_block_host_time_s": gyro_blocks,
-            "true_actuation_delay_s": true_act,
-            "true_response_delay_s": true_resp,
-            "true_payload_kg": par["payload"],
-            "true_link_inertia_kgm2": par["jl"],
-            "true_gravity_nm": par["grav_a"],
-        })  # fmt: skip
+        w.write_static("still_gyro_raw", still["still_gyro_raw"], unit="LSB")
+        w.write_static("still_gyro_counter", still["still_gyro_counter"])
+        w.write_static(
+            "still_gyro_block_host_time_s", still["still_gyro_block_host_time_s"], unit="s"
+        )
+        w.append({"trial": np.arange(n_trials, dtype=np.int64), **arrays})
     return path

@@ -24,7 +24,12 @@ from timedexec.learning._bundle import (
     DelayModel,
     DelayPrediction,
 )
-from timedexec.learning._calibrate import gaussian_coverage, std_scale_factor
+from timedexec.learning._calibrate import (
+    DelayBounds,
+    bound_quantile,
+    gaussian_coverage,
+    std_scale_factor,
+)
 from timedexec.learning._features import (
     Collapsed,
     collapse_replicates,
@@ -87,6 +92,7 @@ __all__ = [
     "WARM_AFTER_S",
     "CVResult",
     "Collapsed",
+    "DelayBounds",
     "DelayGP",
     "DelayMethod",
     "DelayModel",
@@ -101,6 +107,7 @@ __all__ = [
     "PhysicalLinearModel",
     "Predictor",
     "TrainResult",
+    "bound_quantile",
     "build_predictor",
     "bundled_model_dir",
     "check_methods",

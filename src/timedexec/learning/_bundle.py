@@ -37,7 +37,16 @@ from timedexec._files import make_dir, write_atomic
 from timedexec._types import FloatArray
 from timedexec._version import __version__
 from timedexec.errors import ConfigError, ModelError, ThermalStateWarning
-from timedexec.learning._calibrate import CALIBRATED_METHOD, STD_SCALE_RULE
+from timedexec.learning._calibrate import (
+    BOUND_CONFIDENCE,
+    BOUND_RULE,
+    CALIBRATED_METHOD,
+    DELAYS,
+    GAUSSIAN_Z95,
+    STD_SCALE_RULE,
+    DelayBounds,
+    read_per_model,
+)
 from timedexec.learning._features import encode_inputs, feature_names
 from timedexec.learning._gpcore import GPPredictor
 from timedexec.learning._method import DelayMethod, ModelInputs, Predictor
@@ -53,7 +62,7 @@ BUNDLE_FORMAT = "timedexec-delay-model"
 BUNDLE_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 ARRAYS_NAME = "arrays.npz"
-_DELAYS = ("actuation_delay", "response_delay")
+_DELAYS = DELAYS
 
 
 class DelayPrediction(NamedTuple):
@@ -201,34 +210,6 @@ def _default_method(methods: Sequence[str], cv: Mapping[str, Any] | None) -> str
     return methods[0]
 
 
-def _read_std_scale(raw: Any, keys: Sequence[str]) -> dict[str, dict[str, float]]:
-    """The manifest's ``std_scale`` ``{delay: {key: factor}}``; missing entries mean 1.0."""
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise ModelError(f"manifest std_scale must map delays to {{model: factor}}, got {raw!r}")
-    out: dict[str, dict[str, float]] = {}
-    for delay, by_key in raw.items():
-        if delay not in _DELAYS or not isinstance(by_key, dict):
-            raise ModelError(
-                f"manifest std_scale: entry {delay!r}: {by_key!r} must be one of "
-                f"{', '.join(_DELAYS)} mapping models ({', '.join(keys)}) to factors"
-            )
-        out[delay] = {}
-        for key, value in by_key.items():
-            try:
-                c = float(value)
-            except (TypeError, ValueError):
-                c = float("nan")
-            if not (math.isfinite(c) and c > 0):
-                raise ModelError(
-                    f"manifest std_scale[{delay!r}][{key!r}] = {value!r}: the factor must be a "
-                    "finite number > 0 (training writes factors >= 1); fix or delete the entry"
-                )
-            out[delay][str(key)] = c
-    return out
-
-
 # ------------------------------------------------------------------ model
 
 
@@ -275,8 +256,13 @@ class DelayModel:
         self._mean_std: dict[tuple[str, str, str], float] = {}
         # (method, joint, combined) -> (act, resp, fused pair or None, c_act², c_resp²)
         self._fast: dict[tuple[str, int, bool], tuple[Any, Any, Any, float, float]] = {}
-        self.std_scale: dict[str, dict[str, float]] = _read_std_scale(
-            manifest.get("std_scale"), self.keys
+        self.std_scale: dict[str, dict[str, float]] = read_per_model(
+            manifest.get("std_scale"), self.keys, "std_scale"
+        )
+        # half-widths of the GP's 95 % bounds in calibrated stds (``bound_z[delay][key]``
+        # in the manifest, see bound_z()); empty for older bundles
+        self._bound_z_table: dict[str, dict[str, float]] = read_per_model(
+            manifest.get("bound_z"), self.keys, "bound_z"
         )
         self.default_method: str = _default_method(self.methods, self.cv_scores_ms)
 
@@ -365,6 +351,15 @@ class DelayModel:
                 "folds": cv.folds,
                 "held_out": getattr(cv, "std_held_out", {}),
             }
+            bound_z = getattr(cv, "bound_z", None)
+            if bound_z:
+                manifest["bound_z"] = {
+                    d: {k: float(v) for k, v in by_key.items()} for d, by_key in bound_z.items()
+                }
+                manifest["std_calibration"]["bounds"] = {
+                    "confidence": BOUND_CONFIDENCE,
+                    "rule": BOUND_RULE,
+                }
         return cls(manifest, arrays)
 
     # -------------------------------------------------------------- files
@@ -808,6 +803,70 @@ class DelayModel:
             raise ConfigError(f"delay {delay!r} must be one of {', '.join(_DELAYS)}")
         key = "combined" if joint is None else self._key(joint, False)
         return self._scale(CALIBRATED_METHOD, delay, key)
+
+    def bound_z(self, delay: str, joint: int | None = None, method: str | None = None) -> float:
+        """Half-width of ``method``'s 95 % prediction bound, in its (calibrated) trial stds.
+
+        For the GP of a bundle trained with cross-validation: the split-conformal quantile
+        of its held-out ``|y - mean| / std`` (``bound_z`` in the manifest,
+        :func:`~timedexec.learning.bound_quantile`; about 1.65 where the controller cycle's
+        uniform wait dominates the scatter). Otherwise, and for bundles from before it was
+        stored, the Gaussian 1.959964. ``joint=None``: the combined model.
+        """
+        if delay not in _DELAYS:
+            raise ConfigError(f"delay {delay!r} must be one of {', '.join(_DELAYS)}")
+        method = self.default_method if method is None else method
+        key = "combined" if joint is None else self._key(joint, False)
+        return self._bound_z(method, delay, key)
+
+    def _bound_z(self, method: str, delay: str, key: str) -> float:
+        """``bound_z`` of the calibrated method (the Gaussian 1.96 without one)."""
+        calibration = self.manifest.get("std_calibration") or {}
+        if method != calibration.get("method", CALIBRATED_METHOD):
+            return GAUSSIAN_Z95
+        return self._bound_z_table.get(delay, {}).get(key, GAUSSIAN_Z95)
+
+    def predict_bounds(
+        self,
+        joint: ArrayLike,
+        direction: ArrayLike,
+        q: ArrayLike,
+        *,
+        t_s: ArrayLike | None = None,
+        method: str | None = None,
+        combined: bool = False,
+    ) -> DelayBounds:
+        """95 % prediction bounds of single future trials' delays, s (vectorised).
+
+        ``mean ± z · std`` of :meth:`predict_many` with ``z`` = :meth:`bound_z` of each
+        row's delay and model: for a GP trained with cross-validation, an interval that
+        held on 95 % of the held-out trials of new configurations in training (its width
+        from the cycle's short-tailed scatter, not a Gaussian's); otherwise the Gaussian
+        ``mean ± 1.96 std``. Arguments as :meth:`predict_many`. For execution, whose bounds
+        add the cycle wait to a Gaussian themselves, see
+        :class:`~timedexec.execution.TimingBounds`.
+
+        Returns
+        -------
+        DelayBounds
+            Arrays of shape (n,), s.
+        """
+        if method is None:
+            method = self.default_method
+        p = self.predict_many(joint, direction, q, t_s=t_s, method=method, combined=combined)
+        joints = np.broadcast_to(np.asarray(joint), p.actuation_mean.shape)
+        half = {}
+        for short, delay in (("actuation", "actuation_delay"), ("response", "response_delay")):
+            z = np.empty(len(joints))
+            for j in np.unique(joints):
+                z[joints == j] = self._bound_z(method, delay, self._key(int(j), combined))
+            half[short] = z * getattr(p, f"{short}_std")
+        return DelayBounds(
+            actuation_lower_s=p.actuation_mean - half["actuation"],
+            actuation_upper_s=p.actuation_mean + half["actuation"],
+            response_lower_s=p.response_mean - half["response"],
+            response_upper_s=p.response_mean + half["response"],
+        )
 
     def _scale(self, method: str, delay: str, key: str) -> float:
         """The calibration factor of ``method``'s std (1.0: none; only the GP has one)."""

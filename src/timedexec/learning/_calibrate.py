@@ -29,17 +29,40 @@ benchmarks/bench_learning_calibration.py; docs/models.md).
 latent variance is at least the final model's: a CV ratio below 1 is either noise or a
 model that is already conservative, and shrinking the GP's own variance on that evidence
 would trade a known-safe bound for an unverified one.
+
+**Bounds with the right shape.** A Gaussian ``mean ± 1.96 std`` at the calibrated std
+over-covers short-tailed delays: on the UR10e (2 ms cycle) 97.3-99.5 % of held-out trials
+on new configurations, on the KR 5 (12 ms) 99.5-100 % (issue 39). The GP's 95 % *prediction
+bounds* (:meth:`~timedexec.learning.DelayModel.predict_bounds`) therefore take their width
+from the same held-out residuals, split-conformal over the configuration-grouped folds:
+per delay and model, ``q`` is the ``ceil((n + 1) · 0.95)``-th smallest of the ``n``
+held-out ``|z| = |y - mean| / (c · std)`` (:func:`bound_quantile`), and the bound is
+``mean ± q · c · std``. It assumes no shape, so it holds on new configurations whatever the
+cycle makes of the tails (about 1.65 for a uniform scatter, 1.96 for a Gaussian one). It
+changes neither ``c`` nor ``*_std``: the executor's timing bounds, which add their own
+uniform cycle wait to a Gaussian, keep taking the second moment.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from statistics import NormalDist
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["CALIBRATED_METHOD", "gaussian_coverage", "std_scale_factor"]
+from timedexec.errors import ConfigError, ModelError
+
+__all__ = [
+    "BOUND_CONFIDENCE",
+    "CALIBRATED_METHOD",
+    "DelayBounds",
+    "bound_quantile",
+    "gaussian_coverage",
+    "std_scale_factor",
+]
 
 #: The method whose std training calibrates: the GP, whose std the executor's timing bounds
 #: use. A bundle's ``std_scale`` holds its factors (``std_calibration.method`` names it);
@@ -47,6 +70,63 @@ __all__ = ["CALIBRATED_METHOD", "gaussian_coverage", "std_scale_factor"]
 CALIBRATED_METHOD = "gpr"
 #: The rule's name, stored in bundle manifests beside the factors.
 STD_SCALE_RULE = "max(1, sqrt(mean(z^2))), z = held-out (y - mean) / std over the CV folds"
+#: Confidence of the GP's prediction bounds stored in bundles (``bound_z``).
+BOUND_CONFIDENCE = 0.95
+#: The bounds' rule, stored in bundle manifests beside the quantiles.
+BOUND_RULE = (
+    "split-conformal: the ceil((n+1)*0.95)-th smallest |z|, z = held-out (y - mean) / "
+    "(c * std) over the configuration-grouped CV folds; bound = mean +- q * c * std"
+)
+
+
+#: The Gaussian two-sided 95 % quantile: the bound of methods and bundles without ``bound_z``.
+GAUSSIAN_Z95 = NormalDist().inv_cdf(0.975)
+#: The delays a bundle models (its manifest's per-delay entries).
+DELAYS = ("actuation_delay", "response_delay")
+
+
+class DelayBounds(NamedTuple):
+    """95 % prediction bounds of single future trials' delays (``DelayModel.predict_bounds``).
+
+    Attributes
+    ----------
+    actuation_lower_s, actuation_upper_s, response_lower_s, response_upper_s : ndarray
+        Shape (n,), s.
+    """
+
+    actuation_lower_s: Any
+    actuation_upper_s: Any
+    response_lower_s: Any
+    response_upper_s: Any
+
+
+def read_per_model(raw: Any, keys: Sequence[str], name: str) -> dict[str, dict[str, float]]:
+    """A manifest's ``{delay: {key: positive number}}`` entry ``name`` (``std_scale``: the
+    GP std's factors, ``bound_z``: its bounds' half-widths); missing entries mean none."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ModelError(f"manifest {name} must map delays to {{model: number}}, got {raw!r}")
+    out: dict[str, dict[str, float]] = {}
+    for delay, by_key in raw.items():
+        if delay not in DELAYS or not isinstance(by_key, dict):
+            raise ModelError(
+                f"manifest {name}: entry {delay!r}: {by_key!r} must be one of "
+                f"{', '.join(DELAYS)} mapping models ({', '.join(keys)}) to numbers"
+            )
+        out[delay] = {}
+        for key, value in by_key.items():
+            try:
+                c = float(value)
+            except (TypeError, ValueError):
+                c = float("nan")
+            if not (math.isfinite(c) and c > 0):
+                raise ModelError(
+                    f"manifest {name}[{delay!r}][{key!r}] = {value!r}: it must be a finite "
+                    "number > 0 (training writes them); fix or delete the entry"
+                )
+            out[delay][str(key)] = c
+    return out
 
 
 def _standardised(residual_s: ArrayLike, std_s: ArrayLike) -> np.ndarray:
@@ -92,3 +172,36 @@ def gaussian_coverage(
         return float("nan")
     q = NormalDist().inv_cdf(0.5 + 0.5 * float(confidence))
     return float(np.mean(np.abs(z) <= q * float(scale)))
+
+
+def bound_quantile(
+    residual_s: ArrayLike, std_s: ArrayLike, confidence: float = BOUND_CONFIDENCE
+) -> float:
+    """Split-conformal half-width of a ``confidence`` bound, in units of ``std_s``.
+
+    The ``ceil((n + 1) · confidence)``-th smallest of the ``n`` held-out ``|residual / std|``:
+    a new trial exchangeable with the held-out ones lies within ``mean ± q · std`` with
+    probability at least ``confidence``.
+
+    Parameters
+    ----------
+    residual_s : array, shape (n,)
+        Held-out ``y - mean``, s.
+    std_s : array, shape (n,)
+        The standard deviation the bound will multiply (the calibrated trial std), s.
+    confidence : float
+        In (0, 1).
+
+    Returns
+    -------
+    float
+        ``q > 0``; NaN when ``n`` is too small for the rank (``(n + 1) · confidence > n``),
+        the caller then keeps a Gaussian bound.
+    """
+    if not 0.0 < float(confidence) < 1.0:
+        raise ConfigError(f"confidence={confidence!r} must lie in (0, 1), e.g. 0.95")
+    z = np.sort(np.abs(_standardised(residual_s, std_s)))
+    rank = math.ceil((len(z) + 1) * float(confidence))
+    if rank > len(z):
+        return float("nan")
+    return float(z[rank - 1])

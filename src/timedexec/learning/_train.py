@@ -35,7 +35,12 @@ from numpy.typing import NDArray
 from timedexec._types import FloatArray
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError
-from timedexec.learning._calibrate import CALIBRATED_METHOD, gaussian_coverage, std_scale_factor
+from timedexec.learning._calibrate import (
+    CALIBRATED_METHOD,
+    bound_quantile,
+    gaussian_coverage,
+    std_scale_factor,
+)
 from timedexec.learning._features import encode_inputs
 from timedexec.learning._method import ModelInputs
 from timedexec.learning._registry import DEFAULT_METHODS, check_methods, get_method
@@ -396,6 +401,11 @@ class CVResult:
         Gaussian interval ``mean ± 1.96 std`` before and after the scale; delays quantised by
         the controller cycle have short tails, so a Gaussian interval covers more than 95 %
         at the right std).
+    bound_z : dict
+        ``bound_z[delay][key]``: half-width of the GP's 95 % prediction bound in calibrated
+        stds (:func:`~timedexec.learning.bound_quantile` of the held-out ``|y - mean| /
+        (c · std)``, split-conformal over the folds); keys without enough held-out trials
+        are absent.
     """
 
     scores_ms: dict[str, dict[str, dict[str, float]]]
@@ -410,6 +420,7 @@ class CVResult:
     time_input: bool = False
     std_scale: dict[str, dict[str, float]] = field(default_factory=dict)
     std_held_out: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+    bound_z: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, dict[str, dict[str, float]]]:
         """The CV.json content: ``{delay: {method: {column: ms}}}``."""
@@ -577,20 +588,24 @@ def _std_calibration(
     folds: int,
     results: Mapping[_Task, Any],
     fold_idx: NDArray[np.intp],
-) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, dict[str, float]]]]:
-    """The GP's std scale per delay and model, and the held-out statistics behind it.
+) -> tuple[
+    dict[str, dict[str, float]], dict[str, dict[str, dict[str, float]]], dict[str, dict[str, float]]
+]:
+    """The GP's std scale and bound quantile per delay and model, and the statistics.
 
-    Returns ``(scale, held_out)``: ``scale[delay][key]`` (:func:`std_scale_factor` of the
-    held-out residuals of every fold) and ``held_out[delay][key]`` (see
-    :attr:`CVResult.std_held_out`).
+    Returns ``(scale, held_out, bound_z)``: ``scale[delay][key]`` (:func:`std_scale_factor`
+    of the held-out residuals of every fold), ``held_out[delay][key]`` (see
+    :attr:`CVResult.std_held_out`) and ``bound_z[delay][key]`` (:func:`bound_quantile` of
+    the same residuals over the calibrated std, see :attr:`CVResult.bound_z`).
     """
     by_id = {
         (t.delay, t.key, t.fold): out for t, out in results.items() if t.method == CALIBRATED_METHOD
     }
     scale: dict[str, dict[str, float]] = {}
     held_out: dict[str, dict[str, dict[str, float]]] = {}
+    bound_z: dict[str, dict[str, float]] = {}
     for delay in DELAYS:
-        scale[delay], held_out[delay] = {}, {}
+        scale[delay], held_out[delay], bound_z[delay] = {}, {}, {}
         for key in _keys(data):
             rows = data.rows(key, delay)
             y = data.y[delay][rows]
@@ -613,7 +628,10 @@ def _std_calibration(
                 "coverage_95_gp": gaussian_coverage(r, s, 0.95),
                 "coverage_95_calibrated": gaussian_coverage(r, s, 0.95, scale=c),
             }
-    return scale, held_out
+            q = bound_quantile(r, c * s)
+            if math.isfinite(q):
+                bound_z[delay][key] = q
+    return scale, held_out, bound_z
 
 
 def cross_validate(
@@ -719,8 +737,9 @@ def train_delay_models(
         scores, floors = _scores(data, methods, folds, results, fold_idx)
         std_scale: dict[str, dict[str, float]] = {}
         std_held: dict[str, dict[str, dict[str, float]]] = {}
+        bound_z: dict[str, dict[str, float]] = {}
         if CALIBRATED_METHOD in methods:
-            std_scale, std_held = _std_calibration(data, folds, results, fold_idx)
+            std_scale, std_held, bound_z = _std_calibration(data, folds, results, fold_idx)
         cv = CVResult(
             scores_ms=scores,
             noise_floor_ms=floors,
@@ -734,6 +753,7 @@ def train_delay_models(
             time_input=data.time_input,
             std_scale=std_scale,
             std_held_out=std_held,
+            bound_z=bound_z,
         )
     model = None
     if final:
