@@ -686,13 +686,16 @@ RESPONSE_FLAG_DEFLECTION_JOINT = "deflection_joint"
 @dataclass(frozen=True)
 class ResponseDelay:
     """The response delay of each row (:func:`response_delay`): ``tau`` (s), its standard
-    error ``se`` (s), ``change`` (how far separating a gear's deflection moved it, s; NaN
-    where the row's joint showed none), ``gear_flag`` (True: the age depends on the
-    unknown gear law by more than ``RESPONSE_GEAR_TOLERANCE_S``) and ``joint_flag`` (True:
-    the row's joint's shared age does, ``DEFLECTION_PLAY_SHARE``)."""
+    error ``se`` (s), ``shared_se`` (s: the part of ``se`` that the row's joint's trials
+    share — errors drawn once for the joint, not per trial; ``se`` counts it), ``change``
+    (how far separating a gear's deflection moved it, s; NaN where the row's joint showed
+    none), ``gear_flag`` (True: the age depends on the unknown gear law by more than
+    ``RESPONSE_GEAR_TOLERANCE_S``) and ``joint_flag`` (True: the row's joint's shared age
+    does, ``DEFLECTION_PLAY_SHARE``)."""
 
     tau: FloatArray
     se: FloatArray
+    shared_se: FloatArray
     change: FloatArray
     gear_flag: NDArray[np.bool_]
     joint_flag: NDArray[np.bool_]
@@ -755,7 +758,8 @@ def response_delay(
         mean = float(np.mean(vote))
         se_mean = float(np.std(vote)) / math.sqrt(vote.size)
         deflected[joint == key] = med > max(thr, 3 * sem) or mean > max(thr, 3 * se_mean)
-    out = ResponseDelay(tau=fit.tau.copy(), se=fit.se.copy(), change=np.full(n, np.nan),
+    out = ResponseDelay(tau=fit.tau.copy(), se=fit.se.copy(), shared_se=np.zeros(n),
+                        change=np.full(n, np.nan),
                         gear_flag=np.zeros(n, dtype=bool),
                         joint_flag=np.zeros(n, dtype=bool))  # fmt: skip
     sub = np.flatnonzero(deflected)
@@ -781,12 +785,13 @@ def response_delay(
         out.tau[r] = fit.tau[r] + corr
         out.change[r] = corr
         # The shrunk age mixes the fit with the terms and the (less noisy) one without:
-        # at most the former's noise; plus the pooled median's error, the gear law's part
-        # (``_GEAR_LAW_SD``) and, for a trial whose correction stands out of its joint's,
-        # the part of it the shrinkage took away.
-        out.se[r] = np.sqrt(
-            full.se_noise[rows] ** 2 + pooled + (_GEAR_LAW_SD * sens) ** 2 + tail**2
-        )
+        # at most the former's noise, and for a trial whose correction stands out of its
+        # joint's, the part of it the shrinkage took away (the trial's own errors); plus
+        # what the joint's trials share: the pooled median's error and the gear law's
+        # part (``_GEAR_LAW_SD``: one law for the joint, so one error, scaled per trial).
+        shared = np.sqrt(pooled + (_GEAR_LAW_SD * sens) ** 2)
+        out.shared_se[r] = shared
+        out.se[r] = np.sqrt(full.se_noise[rows] ** 2 + tail**2 + shared**2)
         # The flag looks at the trial's own part (w·bracket): the pooled part moves every
         # trial of the joint alike, a bias of the joint that no trial's flag removes.
         out.gear_flag[r] = DEFLECTION_MODEL_SHARE * np.abs(sens_own) > RESPONSE_GEAR_TOLERANCE_S
@@ -795,7 +800,7 @@ def response_delay(
     # A joint showed a deflection, so the arm's encoders are motor-side: the others (and a
     # joint with too few trials to separate it) deflect too, unseparated.
     rest = ~separated
-    out.se[rest] = _unseparated_se(fit.se, fit.probe, joint, sound, rest)
+    out.se[rest], out.shared_se[rest] = _unseparated_se(fit.se, fit.probe, joint, sound, rest)
     return out
 
 
@@ -805,7 +810,7 @@ def _unseparated_se(
     joint: NDArray[np.int64],
     sound: NDArray[np.bool_],
     rest: NDArray[np.bool_],
-) -> FloatArray:
+) -> tuple[FloatArray, FloatArray]:
     """The standard error (s) of the ``rest`` rows: joints fitted without the deflection
     terms on an arm whose encoders are motor-side (another joint showed a deflection).
 
@@ -819,6 +824,9 @@ def _unseparated_se(
     +0.3 ms read 0.3-0.5 ms short, 4-8 standard errors), which counts in full. Measured on
     seeds 2 and 3 of that generator (five conditions): the KR 5 wrist's coverage pooled
     88.3 -> 93.3 %; the UR10 wrist 96.8 -> 97.0 %.
+
+    Returns the standard error of the ``rest`` rows and its part their joint's trials
+    share (the offset's bound), both s.
     """
     var = se[rest] ** 2
     floor = DEFLECTION_MIN_CHANGE_S / math.sqrt(3.0)
@@ -839,7 +847,7 @@ def _unseparated_se(
         out_ = rows & np.isfinite(p_rest) & (p_rest > limit)
         excess[out_] = p_rest[out_]
     out: FloatArray = np.sqrt(var + bound**2 + excess**2)
-    return out
+    return out, bound
 
 
 def _shrink(
