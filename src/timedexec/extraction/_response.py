@@ -72,24 +72,24 @@ KR 5's base read -0.09 to -0.14 ms): all of its trials are flagged ``deflection_
 (``DEFLECTION_PLAY_SHARE``; the KR 5's base on every condition, its wrist on two, its
 joint 3 at 5x noise: 36-100 of 200 trials).
 
-**The standard error on a compliant arm** has a trial's part (the fit's noise; the gear
-law's part, triangular at the fitted law, ``_GEAR_LAW_SD``) and parts its joint's trials
-share in a sweep (the pooled median's error; for a joint without terms, its unseparated
-deflection up to the upper bound of its mean probe, :func:`_unseparated_se`). And a trial
-whose own evidence of a deflection stands out of its joint's (``_PROBE_OUTLIER_SD``: a
-pose that loads the gear) has its probe, or the correction the shrinkage took from it,
-counted in full: on the KR 5's wrist such trials read 0.3-0.55 ms short at 5-8 standard
-errors. Coverage of the 95 % intervals per joint and condition (bench_extract_compliant,
-200 trials, unflagged trials; chosen on seeds 2 and 3): seed 1 89-100 % (main 86-100 %),
-seed 4 85-100 % (main 78-100 %); cells outside 90-98 %: 12 of 32 (main 14) and 16 of 34
-(main 17). What stays off: the UR10's joints 1 and 3 cover 100 % on most sweeps of seeds
-1, 3 and 4 (joint 3's shrunk age scatters 0.06-0.08 ms while the full fit's noise alone
-is 0.09 ms and the law's part 0.06 ms: the truth is at the fitted, hysteretic law there,
-and the law's part is what keeps a gear without hysteresis honest — the UR10 base reads
-+0.11 ms on that control, 87-89 % covered without it), 86-98 % on seed 2, where the
-shrinkage weight fell to 0-0.4: the joint's shared error moves with that weight from
-sweep to sweep. The KR 5's wrist stays 85-88 % on seed 4's clean and 2x sweeps (a joint
-bias of -0.06 to -0.08 ms beyond the allowance).
+**The standard error on a compliant arm** has a trial's own part (the fit's noise) and a
+part its joint's trials share in a sweep (``ResponseDelay.shared_se``: the gear law's,
+triangular at the fitted law, ``_GEAR_LAW_SD`` — one law per joint, so one error for its
+trials, scaled by each trial's sensitivity; the pooled median's error; for a joint without
+terms, its unseparated deflection up to the upper bound of its mean probe,
+:func:`_unseparated_se`); ``se`` is the whole. And a trial whose own evidence of a
+deflection stands out of its joint's (``_PROBE_OUTLIER_SD``: a pose that loads the gear)
+has its probe, or the correction the shrinkage took from it, counted in full: on the KR 5's
+wrist such trials read 0.3-0.55 ms short at 5-8 standard errors. The shared part is one
+draw per joint and sweep, so one joint's coverage in one sweep is not binomial (a draw
+near zero: 99-100 %); over sweeps it is. Coverage of the 95 % intervals per joint and
+condition (bench_extract_compliant, 1000 trials per condition, usable trials, pooled over
+two seeds; rules chosen on seeds 2 and 3): seeds 2+3 90.8-98.8 %, 2 of 35 cells outside
+90-98 %; seeds 1+5 89.6-99.6 %, 5 of 35 — all the UR10's joint 3, whose shared draw is
+0.00-0.02 ms against a shared standard error of 0.05-0.06 ms on every seed (the truth at
+the fitted, hysteretic law; the law's part is what keeps a gear without hysteresis honest:
+the UR10 base reads +0.11 ms on that control). The KR 5 reads -0.05 to -0.10 ms short at
+5x noise, beyond its shared error (0.02-0.04 ms). See ``docs/architecture.md``.
 """
 
 from __future__ import annotations
