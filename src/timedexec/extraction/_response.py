@@ -789,9 +789,10 @@ def response_delay(
         # joint's, the part of it the shrinkage took away (the trial's own errors); plus
         # what the joint's trials share: the pooled median's error and the gear law's
         # part (``_GEAR_LAW_SD``: one law for the joint, so one error, scaled per trial).
-        shared = np.sqrt(pooled + (_GEAR_LAW_SD * sens) ** 2)
-        out.shared_se[r] = shared
-        out.se[r] = np.sqrt(full.se_noise[rows] ** 2 + tail**2 + shared**2)
+        out.shared_se[r] = np.sqrt(pooled + (_GEAR_LAW_SD * sens) ** 2)
+        out.se[r] = np.sqrt(
+            full.se_noise[rows] ** 2 + pooled + (_GEAR_LAW_SD * sens) ** 2 + tail**2
+        )
         # The flag looks at the trial's own part (w·bracket): the pooled part moves every
         # trial of the joint alike, a bias of the joint that no trial's flag removes.
         out.gear_flag[r] = DEFLECTION_MODEL_SHARE * np.abs(sens_own) > RESPONSE_GEAR_TOLERANCE_S
