@@ -842,8 +842,8 @@ def _extract(
     cols["flag"] = res["flag"]
     cols["response_flag"] = res["response_flag"]
     for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
-              "response_delay_shared_se", "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s",
-              "gyro_missing"):  # fmt: skip
+              "response_delay_shared_se", "response_deflection_s", "onset_window_s",
+              "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
     if left_out is not None and excluded is not None and lost.size:
