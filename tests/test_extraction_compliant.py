@@ -105,6 +105,8 @@ def test_a_rigid_joint_gets_no_deflection_terms(tmp_path: Path) -> None:
     t = extract_recording(p, progress=False).table
     assert np.all(np.isnan(t["response_deflection_s"]))
     assert not any(t["response_flag"])
+    # Nothing deflects, so no error is shared by a joint's trials beyond the fit's own.
+    assert np.all(t["response_delay_shared_se"] == 0.0)
     err, _ = _response(t, (1, 2, 3, 5))
     assert np.sqrt(np.mean(err**2)) <= 0.15e-3
 
@@ -185,3 +187,71 @@ def test_a_pose_that_loads_the_gear_is_within_its_interval(kr5_table: Any) -> No
     assert big.sum() >= 1
     assert np.all(np.abs(err[big]) <= 1.96 * se[big]), err[big] / se[big]
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
+
+
+@pytest.fixture(scope="module")
+def sweep_512(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """One extraction chunk (512 trials) of each arm, clean, seed 7 (neither a seed the
+    standard error's rules were chosen on, 2 and 3, nor the benchmark's scoring seeds)."""
+    out = {}
+    for arm in ("ur10", "kr5"):
+        p = tmp_path_factory.mktemp("compliant") / f"{arm}-512.h5"
+        write_compliant_sweep(p, arm, 512, CompliantConditions(), seed=7)
+        out[arm] = extract_recording(p, progress=False).table
+    return out
+
+
+@pytest.mark.slow
+def test_response_intervals_cover_and_the_shared_error_is_the_joints(
+    sweep_512: dict[str, Any],
+) -> None:
+    """The response delay's 95 % interval (``delay ± 1.96·response_delay_se``) covers the
+    truth on 95 % of trials over trials *and* sweeps; within one sweep part of its error is
+    one draw for all of a joint's trials (``response_delay_shared_se``: the gear law's
+    part, the pooled median's), so one joint's coverage in one sweep is not binomial.
+
+    What is asserted, on 512 trials per arm (seven joints with usable responses, ~90-135
+    trials each; measured values in brackets):
+
+    * Pooled over both arms' 854 usable trials, coverage within 0.92-0.985 (96.4 %). A
+      calibrated interval's binomial 90 % range on 850 trials is 93.8-96.2 %; each joint's
+      shared draw moves its trials together, which widens that by a few % (seven draws).
+    * Every joint's coverage within 0.90-1.00 (UR10 joints 1/2/3/5 98.9 / 94.5 / 99.2 /
+      95.5 %, KR 5 joints 2/3/5 94.5 / 96.7 / 96.3 %): where the joint's draw is near zero
+      the interval is wider than the trial's own error needs (the UR10's joint 3 covered
+      98.6-100 % on 20 sweeps of 1000 trials, benchmarks/bench_extract_compliant.py).
+    * The shared part is the joints': each joint's mean error within 2.5 of its standard
+      error (the shared part with the own parts' mean over its trials: z +0.82 / -0.19 /
+      -0.04 / -1.03 and -0.54 / -1.23 / -1.32; 2.5 leaves room for seven draws).
+    * The own part (``se`` without the shared part) covers the trials' errors about their
+      joint's mean on >= 0.80 of each joint's trials (the UR10's elbow is short: 85.2 %
+      here, 86-89 % on the benchmark's sweeps; the others 90.6-98.3 %) and 0.90-0.985
+      pooled (94.0 %).
+    * Every usable trial has 0 < shared_se < se (the shared part is 0.33-0.59 of ``se``
+      in median per joint).
+    """
+    errs, covered, own_covered = [], [], []
+    for arm, t in sweep_512.items():
+        ok = np.asarray(t.usable("response_delay"))
+        err = np.asarray(t["response_delay"] - t["true_response_delay"])
+        se = np.asarray(t["response_delay_se"])
+        shared = np.asarray(t["response_delay_shared_se"])
+        own = np.sqrt(se**2 - shared**2)
+        for joint in (1, 2, 3, 5):
+            m = ok & (np.asarray(t["joint"]) == joint)
+            if not m.any():
+                continue  # the KR 5's base: flagged as a whole (deflection_joint)
+            assert np.all((shared[m] > 0) & (shared[m] < se[m])), (arm, joint)
+            hit = np.abs(err[m]) <= 1.96 * se[m]
+            assert 0.90 <= hit.mean() <= 1.0, (arm, joint, hit.mean())
+            mean = float(np.mean(err[m]))
+            sd = np.sqrt(np.mean(shared[m] ** 2) + np.mean(own[m] ** 2) / m.sum())
+            assert abs(mean / sd) <= 2.5, (arm, joint, mean / sd)
+            own_hit = np.abs(err[m] - mean) <= 1.96 * own[m]
+            assert own_hit.mean() >= 0.80, (arm, joint, own_hit.mean())
+            errs.append(err[m])
+            covered.append(hit)
+            own_covered.append(own_hit)
+    assert len(errs) == 7
+    assert 0.92 <= np.mean(np.concatenate(covered)) <= 0.985
+    assert 0.90 <= np.mean(np.concatenate(own_covered)) <= 0.985

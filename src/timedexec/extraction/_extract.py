@@ -498,6 +498,7 @@ def _extract_chunk_inner(
             "actuation_delay_se": act_se,
             "actuation_delay_crb": on["crb"],
             "response_delay_se": resp_se,
+            "response_delay_shared_se": rd.shared_se,
             "response_deflection_s": rd.change,
             "onset_window_s": np.array([sum(w) for w in _windows()])[on["window"].astype(int)],
         }
@@ -706,6 +707,9 @@ def extract_recording(
     ExtractionResult
         The delay table (columns of ``timedexec.delays`` plus ``flag``,
         ``actuation_delay_se``, ``actuation_delay_crb``, ``response_delay_se`` (s),
+        ``response_delay_shared_se`` (the part of ``response_delay_se`` the trials of the
+        joint share — one error for all of them, not a trial's own; 0 where no joint of
+        the arm showed a gear's deflection, s),
         ``response_deflection_s`` (how far separating a gear's deflection moved the
         response delay, s; NaN where the trial's joint showed none), ``response_flag``
         (why the response delay alone is not to be used, "" when fine), ``onset_window_s``,
@@ -838,8 +842,8 @@ def _extract(
     cols["flag"] = res["flag"]
     cols["response_flag"] = res["response_flag"]
     for k in ("actuation_delay_se", "actuation_delay_crb", "response_delay_se",
-              "response_deflection_s", "onset_window_s", "gyro_gain", "gyro_noise_rad_s",
-              "gyro_missing"):  # fmt: skip
+              "response_delay_shared_se", "response_deflection_s", "onset_window_s",
+              "gyro_gain", "gyro_noise_rad_s", "gyro_missing"):  # fmt: skip
         if k in res:
             cols[k] = res[k]
     if left_out is not None and excluded is not None and lost.size:

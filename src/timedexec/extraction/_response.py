@@ -72,24 +72,24 @@ KR 5's base read -0.09 to -0.14 ms): all of its trials are flagged ``deflection_
 (``DEFLECTION_PLAY_SHARE``; the KR 5's base on every condition, its wrist on two, its
 joint 3 at 5x noise: 36-100 of 200 trials).
 
-**The standard error on a compliant arm** has a trial's part (the fit's noise; the gear
-law's part, triangular at the fitted law, ``_GEAR_LAW_SD``) and parts its joint's trials
-share in a sweep (the pooled median's error; for a joint without terms, its unseparated
-deflection up to the upper bound of its mean probe, :func:`_unseparated_se`). And a trial
-whose own evidence of a deflection stands out of its joint's (``_PROBE_OUTLIER_SD``: a
-pose that loads the gear) has its probe, or the correction the shrinkage took from it,
-counted in full: on the KR 5's wrist such trials read 0.3-0.55 ms short at 5-8 standard
-errors. Coverage of the 95 % intervals per joint and condition (bench_extract_compliant,
-200 trials, unflagged trials; chosen on seeds 2 and 3): seed 1 89-100 % (main 86-100 %),
-seed 4 85-100 % (main 78-100 %); cells outside 90-98 %: 12 of 32 (main 14) and 16 of 34
-(main 17). What stays off: the UR10's joints 1 and 3 cover 100 % on most sweeps of seeds
-1, 3 and 4 (joint 3's shrunk age scatters 0.06-0.08 ms while the full fit's noise alone
-is 0.09 ms and the law's part 0.06 ms: the truth is at the fitted, hysteretic law there,
-and the law's part is what keeps a gear without hysteresis honest — the UR10 base reads
-+0.11 ms on that control, 87-89 % covered without it), 86-98 % on seed 2, where the
-shrinkage weight fell to 0-0.4: the joint's shared error moves with that weight from
-sweep to sweep. The KR 5's wrist stays 85-88 % on seed 4's clean and 2x sweeps (a joint
-bias of -0.06 to -0.08 ms beyond the allowance).
+**The standard error on a compliant arm** has a trial's own part (the fit's noise) and a
+part its joint's trials share in a sweep (``ResponseDelay.shared_se``: the gear law's,
+triangular at the fitted law, ``_GEAR_LAW_SD`` — one law per joint, so one error for its
+trials, scaled by each trial's sensitivity; the pooled median's error; for a joint without
+terms, its unseparated deflection up to the upper bound of its mean probe,
+:func:`_unseparated_se`); ``se`` is the whole. And a trial whose own evidence of a
+deflection stands out of its joint's (``_PROBE_OUTLIER_SD``: a pose that loads the gear)
+has its probe, or the correction the shrinkage took from it, counted in full: on the KR 5's
+wrist such trials read 0.3-0.55 ms short at 5-8 standard errors. The shared part is one
+draw per joint and sweep, so one joint's coverage in one sweep is not binomial (a draw
+near zero: 99-100 %); over sweeps it is. Coverage of the 95 % intervals per joint and
+condition (bench_extract_compliant, 1000 trials per condition, usable trials, pooled over
+two seeds; rules chosen on seeds 2 and 3): seeds 2+3 90.8-98.8 %, 2 of 35 cells outside
+90-98 %; seeds 1+5 89.6-99.6 %, 5 of 35 — all the UR10's joint 3, whose shared draw is
+0.00-0.02 ms against a shared standard error of 0.05-0.06 ms on every seed (the truth at
+the fitted, hysteretic law; the law's part is what keeps a gear without hysteresis honest:
+the UR10 base reads +0.11 ms on that control). The KR 5 reads -0.05 to -0.10 ms short at
+5x noise, beyond its shared error (0.02-0.04 ms). See ``docs/architecture.md``.
 """
 
 from __future__ import annotations
@@ -686,13 +686,16 @@ RESPONSE_FLAG_DEFLECTION_JOINT = "deflection_joint"
 @dataclass(frozen=True)
 class ResponseDelay:
     """The response delay of each row (:func:`response_delay`): ``tau`` (s), its standard
-    error ``se`` (s), ``change`` (how far separating a gear's deflection moved it, s; NaN
-    where the row's joint showed none), ``gear_flag`` (True: the age depends on the
-    unknown gear law by more than ``RESPONSE_GEAR_TOLERANCE_S``) and ``joint_flag`` (True:
-    the row's joint's shared age does, ``DEFLECTION_PLAY_SHARE``)."""
+    error ``se`` (s), ``shared_se`` (s: the part of ``se`` that the row's joint's trials
+    share — errors drawn once for the joint, not per trial; ``se`` counts it), ``change``
+    (how far separating a gear's deflection moved it, s; NaN where the row's joint showed
+    none), ``gear_flag`` (True: the age depends on the unknown gear law by more than
+    ``RESPONSE_GEAR_TOLERANCE_S``) and ``joint_flag`` (True: the row's joint's shared age
+    does, ``DEFLECTION_PLAY_SHARE``)."""
 
     tau: FloatArray
     se: FloatArray
+    shared_se: FloatArray
     change: FloatArray
     gear_flag: NDArray[np.bool_]
     joint_flag: NDArray[np.bool_]
@@ -755,7 +758,8 @@ def response_delay(
         mean = float(np.mean(vote))
         se_mean = float(np.std(vote)) / math.sqrt(vote.size)
         deflected[joint == key] = med > max(thr, 3 * sem) or mean > max(thr, 3 * se_mean)
-    out = ResponseDelay(tau=fit.tau.copy(), se=fit.se.copy(), change=np.full(n, np.nan),
+    out = ResponseDelay(tau=fit.tau.copy(), se=fit.se.copy(), shared_se=np.zeros(n),
+                        change=np.full(n, np.nan),
                         gear_flag=np.zeros(n, dtype=bool),
                         joint_flag=np.zeros(n, dtype=bool))  # fmt: skip
     sub = np.flatnonzero(deflected)
@@ -781,9 +785,11 @@ def response_delay(
         out.tau[r] = fit.tau[r] + corr
         out.change[r] = corr
         # The shrunk age mixes the fit with the terms and the (less noisy) one without:
-        # at most the former's noise; plus the pooled median's error, the gear law's part
-        # (``_GEAR_LAW_SD``) and, for a trial whose correction stands out of its joint's,
-        # the part of it the shrinkage took away.
+        # at most the former's noise, and for a trial whose correction stands out of its
+        # joint's, the part of it the shrinkage took away (the trial's own errors); plus
+        # what the joint's trials share: the pooled median's error and the gear law's
+        # part (``_GEAR_LAW_SD``: one law for the joint, so one error, scaled per trial).
+        out.shared_se[r] = np.sqrt(pooled + (_GEAR_LAW_SD * sens) ** 2)
         out.se[r] = np.sqrt(
             full.se_noise[rows] ** 2 + pooled + (_GEAR_LAW_SD * sens) ** 2 + tail**2
         )
@@ -795,7 +801,7 @@ def response_delay(
     # A joint showed a deflection, so the arm's encoders are motor-side: the others (and a
     # joint with too few trials to separate it) deflect too, unseparated.
     rest = ~separated
-    out.se[rest] = _unseparated_se(fit.se, fit.probe, joint, sound, rest)
+    out.se[rest], out.shared_se[rest] = _unseparated_se(fit.se, fit.probe, joint, sound, rest)
     return out
 
 
@@ -805,7 +811,7 @@ def _unseparated_se(
     joint: NDArray[np.int64],
     sound: NDArray[np.bool_],
     rest: NDArray[np.bool_],
-) -> FloatArray:
+) -> tuple[FloatArray, FloatArray]:
     """The standard error (s) of the ``rest`` rows: joints fitted without the deflection
     terms on an arm whose encoders are motor-side (another joint showed a deflection).
 
@@ -819,6 +825,9 @@ def _unseparated_se(
     +0.3 ms read 0.3-0.5 ms short, 4-8 standard errors), which counts in full. Measured on
     seeds 2 and 3 of that generator (five conditions): the KR 5 wrist's coverage pooled
     88.3 -> 93.3 %; the UR10 wrist 96.8 -> 97.0 %.
+
+    Returns the standard error of the ``rest`` rows and its part their joint's trials
+    share (the offset's bound), both s.
     """
     var = se[rest] ** 2
     floor = DEFLECTION_MIN_CHANGE_S / math.sqrt(3.0)
@@ -839,7 +848,7 @@ def _unseparated_se(
         out_ = rows & np.isfinite(p_rest) & (p_rest > limit)
         excess[out_] = p_rest[out_]
     out: FloatArray = np.sqrt(var + bound**2 + excess**2)
-    return out
+    return out, bound
 
 
 def _shrink(
