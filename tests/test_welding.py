@@ -610,30 +610,35 @@ def test_weld_through_ur_rtde_against_the_ur_twin() -> None:
 @pytest.mark.slow
 def test_weld_through_rsi_against_the_rsi_twin() -> None:
     """The KR 5 weld through RSI XML against the RSI twin (a fresh twin per weld, each weld
-    starting with the approach move, the RSI intake probed at rest first): uncompensated
-    the torch trails by 30-50 mm (measured 45.0-46.7 mm); RSI corrections are positions
-    (the twin's position loop follows them), so the tracking delay is measured through RSI
-    from the uncompensated run's reported positions, dated at the controller's cycle
-    boundary by the probe (``KukaRSIDriver.probe_intake``), with every command placed
-    1.5 periods after its call: 85-100 ms (measured 89.4-95.0 ms per joint over 20 welds of
-    10 seeds, within 0.0-0.7 ms of the twin's physical lag; dated by arrival it was
-    73.2-91.8 ms, carrying the publisher's 0.5-9.5 ms phase and the host's delays); with
-    it the torch is at least 8x nearer the seam than without (measured 0.09-3.4 mm per
-    weld against 45-47 mm: a command whose deadline the placement misjudges by a period
-    leaves its speed change a period off; 81-89 ms measured once with a 1 ms margin). The
-    bound was 4x (7.5 mm once) while the dating carried the phase: the calibration and
-    compensated welds' phases are independent, up to a whole 12 ms period (6 mm at
-    0.5 m/s) apart."""
+    starting with the approach move, the RSI intake probed at rest first), at SCHED_FIFO
+    priority 5 as a cell runs it (README; ``evaluate --task conveyor --twin`` does the
+    same): uncompensated the torch trails by 30-50 mm (measured 45.1-45.6 mm); RSI
+    corrections are positions (the twin's position loop follows them), so the tracking
+    delay is measured through RSI from the uncompensated run's reported positions, dated
+    at the controller's cycle boundary by the probe (``KukaRSIDriver.probe_intake``), with
+    every command placed 1.5 periods after its call: 87-97 ms (measured 90.0-92.9 ms per
+    joint over 8 welds, 4 of them beside a process spinning on one of the two cores;
+    the band is a quarter period either side); with it the torch is within 1 mm of the
+    seam (the target of issue 34; measured 0.07-0.44 mm).
+
+    At normal priority the same weld scattered (CI, and here beside a spinning process):
+    measured delays 82-108 ms and 0.4-15 mm, because the RSI answer thread and the
+    executor then fall whole 12 ms cycles behind the twin's; hence the skip where the OS
+    refuses real-time scheduling."""
+    from timedexec._realtime import realtime
     from timedexec.evaluation import weld_on_twin
 
     sp = plan_seam(default_cell("kr5"), Seam(), weld_s=0.8)
-    none = weld_on_twin(sp, "kr5-sim", {"none": None})["none"]
+    with realtime(5) as granted:
+        if not granted:
+            pytest.skip("needs SCHED_FIFO (root or CAP_SYS_NICE), as a cell's RSI host does")
+        none = weld_on_twin(sp, "kr5-sim", {"none": None})["none"]
+        shift = measure_tracking_delays(none)
+        comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
     assert 30.0 < none.errors().stats()["torch_mean_mm"] < 50.0
-    shift = measure_tracking_delays(none)
-    assert np.all((shift > 0.085) & (shift < 0.10)), shift
-    comp = weld_on_twin(sp, "kr5-sim", {"measured": shift})["measured"]
+    assert np.all((shift > 0.087) & (shift < 0.097)), shift
     torch_mm = comp.errors().stats()["torch_mean_mm"]
-    assert torch_mm < none.errors().stats()["torch_mean_mm"] / 8, torch_mm
+    assert torch_mm < 1.0, torch_mm
 
 
 def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim", extra=()):  # type: ignore[no-untyped-def]
