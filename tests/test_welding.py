@@ -665,6 +665,7 @@ def peer_weld(sp, host: str, publish_delay_s: float, shift=None, model="ur10-sim
     return run, physical_tracking_delays(run)
 
 
+@pytest.mark.realtime_twin
 @pytest.mark.slow
 def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
     """The UR10 weld through the real ur_rtde client against the independent UR peer (CB3,
@@ -687,7 +688,12 @@ def test_weld_through_ur_rtde_against_the_independent_peer() -> None:
       shift (measured 0.3-0.56 ms);
     * the tracking model fitted on the uncompensated weld finds no friction, as the peer
       has none: every offset < 0.2 mrad (measured <= 0.05; our simulator's joints
-      0.3-2.8 mrad). With friction: the next test."""
+      0.3-2.8 mrad). With friction: the next test.
+
+    Gated like the other real-time twin runs (conftest's ``realtime_twin``): at load 6-7 on
+    this VM (gate reading 0.23) it failed 4 of 5 runs, by the machine, not the code: the
+    uncompensated weld at 20-29 mm, once the peer's 100 ms watchdog tripped (no command
+    arrived), once the compensated weld at 13 mm."""
     pytest.importorskip("rtde_control")
     sp = plan_seam(default_cell("ur10"), Seam(), weld_s=0.8)
     none, phys = peer_weld(sp, "127.0.0.151", 0.0005)
