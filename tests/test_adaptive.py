@@ -222,6 +222,27 @@ def test_cli_refuses_trials_with_adaptive(tmp_path: Path) -> None:
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_calibrate_is_adaptive_by_default(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``calibrate`` without ``--trials`` or ``--plan`` runs the adaptive sweep (the best we
+    know for a first hour: docs/calibration.md), with its budget; a CSV workspace of two
+    configurations keeps it to seconds (the sweep ends at "workspace")."""
+    from timedexec.cli import main
+
+    csv = tmp_path / "cell.csv"
+    csv.write_text("0.1,-1.2,1.0,-1.0,0.5,0\n0.4,-1.5,1.2,-1.2,0.6,0\n")
+    out = tmp_path / "cal.h5"
+    code = main(["calibrate", "--robot-url", "sim://ur10e", "--workspace", str(csv),
+                 "--no-tracking-phases", "--out", str(out), "--json", "-", "--quiet"])  # fmt: skip
+    assert code == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["stopped"] == "workspace"
+    assert info["trials"] == 2 * 4 * 2 * 2  # the whole workspace, as simulate's below
+    with RecordingReader(out) as r:
+        assert len(read_design_log(r)) >= 1
+
+
 def test_a_listed_workspace_is_measured_in_minutes(tmp_path: Path) -> None:
     """A workspace of three listed configurations (a task's cell) is measured whole, every
     joint of every configuration, and the sweep ends there ("workspace") within minutes of

@@ -51,11 +51,14 @@ def add_parser(sub: Any) -> None:
             "their own virtual gyro).\n\n"
             "A robot or gyro that stops answering ends the command with exit code 3; "
             "--resume continues the recording.\n\n"
-            "examples:\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
-            "--out cal.h5\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu "
-            "/dev/ttyUSB0 --sensor-profile gyro.json --trials 33500 --seed 1 --out ur10.h5 "
-            "--resume\n  timedexec calibrate --robot-url 'sim://ur10e?warm=1' --adaptive "
-            "--budget-min 45 --seed 1 --out ur10e-adaptive.h5"
+            "examples:\n  timedexec calibrate --robot-url ur://192.168.1.10 --imu /dev/ttyUSB0 "
+            "--sensor-profile gyro.json --seed 1 --out ur10.h5   # adaptive, <= 45 min\n"
+            "  timedexec calibrate --robot-url ur://192.168.1.10 --imu /dev/ttyUSB0 "
+            "--sensor-profile gyro.json --trials 33500 --seed 1 --out ur10.h5 --resume"
+            "   # the paper's fixed sweep, ~9.7 h\n"
+            "  timedexec calibrate --robot-url 'sim://ur10e?warm=1' --budget-min 10 --seed 1 "
+            "--out ur10e.h5\n  timedexec calibrate --robot-url sim://ur10 --trials 40 --seed 1 "
+            "--out cal.h5"
         ),
     )
     p.add_argument(
@@ -72,7 +75,8 @@ def add_parser(sub: Any) -> None:
         type=int_arg(
             1, MAX_TRIALS, fix=" (the paper's sweep: 33500; about 1 s of robot time each)"
         ),
-        help=f"number of trials (with --seed; 1 .. {MAX_TRIALS:,}); not with --adaptive",
+        help=f"number of trials of a fixed sweep (with --seed; 1 .. {MAX_TRIALS:,}); not with "
+        "--adaptive. Without --trials and --plan the sweep is adaptive (--budget-min 45)",
     )
     add_seed(p, help="plan seed")
     p.add_argument("--plan", help="plan file (.npz with the arrays of SweepPlan.to_arrays)")
@@ -130,7 +134,8 @@ def add_adaptive_options(p: Any) -> None:
     g.add_argument(
         "--adaptive",
         action="store_true",
-        help="choose each batch of trials from a Gaussian-process model of the trials so far "
+        help="the default of calibrate when neither --trials nor --plan is given: "
+        "choose each batch of trials from a Gaussian-process model of the trials so far "
         "(where another trial lowers the model's expected error over the workspace most), "
         "until --budget-min of robot time or until another 10 minutes would lower the "
         "estimated error by less than a tenth of the noise floor; resumable (--resume)",
@@ -238,6 +243,10 @@ def run(args: argparse.Namespace) -> int:
     url = RobotURL.parse(args.robot_url)
     simulated = url.scheme == "sim"
     robot = _robot(args, url)
+    if not args.adaptive and args.trials is None and args.plan is None:
+        # The default sweep is the adaptive one: within 1.5-5 % of the paper's 9.7 h
+        # sweep's model in 45 min of robot time (docs/calibration.md).
+        args.adaptive = True
     if args.adaptive:
         if args.trials is not None:
             raise ConfigError("--adaptive chooses its own trials: drop --trials")
@@ -315,12 +324,23 @@ def run(args: argparse.Namespace) -> int:
 
                 gyro = stack.enter_context(open_gyro(args.imu))
             if args.adaptive:
+                workspace = adaptive[1]
+                if callable(reach):  # RSI: within the correction's reach, before moving
+                    margin = _trial_excursion_rad(protocol)
+                    if workspace is not None and workspace.is_list:
+                        driver.check_reachable(  # type: ignore[attr-defined]
+                            workspace.configurations_rad, margin_rad=margin,
+                            what="the workspace's configuration",
+                        )  # fmt: skip
+                    else:
+                        lo, hi = reach()
+                        workspace = workspace_within_reach(workspace, lo + margin, hi - margin)
                 runner = DriverRunner(driver, gyro, protocol, source=args.robot_url)
                 done = run_adaptive(
                     runner,
                     args.out,
                     settings=adaptive[0],
-                    workspace=adaptive[1],
+                    workspace=workspace,
                     resume=args.resume,
                     progress=not args.quiet,
                 )
@@ -525,6 +545,39 @@ def _recorded_plan(path: str, robot: str, seed: int) -> Any:
     with RecordingReader(path) as rec:
         arrays = {k: rec.static(k) for k in names}
     return SweepPlan.from_arrays(robot, arrays, seed=seed)
+
+
+def workspace_within_reach(workspace: Any, lo_rad: Any, hi_rad: Any) -> Any:
+    """The adaptive sweep's box (``workspace``, a box
+    :class:`~timedexec.calibration.Workspace` or None for the calibration ranges) cut to
+    what RSI's correction reaches, ``lo_rad`` .. ``hi_rad`` (6,) each (the trial's
+    excursion already taken off).
+
+    Raises
+    ------
+    ConfigError
+        The box lies outside the reach on some joint (naming it and both ranges).
+    """
+    import numpy as np
+
+    from timedexec.calibration import Workspace
+
+    lo, hi = np.array(lo_rad, dtype=float), np.array(hi_rad, dtype=float)
+    if workspace is not None:
+        lo = np.maximum(lo, workspace.q_min_rad)
+        hi = np.minimum(hi, workspace.q_max_rad)
+    for j in np.flatnonzero(lo > hi):
+        want = "" if workspace is None else (
+            f" (--workspace {np.degrees(workspace.q_min_rad[j]):.1f}.."
+            f"{np.degrees(workspace.q_max_rad[j]):.1f} deg)"
+        )  # fmt: skip
+        raise ConfigError(
+            f"joint {j + 1}: the adaptive sweep has no room within RSI's reach from the pose "
+            f"where RSI started ({np.degrees(lo_rad[j]):.1f}..{np.degrees(hi_rad[j]):.1f} deg "
+            f"less a trial's excursion){want}; raise max_correction_deg (rsi://...?"
+            "max_correction_deg=D or --max-correction-deg) or start RSI nearer the workspace"
+        )
+    return Workspace(q_min_rad=tuple(lo.tolist()), q_max_rad=tuple(hi.tolist()))
 
 
 def _trial_excursion_rad(protocol: Any) -> float:
