@@ -25,7 +25,7 @@ from timedexec.cli._common import (
     sweep_stopped,
     warn,
 )
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, TimedExecError
 
 if TYPE_CHECKING:
     from timedexec.drivers import RobotURL
@@ -415,19 +415,25 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
 
 
 def _sweep_response_s(recording: str) -> float:
-    """The median measured response delay of a recording's trials, s (0 where none was
-    measured: a sweep too short to extract)."""
+    """The median measured response delay of a recording's trials (extracted as `extract`
+    does), s; 0 with a warning where none was measured (the phases' positions may then be
+    dated a controller cycle off)."""
     import numpy as np
 
     from timedexec.extraction import extract_recording
 
     try:
-        table = extract_recording(recording, progress=False).table
-    except ConfigError:
-        return 0.0
-    r = np.asarray(table["response_delay"], dtype=float)
-    r = r[np.isfinite(r)]
-    return float(np.median(r)) if r.size else 0.0
+        r = np.asarray(extract_recording(recording, progress=False).table["response_delay"],
+                       dtype=float)  # fmt: skip
+    except TimedExecError as exc:
+        r, why = np.zeros(0), f"its extraction failed ({exc})"
+    else:
+        r, why = r[np.isfinite(r)], "no trial measured one"
+    if r.size:
+        return float(np.median(r))
+    warn("calibrate", f"no response delay from the sweep to date the tracking phases by: {why}; "
+         "dated with none, they may be a controller cycle off")  # fmt: skip
+    return 0.0
 
 
 def _tracking_text(tracking: dict[str, Any] | None) -> str:
