@@ -179,21 +179,30 @@ def test_evaluate_conveyor_uses_the_sweep_model_by_default(tmp_path) -> None:  #
 @pytest.mark.slow
 def test_calibrate_fits_the_tracking_phases_and_train_puts_them_into_the_bundle(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """`calibrate` runs the tracking phases after the sweep (default on; ~33 s of the
-    simulated UR10's virtual time; the test 7-36 s wall) and writes OUT.tracking.json; `train
-    --tracking` checks it (another robot's file is refused) and writes it into the bundle
-    as tracking.json, which TrackingDelays.of_bundle then reads on that bundle."""
+    simulated UR10's virtual time; the test 15-90 s wall, loaded) and writes OUT.tracking.json,
+    the phases' positions dated with the sweep's median response delay; `train --tracking`
+    checks it (another robot's file is refused) and writes it into the bundle as
+    tracking.json, which TrackingDelays.of_bundle then reads on that bundle."""
     import json
 
     from timedexec.cli import main
     from timedexec.learning import DelayModel
 
     out = tmp_path / "cal.h5"
-    assert main(["calibrate", "--robot-url", "sim://ur10", "--trials", "2", "--seed", "1",
-                 "--out", str(out), "--quiet"]) == 0  # fmt: skip
+    assert main(["calibrate", "--robot-url", "sim://ur10?warm=1", "--trials", "40", "--seed",
+                 "39", "--out", str(out), "--quiet"]) == 0  # fmt: skip
     written = json.loads((tmp_path / "cal.tracking.json").read_text())
     assert written["robot"] == "ur10"
     assert 20.0 < written["robot_time_s"] < 45.0
     assert len(written["lags"]) == 24
+    # The simulated UR10's response is spread over its 8 ms cycle (0.4-7.9 ms), the median
+    # mid-cycle (measured 4.7 ms). Dated with no response (0), this seed's probe put every
+    # position a cycle late: joint 1 lagged 20.7 ms at 0.25 rad/s for ~12.7 physical (its
+    # physical lag 12.3-13.1 ms at the poses tried); within 3 ms of that, a cycle apart.
+    assert 0.002 < written["response_s"] < 0.006
+    fast = [lag["lag_ms"] for lag in written["lags"] if lag["joint"] == 1
+            and abs(lag["speed_rad_s"]) == 0.25]  # fmt: skip
+    assert all(10.0 < lag < 16.0 for lag in fast), fast
     assert main(["extract", str(out), "--out", str(tmp_path / "d.csv"), "--quiet"]) == 0
     bundle = tmp_path / "bundle"
     argv = ["train", str(tmp_path / "d.csv"), "--out", str(bundle), "--folds", "0",

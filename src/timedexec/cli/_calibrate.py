@@ -25,7 +25,7 @@ from timedexec.cli._common import (
     sweep_stopped,
     warn,
 )
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, TimedExecError
 
 if TYPE_CHECKING:
     from timedexec.drivers import RobotURL
@@ -403,6 +403,15 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
     except ConfigError as exc:  # e.g. a joint limit near the sweep's last pose
         warn("calibrate", f"tracking phases skipped ({exc}); the sweep is recorded")
         return {"skipped": str(exc)}
+    # The phases' positions are dated by the probed intake, whose whole-period ambiguity
+    # is resolved by the mean response delay (IntakeFix.dated): with none known (0) a
+    # publisher phase whose response is past half a period dated every position a cycle
+    # late (simulated UR10, 8 ms cycle, response ~4.9 ms: lag 20.9 ms for 13.0 physical,
+    # a conveyor weld 3.6 mm off). The sweep just recorded measures it: date by its median.
+    response_s = _sweep_response_s(args.out)
+    base = dataclasses.replace(base, response_s=response_s)
+    runs = [r if r.intake is None else dataclasses.replace(r, intake=r.intake.dated(response_s))
+            for r in runs]  # fmt: skip
     model = TrackingDelays.calibrate_phases(base, runs)
     lags = [
         {"joint": r.joint, "speed_rad_s": r.speed_rad_s,
@@ -415,6 +424,7 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
         "source": args.robot_url,
         "phases": phases.to_dict(),
         "robot_time_s": round(robot_time_s, 3),
+        "response_s": response_s,
         "tracking": model.to_dict(),
         "lags": lags,
     }
@@ -422,6 +432,28 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
     write_atomic(path, json.dumps(data, indent=1) + "\n")
     return {"path": path, "robot_time_s": data["robot_time_s"],
             "dead_time_ms": (np.asarray(model.dead_time_s) * 1e3).round(3).tolist()}  # fmt: skip
+
+
+def _sweep_response_s(recording: str) -> float:
+    """The median measured response delay of a recording's trials (extracted as `extract`
+    does), s; 0 with a warning where none was measured (the phases' positions may then be
+    dated a controller cycle off)."""
+    import numpy as np
+
+    from timedexec.extraction import extract_recording
+
+    try:
+        r = np.asarray(extract_recording(recording, progress=False).table["response_delay"],
+                       dtype=float)  # fmt: skip
+    except TimedExecError as exc:
+        r, why = np.zeros(0), f"its extraction failed ({exc})"
+    else:
+        r, why = r[np.isfinite(r)], "no trial measured one"
+    if r.size:
+        return float(np.median(r))
+    warn("calibrate", f"no response delay from the sweep to date the tracking phases by: {why}; "
+         "dated with none, they may be a controller cycle off")  # fmt: skip
+    return 0.0
 
 
 def _tracking_text(tracking: dict[str, Any] | None) -> str:
