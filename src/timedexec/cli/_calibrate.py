@@ -244,8 +244,8 @@ def run(args: argparse.Namespace) -> int:
     simulated = url.scheme == "sim"
     robot = _robot(args, url)
     if not args.adaptive and args.trials is None and args.plan is None:
-        # The default sweep is the adaptive one: within 1.5-5 % of the paper's 9.7 h
-        # sweep's model in 45 min of robot time (docs/calibration.md).
+        # The default sweep is the adaptive one: about 5 % above the paper's 9.7 h
+        # sweep's model error in 45 min of robot time (docs/calibration.md).
         args.adaptive = True
     if args.adaptive:
         if args.trials is not None:
