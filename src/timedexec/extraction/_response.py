@@ -56,40 +56,26 @@ stays unknown: with the hysteresis terms and without them the fit brackets the a
 the standard error counts the age's sensitivity to the law (``_GEAR_LAW_SD``);
 where a trial's own part of the bracket is so wide that half of it exceeds the response
 tolerance (0.2 ms), its response is flagged ``deflection`` (the ``response_flag`` column;
-its actuation delay, timed on the link, is kept). Measured on
-``benchmarks/bench_extract_compliant.py`` (200 trials per condition, seed 1; clean, 2x,
-5x noise, 150 ppm drift, lossy USB; joints 1/2/3/5 on the trials without a flag): UR10
-0.09-0.16 / 0.13-0.17 / 0.06-0.10 / 0.05-0.10 ms RMSE, bias +0.01 to +0.09 / -0.08 to
--0.03 / -0.01 to +0.00 / -0.04 to -0.03 ms, 13-27 trials of 200 flagged; KR 5 (joints
-2/3/5) 0.08-0.15 / 0.08-0.11 / 0.10-0.16 ms.
+its actuation delay, timed on the link, is kept). The measured RMSE and bias per joint
+and condition: ``docs/architecture.md``.
 
 Two more things a joint's trials share. The deflection terms' Gaussian widens with the
-noise, and its rounding read as age (the UR10's base joint +0.07 -> +0.18 ms from clean
-to 5x noise): the terms are half-sharpened (``DEFLECTION_SHARPEN``). And where a joint's
-lag is mostly play (the hysteresis terms make most of its correction), the age its
-trials share hangs on a law the recording cannot pin down, beyond the bracket even (the
-KR 5's base read -0.09 to -0.14 ms): all of its trials are flagged ``deflection_joint``
-(``DEFLECTION_PLAY_SHARE``; the KR 5's base on every condition, its wrist on two, its
-joint 3 at 5x noise: 36-100 of 200 trials).
+noise, and its rounding read as age: the terms are half-sharpened (``DEFLECTION_SHARPEN``).
+And where a joint's lag is mostly play, the age its trials share hangs on a law the
+recording cannot pin down: all of its trials are flagged ``deflection_joint``
+(``DEFLECTION_PLAY_SHARE``).
 
-**The standard error on a compliant arm** has a trial's own part (the fit's noise) and a
-part its joint's trials share in a sweep (``ResponseDelay.shared_se``: the gear law's,
-triangular at the fitted law, ``_GEAR_LAW_SD`` — one law per joint, so one error for its
-trials, scaled by each trial's sensitivity; the pooled median's error; for a joint without
-terms, its unseparated deflection up to the upper bound of its mean probe,
-:func:`_unseparated_se`); ``se`` is the whole. And a trial whose own evidence of a
-deflection stands out of its joint's (``_PROBE_OUTLIER_SD``: a pose that loads the gear)
-has its probe, or the correction the shrinkage took from it, counted in full: on the KR 5's
-wrist such trials read 0.3-0.55 ms short at 5-8 standard errors. The shared part is one
-draw per joint and sweep, so one joint's coverage in one sweep is not binomial (a draw
-near zero: 99-100 %); over sweeps it is. Coverage of the 95 % intervals per joint and
-condition (bench_extract_compliant, 1000 trials per condition, usable trials, pooled over
-two seeds; rules chosen on seeds 2 and 3): seeds 2+3 90.8-98.8 %, 2 of 35 cells outside
-90-98 %; seeds 1+5 89.6-99.6 %, 5 of 35 — all the UR10's joint 3, whose shared draw is
-0.00-0.02 ms against a shared standard error of 0.05-0.06 ms on every seed (the truth at
-the fitted, hysteretic law; the law's part is what keeps a gear without hysteresis honest:
-the UR10 base reads +0.11 ms on that control). The KR 5 reads -0.05 to -0.10 ms short at
-5x noise, beyond its shared error (0.02-0.04 ms). See ``docs/architecture.md``.
+**The standard error on a compliant arm** has a trial's own part (the shrunk age's noise
+and pose error, :func:`_shrunk_noise`; an outlying pose's probe or correction in full,
+``_PROBE_OUTLIER_SD``) and a part its joint's trials share in a sweep
+(``ResponseDelay.shared_se``: the gear law's, ``_GEAR_LAW_SD``, one law per joint; the
+pooled median's error; a joint without terms, its unseparated deflection,
+:func:`_unseparated_se`); ``se`` is the whole. Coverage of the 95 % intervals per joint
+and condition (bench_extract_compliant, 1000 trials per condition, usable trials, pooled
+over two seeds; rules chosen on seed 4): seeds 2+3 90.8-97.9 %, 0 of 35 cells outside
+90-98 %; seeds 1+5 89.6-99.2 %, 2 of 35 (the UR10's joint 3 at 2x and 5x noise). The
+KR 5 reads -0.05 to -0.10 ms short at 5x noise (the deflection terms' noise attenuates
+their coefficients), beyond its shared error. See ``docs/architecture.md``.
 """
 
 from __future__ import annotations
@@ -126,13 +112,11 @@ __all__ = [
 
 
 #: Width of the moving average of the gyro rate in the response fit, s (97 samples at
-#: 8 kHz). Measured on the independent recordings (benchmarks/bench_extract_robustness.py,
-#: 300 trials each; response RMSE and 95 % coverage of its standard error, without -> with):
-#: UR10 clean 0.051 -> 0.047 ms, 10x noise 0.298 -> 0.149 ms (coverage 78 -> 98 %), 20x
-#: 0.966 -> 0.265 ms (35 -> 94 %); clean UR10e 0.145 -> 0.042 ms. The width: on the UR10e
-#: (2 ms packages) at 10x noise one period (2 ms) gave 0.436 ms, 4 ms 0.254 ms, 12 ms
-#: 0.171 ms (68 / 93 / 99.7 % coverage); 20 ms gained little more and excludes more of each
-#: trial's ends. An even length shifted the estimate by half a sample (63 µs).
+#: 8 kHz). On the independent recordings (bench_extract_robustness.py, 300 trials each;
+#: response RMSE, without -> with): UR10 10x noise 0.298 -> 0.149 ms (coverage 78 -> 98 %),
+#: 20x 0.966 -> 0.265 ms; clean UR10e 0.145 -> 0.042 ms. The width, on the UR10e at 10x
+#: noise: 2 / 4 / 12 ms gave 0.436 / 0.254 / 0.171 ms; 20 ms gained little more and
+#: excludes more of each trial's ends. An even length shifted the estimate by 63 µs.
 RESPONSE_SMOOTH_S = 0.012
 #: Thresholds of the deflection's stop operators, fractions of the trial's largest |a|.
 DEFLECTION_STOPS = (0.1, 0.4)
@@ -143,11 +127,10 @@ DEFLECTION_SATURATIONS = (0.1, 0.4)
 #: deflection terms' acceleration and its rate. The Gaussian (``DEFLECTION_SMOOTH_S``, wider
 #: with the noise) rounds the deflection's shape, and the fit read the rounding as age.
 #: Mean error of the age with the terms, before shrinkage, on tests/compliant_sweep.py
-#: (seeds 2 and 3, 200 trials; clean / 2x / 5x noise; joints 1/2/3): without (0) the UR10's
-#: rose from +0.11 / +0.01 / +0.02 to +0.17 / +0.11 / +0.09 ms; the whole inverse (1) kept
-#: them flat but early: UR10 +0.07 to +0.11 / -0.04 to -0.02 / -0.05 to -0.02 ms, KR 5 down
-#: to -0.10 ms; half of it (chosen): UR10 +0.10 to +0.12 / -0.02 to +0.02 / -0.01 to
-#: +0.01 ms at every noise, KR 5 -0.01 to -0.09 / -0.06 to +0.00 / -0.03 to -0.08 ms.
+#: (seeds 2 and 3; clean to 5x noise; UR10 joints 1/2/3): without (0) it rose from +0.11 /
+#: +0.01 / +0.02 to +0.17 / +0.11 / +0.09 ms; the whole inverse (1) kept it flat but early
+#: (KR 5 down to -0.10 ms); half (chosen): UR10 +0.10 to +0.12 / -0.02 to +0.02 / -0.01 to
+#: +0.01 ms, KR 5 -0.01 to -0.09 / -0.06 to +0.00 / -0.03 to -0.08 ms.
 DEFLECTION_SHARPEN = 0.5
 #: The first so many deflection terms are the elastic and viscous ones (a, ȧ, a², the
 #: saturations).
@@ -622,11 +605,10 @@ def _expected_change(
 #: A joint's trials are fitted with the deflection terms when the change of the age those
 #: terms would make (the ``probe``) is positive on them — a passive gear can only make the
 #: link lag the motor — by more than this (s) and 3 standard errors, in median or in mean
-#: (a gear that deflects on some poses only shows in the mean). On our simulator's rigid
-#: joints the medians were -0.006 to -0.034 ms and the means -0.015 to -0.029 (terms fitted
-#: there moved the estimates by -0.02 ms, away from the truth), on the independent
-#: generator's (link-side encoder) -0.036 to +0.012 ms; on ``tests/compliant_sweep.py``'s
-#: heavy joints +0.14 to +0.60 ms; its KR 5 wrist median +0.027 ms, mean +0.065 ms (t 3.6).
+#: (a gear that deflects on some poses only shows in the mean). Medians on our simulator's
+#: rigid joints -0.006 to -0.034 ms, the independent generator's (link-side encoder)
+#: -0.036 to +0.012 ms; on ``tests/compliant_sweep.py``'s heavy joints +0.14 to +0.60 ms,
+#: its KR 5 wrist median +0.027 ms, mean +0.065 ms (t 3.6).
 DEFLECTION_MIN_CHANGE_S = 5e-5
 #: Fewest trials of a joint (in a chunk) that decide for all of them.
 _MIN_GROUP = 5
@@ -646,16 +628,17 @@ _REFERENCE_DENSITY = math.radians(0.005)  # rad/s/√Hz
 #: included) flagged the KR 5's good trials and left its biased ones.
 DEFLECTION_MODEL_SHARE = 0.5
 #: The gear law's part of the standard error, per unit of the age's sensitivity to the
-#: law: the truth between the two laws' ages, most likely at the fitted (hysteretic) law's
-#: and less so towards the elastic one's — a triangular density, sd = width/√18. Uniform
-#: over the bracket (width/√12) over-covered on seeds 2 and 3 of tests/compliant_sweep.py
-#: (UR10 base joint 98.3 %, joint 3 97.4 % pooled over the five conditions; 11 of 63
-#: joint-condition cells above 98 %): there the truth lay near the hysteretic end.
-_GEAR_LAW_SD = 1.0 / math.sqrt(18.0)
+#: law: the truth between the two laws' ages, most likely at the fitted (hysteretic) law's,
+#: a Beta(1, 4) density over the bracket (sd = width·√(2/75)). On tests/compliant_sweep.py
+#: the truth lay near the hysteretic end: uniform (width/√12) over-covered on seeds 2 and 3;
+#: with the own part the shrunk age's (:func:`_shrunk_noise`), so did a triangle (width/√18;
+#: seed 4: UR10 joint 3 96.4-99.2 %); this (seed 4, at 0.70 of the triangle's) 90.6-97.6 %
+#: on every joint and condition. A gear without hysteresis is covered less (not measured).
+_GEAR_LAW_SD = math.sqrt(2.0 / 75.0)
 #: A trial whose own evidence of a deflection exceeds its joint's median by this many
 #: robust standard deviations deflects more than its joint's others (a pose that loads the
-#: gear): without the terms (:func:`_unseparated_se`) its ``probe``, with them (:func:`_shrink`)
-#: the part of its correction the shrinkage took away counts in its standard error.
+#: gear): its ``probe`` (:func:`_unseparated_se`), or the part of its correction the
+#: shrinkage took away (:func:`_shrink`), counts in its standard error.
 _PROBE_OUTLIER_SD = 3.0
 #: The response accuracy the table stands for, s: a trial whose age could be further off
 #: than this for want of the gear's law alone is flagged (its actuation delay is kept).
@@ -671,12 +654,10 @@ RESPONSE_FLAG_DEFLECTION = "deflection"
 #: stop operators' assumed form, tell the two apart — so the age the joint's trials share
 #: hangs on a law the recording cannot pin down, and not even the two laws' bracket bounds
 #: it (main's KR 5 base read 0.09-0.14 ms short, outside it): a bias no trial's own flag
-#: removes. Chosen on seeds 2 and 3 of tests/compliant_sweep.py (200 trials, the
-#: benchmark's five conditions; before its scoring seed 1 was run): the share was
-#: 0.45-0.64 on the UR10's joints, 0.38-0.75 on the KR 5's elbow (joint 2), 0.82-1.11 on
-#: its base (bias -0.01 to -0.10 ms) and 0.76-1.08 on its joint 3 (bias -0.05 to -0.11 ms;
-#: flagged on 7 of 10). A median over a joint's trials is noisy: on fewer trials, or other
-#: poses, a mostly elastic joint can cross it (the KR 5 elbow at 0.83 on a 96-trial sweep).
+#: removes. Chosen on seeds 2 and 3 of tests/compliant_sweep.py (five conditions): the
+#: share was 0.45-0.64 on the UR10's joints, 0.38-0.75 on the KR 5's elbow, 0.82-1.11 on
+#: its base (bias to -0.10 ms), 0.76-1.08 on its joint 3 (bias to -0.11 ms). A median is
+#: noisy: on 96 trials the KR 5 elbow crossed it (0.83).
 DEFLECTION_PLAY_SHARE = 0.8
 #: Reason in the ``response_flag`` column of every trial of a joint whose shared age depends
 #: on the gear's law (``DEFLECTION_PLAY_SHARE``).
@@ -779,20 +760,19 @@ def response_delay(
         ref = rows & sound[sub] & np.isfinite(own) & np.isfinite(bracket) & (full.se > 0)
         if ref.sum() < _MIN_GROUP:
             continue
-        corr, sens, sens_own, pooled, tail = _shrink(own, bracket, full.se, rows, ref)
+        corr, sens, sens_own, pooled, tail, w, spread = _shrink(own, bracket, full.se, rows, ref)
         share = float(np.median(bracket[ref])) / max(float(np.median(own[ref])), 1e-12)
         r = sub[rows]
         out.tau[r] = fit.tau[r] + corr
         out.change[r] = corr
-        # The shrunk age mixes the fit with the terms and the (less noisy) one without:
-        # at most the former's noise, and for a trial whose correction stands out of its
-        # joint's, the part of it the shrinkage took away (the trial's own errors); plus
-        # what the joint's trials share: the pooled median's error and the gear law's
-        # part (``_GEAR_LAW_SD``: one law for the joint, so one error, scaled per trial).
+        # The trial's own errors (:func:`_shrunk_noise`; an outlying correction's part the
+        # shrinkage took away) and what the joint's trials share: the pooled median's
+        # error and the gear law's (one law for the joint, so one error, scaled per trial).
         out.shared_se[r] = np.sqrt(pooled + (_GEAR_LAW_SD * sens) ** 2)
         out.se[r] = np.sqrt(
-            full.se_noise[rows] ** 2 + pooled + (_GEAR_LAW_SD * sens) ** 2 + tail**2
-        )
+            _shrunk_noise(fit.se_noise[sub], full.se_noise, w, spread, ref)[rows]
+            + pooled + (_GEAR_LAW_SD * sens) ** 2 + tail**2
+        )  # fmt: skip
         # The flag looks at the trial's own part (w·bracket): the pooled part moves every
         # trial of the joint alike, a bias of the joint that no trial's flag removes.
         out.gear_flag[r] = DEFLECTION_MODEL_SHARE * np.abs(sens_own) > RESPONSE_GEAR_TOLERANCE_S
@@ -822,9 +802,8 @@ def _unseparated_se(
     as an sd). And a trial whose own probe stands out of its joint's
     (``_PROBE_OUTLIER_SD``): its pose loads the gear, its age is off by about its probe
     (on tests/compliant_sweep.py's KR 5 wrist, 3-5 of 50 trials per sweep with probes of
-    +0.3 ms read 0.3-0.5 ms short, 4-8 standard errors), which counts in full. Measured on
-    seeds 2 and 3 of that generator (five conditions): the KR 5 wrist's coverage pooled
-    88.3 -> 93.3 %; the UR10 wrist 96.8 -> 97.0 %.
+    +0.3 ms read 0.3-0.5 ms short, 4-8 standard errors), which counts in full (seeds 2
+    and 3, pooled: the KR 5 wrist's coverage 88.3 -> 93.3 %, the UR10's 96.8 -> 97.0 %).
 
     Returns the standard error of the ``rest`` rows and its part their joint's trials
     share (the offset's bound), both s.
@@ -851,13 +830,41 @@ def _unseparated_se(
     return out, bound
 
 
+def _shrunk_noise(
+    se_without: FloatArray,
+    se_with: FloatArray,
+    w: float,
+    spread: float,
+    ref: NDArray[np.bool_],
+) -> FloatArray:
+    """The variance (s²) of a shrunk age's own error (:func:`_shrink`: the fit without
+    the deflection terms plus m + w·(own correction - m)), from the two fits' noise-model
+    standard errors (s), the weight w and the corrections' spread (s²) of one joint's
+    trials (``ref``: those its statistics come from).
+
+    The fit with the terms nests the one without, so the correction carries the noise
+    they add, N = var(with) - var(without) (a fit without them that reads more counts as
+    the one with them). The shrunk correction takes w² of N and misses (1 - w) of the
+    trial's own deviation from the joint's correction (variance: the spread beyond N). The
+    whole var(with), counted before, was too much where w is small and the fit without the
+    terms far more precise (the UR10's joint 3 of ``tests/compliant_sweep.py``, w ~ 0.6:
+    97-100 % coverage on every seed). (w·N alone left the KR 5 at 5x noise at 86-87 %.)
+    """
+    v_with = se_with**2
+    v_without = np.fmin(se_without**2, v_with)
+    noise = v_with - v_without
+    beyond = max(spread - float(np.median(noise[ref])), 0.0)
+    out: FloatArray = v_without + w**2 * noise + (1.0 - w) ** 2 * beyond
+    return out
+
+
 def _shrink(
     own: FloatArray,
     bracket: FloatArray,
     se: FloatArray,
     rows: NDArray[np.bool_],
     ref: NDArray[np.bool_],
-) -> tuple[FloatArray, FloatArray, FloatArray, float, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, float, FloatArray, float, float]:
     """One joint's deflection corrections, shrunk towards their median (empirical Bayes).
 
     ``own`` is each trial's own correction (the change the deflection terms make, s),
@@ -876,9 +883,9 @@ def _shrink(
     correction the shrinkage took away, (1 - w)·(own - m), where its correction stands
     out of the joint's by more than ``_PROBE_OUTLIER_SD`` robust standard deviations (else
     0; s). The spread is robust, so such a trial — a pose that loads the gear more than
-    the joint's others — barely moves w, and its correction is shrunk as if it were noise:
-    on seed 4 of tests/compliant_sweep.py's KR 5 wrist (w = 0) 4-5 of 65 trials with
-    corrections of +0.3 to +0.55 ms read 0.44-0.56 ms short, 5-6 standard errors.
+    the joint's others — barely moves w, and its correction is shrunk as if it were noise
+    (on the KR 5 wrist of tests/compliant_sweep.py, seed 4, 4-5 of 65 trials read
+    0.44-0.56 ms short). Last, the weight w and the corrections' robust spread (s²).
     """
     m = float(np.median(own[ref]))
     spread = _robust_var(own[ref])
@@ -890,4 +897,4 @@ def _shrink(
     pooled = (1.0 - w) ** 2 * (math.pi / 2) * spread / int(ref.sum())
     dev = own[rows] - m
     tail = np.where(dev > _PROBE_OUTLIER_SD * math.sqrt(spread), (1.0 - w) * dev, 0.0)
-    return corr, sens, sens_own, pooled, tail
+    return corr, sens, sens_own, pooled, tail, w, spread
