@@ -205,21 +205,21 @@ def test_a_sweep_over_rsi_planned_around_the_start_pose_calibrates_and_extracts(
 def test_the_adaptive_sweep_over_rsi_stays_within_reach() -> None:
     """``calibrate`` over RSI is adaptive by default: its workspace box is cut to what the
     correction reaches from the pose where RSI started (the calibration ranges when none
-    is given), and a box with no room on some joint is refused naming the joint, both
-    ranges and the fix."""
+    is given, ``Workspace.cut_to``), and a box with no room on some joint is refused
+    naming the joint, both ranges and the fix."""
     from timedexec.calibration import Workspace
-    from timedexec.cli._calibrate import workspace_within_reach
 
     start = np.radians(SIMULATOR_START_DEG)
     lo, hi = start - np.radians(60.0), start + np.radians(60.0)
-    ws = workspace_within_reach(None, lo, hi)
+    words = {"reach": "RSI's reach", "fix": "raise max_correction_deg"}
+    ws = Workspace().cut_to(lo, hi, **words)
     np.testing.assert_allclose(ws.q_min_rad, lo)
     np.testing.assert_allclose(ws.q_max_rad, hi)
     box = Workspace(q_min_rad=(-0.2, -2.0, -0.2, -0.2, -0.2, -0.2), q_max_rad=(3.0,) * 6)
-    ws = workspace_within_reach(box, lo, hi)
+    ws = box.cut_to(lo, hi, **words)
     np.testing.assert_allclose(ws.q_min_rad, np.maximum(lo, box.q_min_rad))
     np.testing.assert_allclose(ws.q_max_rad, np.minimum(hi, 3.0))
     box = Workspace(q_min_rad=(-0.2,) * 6, q_max_rad=(3.0,) * 6)  # joint 2 above its reach
-    with pytest.raises(ConfigError, match=r"joint 2: .*-150\.0\.\.-30\.0 deg.*"
-                                          r"--workspace -11\.5\.\.171\.9 deg.*max_correction_deg"):  # fmt: skip
-        workspace_within_reach(box, lo, hi)
+    with pytest.raises(ConfigError, match=r"joint 2: .*RSI's reach \(-150\.0\.\.-30\.0 deg\)"
+                                          r".*--workspace -11\.5\.\.171\.9 deg.*max_correction_deg"):  # fmt: skip
+        box.cut_to(lo, hi, **words)

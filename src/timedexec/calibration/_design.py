@@ -135,6 +135,34 @@ class Workspace(DictMixin):
         """Whether the workspace is a list of configurations."""
         return self.configurations_rad is not None
 
+    def cut_to(self, lo_rad: Any, hi_rad: Any, *, reach: str, fix: str) -> Workspace:
+        """This box (the calibration ranges when none is given) cut to ``lo_rad`` ..
+        ``hi_rad`` (6,) each, rad: what the robot can reach here (RSI: the correction's
+        limit around the pose where RSI started, less a trial's excursion).
+
+        Raises
+        ------
+        ConfigError
+            A listed workspace, or no room on some joint (naming it, both ranges,
+            ``reach`` (what the bounds are) and ``fix``).
+        """
+        if self.configurations_rad is not None:
+            raise ConfigError("workspace: a list of configurations is checked, not cut")
+        lo, hi = np.array(lo_rad, dtype=float), np.array(hi_rad, dtype=float)
+        if self.q_min_rad is not None and self.q_max_rad is not None:
+            lo = np.maximum(lo, self.q_min_rad)
+            hi = np.minimum(hi, self.q_max_rad)
+        for j in np.flatnonzero(lo > hi):
+            box = "" if self.q_min_rad is None or self.q_max_rad is None else (
+                f" (--workspace {math.degrees(self.q_min_rad[j]):.1f}.."
+                f"{math.degrees(self.q_max_rad[j]):.1f} deg)"
+            )  # fmt: skip
+            raise ConfigError(
+                f"joint {j + 1}: the sweep has no room within {reach} "
+                f"({math.degrees(lo_rad[j]):.1f}..{math.degrees(hi_rad[j]):.1f} deg){box}; {fix}"
+            )
+        return Workspace(q_min_rad=tuple(lo.tolist()), q_max_rad=tuple(hi.tolist()))
+
     def describe(self) -> str:
         """One line for messages and progress."""
         if self.configurations_rad is not None:

@@ -236,7 +236,7 @@ def read_workspace(path: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; return the exit code."""
-    from timedexec.calibration import DriverRunner, run_adaptive, run_calibration
+    from timedexec.calibration import DriverRunner, Workspace, run_adaptive, run_calibration
     from timedexec.drivers import RobotURL, open_driver
     from timedexec.recording import SweepPlan, SweepProtocol
 
@@ -334,7 +334,13 @@ def run(args: argparse.Namespace) -> int:
                         )  # fmt: skip
                     else:
                         lo, hi = reach()
-                        workspace = workspace_within_reach(workspace, lo + margin, hi - margin)
+                        workspace = (workspace or Workspace()).cut_to(
+                            lo + margin, hi - margin,
+                            reach="RSI's reach from the pose where RSI started, less a "
+                            "trial's excursion",
+                            fix="raise max_correction_deg (rsi://...?max_correction_deg=D or "
+                            "--max-correction-deg) or start RSI nearer the workspace",
+                        )  # fmt: skip
                 runner = DriverRunner(driver, gyro, protocol, source=args.robot_url)
                 done = run_adaptive(
                     runner,
@@ -577,39 +583,6 @@ def _recorded_plan(path: str, robot: str, seed: int) -> Any:
     with RecordingReader(path) as rec:
         arrays = {k: rec.static(k) for k in names}
     return SweepPlan.from_arrays(robot, arrays, seed=seed)
-
-
-def workspace_within_reach(workspace: Any, lo_rad: Any, hi_rad: Any) -> Any:
-    """The adaptive sweep's box (``workspace``, a box
-    :class:`~timedexec.calibration.Workspace` or None for the calibration ranges) cut to
-    what RSI's correction reaches, ``lo_rad`` .. ``hi_rad`` (6,) each (the trial's
-    excursion already taken off).
-
-    Raises
-    ------
-    ConfigError
-        The box lies outside the reach on some joint (naming it and both ranges).
-    """
-    import numpy as np
-
-    from timedexec.calibration import Workspace
-
-    lo, hi = np.array(lo_rad, dtype=float), np.array(hi_rad, dtype=float)
-    if workspace is not None:
-        lo = np.maximum(lo, workspace.q_min_rad)
-        hi = np.minimum(hi, workspace.q_max_rad)
-    for j in np.flatnonzero(lo > hi):
-        want = "" if workspace is None else (
-            f" (--workspace {np.degrees(workspace.q_min_rad[j]):.1f}.."
-            f"{np.degrees(workspace.q_max_rad[j]):.1f} deg)"
-        )  # fmt: skip
-        raise ConfigError(
-            f"joint {j + 1}: the adaptive sweep has no room within RSI's reach from the pose "
-            f"where RSI started ({np.degrees(lo_rad[j]):.1f}..{np.degrees(hi_rad[j]):.1f} deg "
-            f"less a trial's excursion){want}; raise max_correction_deg (rsi://...?"
-            "max_correction_deg=D or --max-correction-deg) or start RSI nearer the workspace"
-        )
-    return Workspace(q_min_rad=tuple(lo.tolist()), q_max_rad=tuple(hi.tolist()))
 
 
 def _trial_excursion_rad(protocol: Any) -> float:
