@@ -358,8 +358,9 @@ def check_gyro_samples(
                 f"{nominal:g} Hz calibration needs (allowed ±{100 * lim.max_rate_error:g} %)" + hint
             )
         # Each half's rate comes from the lower envelope of its arrivals, which a burst of
-        # late reads at a half's end moves by up to ~0.3 ms (a good twin read -629 ppm over
-        # a 2 s check through a pty, CI 2026-11-29): the allowance adds that resolution,
+        # late reads at a half's end moves (a good twin read -629 ppm over a 2 s check
+        # through a pty, CI 2026-11-29: ~0.3 ms at each of the two halves' ends, inferred
+        # from that one reading, not measured apart): the allowance adds that resolution,
         # 2 x 0.3 ms over a half's length (+120 ppm at the default 10 s, +600 at 2 s).
         allowed = lim.max_drift_ppm + 2 * _ENVELOPE_RES_S / max(duration / 2, 1e-9) * 1e6
         if not abs(drift) <= allowed:
