@@ -41,13 +41,13 @@ from timedexec.execution import ExecutionResult, IntakeFix, JointPlan, TimedExec
 from timedexec.tasks._conveyor import Seam, SeamPlan, WeldCell, plan_seam
 from timedexec.tasks._truth import physical_probe
 
+__all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
+
 #: How far from the approach's start a weld may begin, rad per joint (the arm at rest).
 START_TOLERANCE_RAD = 1e-4
 #: Approach moves at most before a weld: the first, then corrections while the arm ended
 #: more than :data:`START_TOLERANCE_RAD` off the start.
 APPROACH_ATTEMPTS = 3
-
-__all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
 
 
 @dataclass(frozen=True)
@@ -276,7 +276,8 @@ def track_conveyor_seam(
     """Weld a seam on the moving belt through ``executor`` and measure the torch.
 
     The robot must be at rest; it first moves to the approach's start configuration
-    (a plain executor motion), then the seam plan runs: the torch meets the seam
+    (a plain executor motion; up to :data:`APPROACH_ATTEMPTS` while it ends more than
+    :data:`START_TOLERANCE_RAD` off), then the seam plan runs: the torch meets the seam
     ``lead_s`` after the plan is scheduled (at least the executor's lead), follows it for
     ``settle_s + cruise_s + 0.05`` s and stops.
 
