@@ -328,8 +328,9 @@ def track_conveyor_seam(
     # arm ended off it. The seam plan is a speed stream from that start, so wherever the
     # arm ends up it keeps as a position error through the weld: after one approach
     # through RSI against the twin, -0.46 to +0.24 mrad on the KR 5's A1 (-0.6 to +0.3 ms
-    # of tracking lag at the weld's 0.79 rad/s), and -74 mrad in one weld of 20 on a
-    # loaded machine (-90 ms; the UR10 through ur_rtde showed the same, +20 ms).
+    # of tracking lag at the weld's 0.79 rad/s), and -74 mrad (-90 ms) in one of ~20
+    # welds on a loaded machine (a UR10 calibration weld through ur_rtde read +20 ms off
+    # with the same per-joint pattern; its start was not checked).
     for _attempt in range(APPROACH_ATTEMPTS):
         q_now = executor.estimate().q_rad
         if np.max(np.abs(q_now - sp.plan.q_start_rad)) <= START_TOLERANCE_RAD:
