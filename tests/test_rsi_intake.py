@@ -4,6 +4,8 @@ placement it enables."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -86,3 +88,31 @@ def test_probe_finds_the_twins_boundary_whatever_its_packing_phase() -> None:
             arrivals.append(fix.arrival_offset_s - boundary)
             assert np.allclose(drv.read_state(timeout_s=1.0).correction, 0.0)  # put back
     assert abs(arrivals[0] - arrivals[1]) > 3e-3, arrivals  # the phases differ (seeds 1, 3)
+
+
+@pytest.mark.slow
+def test_the_commanded_position_is_the_twins_set_point_after_placed_commands() -> None:
+    """``commanded_q_rad`` (what the conveyor weld's approach checks before the seam's
+    speed stream starts) is the controller's set-point: after a probed, placed speedj
+    motion has come to rest, it equals the twin's ``ASPos`` (to 1e-6 rad: the XML's six
+    decimals of a degree are 1.7e-8 rad), where the driver's own profile (start pose +
+    integrated correction) may not: the placement's lead is in the answers, not in the
+    profile (0.012-0.027 mrad apart in this test, 0.2 mrad after a weld's approach)."""
+    with KukaRSIDriver(0, robot="kr5", progress=False) as drv, RSITwin(
+        drv.port, robot="kr5", seed=2, timeout_packets=2000
+    ):  # fmt: skip
+        drv.read_state(timeout_s=5.0)
+        drv.probe_intake()
+        qd = np.array([0.2, -0.1, 0.15, 0.3, -0.2, 0.25])
+        for k in range(25):  # a ramp of speed commands a cycle apart, as the executor sends
+            drv.speedj(qd * min(1.0, (k + 1) / 10), 4.0, T12)
+            drv.read_state(timeout_s=1.0)
+        drv.stop(4.0)
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            state = drv.read_state(timeout_s=1.0)
+        commanded = drv.commanded_q_rad()
+        assert commanded is not None
+        assert state.q_setpoint is not None
+        assert np.max(np.abs(commanded - state.q_setpoint)) < 1e-6, commanded - state.q_setpoint
+        assert np.max(np.abs(state.q_setpoint - drv.start_pose_rad)) > 0.05  # it moved

@@ -114,6 +114,17 @@ class RobotDriver(abc.ABC):
     def stop(self, deceleration_rad_s2: float = 10.0) -> None:
         """Decelerate all joints to rest."""
 
+    def commanded_q_rad(self) -> FloatArray | None:
+        """The joint position the controller is commanded to, rad (6,): its set-point, as
+        far as the driver can tell, or None where it cannot (the default).
+
+        At rest it differs from the reported position by what the position loop leaves
+        (friction, gravity, a gear's backlash) and from a streamed plan's end by what the
+        speed stream lost (a command taken a cycle late holds a speed one period too long);
+        a motion that must start exactly where a plan says checks it (the conveyor weld).
+        """
+        return None
+
     # ------------------------------------------------------------------ watchdog
     def arm_watchdog(self, timeout_s: float) -> float | None:
         """Ask the controller to stop the program when no command or kick reaches it for

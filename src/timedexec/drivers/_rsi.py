@@ -103,7 +103,6 @@ from timedexec.robots import RobotSpec, get_robot
 
 __all__ = ["KukaRSIDriver", "RSICommandRecord", "RSIIntake", "RSIState", "RSIStats"]
 
-
 _RECV_POLL_S = 0.05  # how often the receive thread checks for shutdown
 
 
@@ -485,15 +484,11 @@ class KukaRSIDriver(RobotDriver):
         """Snapshot of the answer thread's counters."""
         with self._cond:
             peers = self._peers
-            return RSIStats(
-                **{
-                    **self._stats,
-                    "ignored_frames": peers.ignored_frames,
-                    "last_foreign_address": format_address(peers.last_foreign),
-                    "peer_address": format_address(peers.peer),
-                    "ipoc_tick_s": self._clock.tick_s,
-                }
-            )
+            return RSIStats(**{
+                **self._stats, "ignored_frames": peers.ignored_frames,
+                "last_foreign_address": format_address(peers.last_foreign),
+                "peer_address": format_address(peers.peer), "ipoc_tick_s": self._clock.tick_s,
+            })  # fmt: skip
 
     def command_log(self) -> list[RSICommandRecord]:
         """Every motion command since connect, with the time its first answer left."""
@@ -504,6 +499,13 @@ class KukaRSIDriver(RobotDriver):
     def correction_rad(self) -> FloatArray:
         """The absolute correction most recently integrated, rad, shape (6,)."""
         return self._profile.corr.copy()
+
+    def commanded_q_rad(self) -> FloatArray | None:
+        """The start pose plus the correction the last answer sent (the placement's lead in
+        it), rad (6,): the set-point once taken (absolute mode); None before a session."""
+        if self._sock is None or not self._active() or self._frames_since_connect == 0:
+            return None
+        return np.asarray(self._profile.q_start + self._sent_corr)
 
     @property
     def start_pose_rad(self) -> FloatArray:

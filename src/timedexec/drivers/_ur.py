@@ -550,6 +550,14 @@ class URDriver(RobotDriver):
             )
         return ok
 
+    def commanded_q_rad(self) -> FloatArray | None:
+        """The controller's ``target_q`` in the newest package, rad (6,), or None when the
+        outputs leave it out or the driver is not connected."""
+        recv = self._recv
+        if recv is None or "target_q" not in self.variables or self._link_lost:
+            return None
+        return np.asarray(recv.getTargetQ(), dtype=float)
+
     def speedj(
         self, qd_rad_s: FloatArray | Sequence[float], acceleration_rad_s2: float, duration_s: float
     ) -> None:

@@ -43,11 +43,17 @@ from timedexec.tasks._truth import physical_probe
 
 __all__ = ["ConveyorRun", "TorchErrors", "prepare_shifted", "track_conveyor_seam"]
 
-#: How far from the approach's start a weld may begin, rad per joint (the arm at rest).
+#: How far from the approach's start a weld may begin by the reported position, rad per
+#: joint (the arm at rest; drivers that cannot read the set-point).
 START_TOLERANCE_RAD = 1e-4
-#: Approach moves at most before a weld: the first, then corrections while the arm ended
-#: more than :data:`START_TOLERANCE_RAD` off the start.
+#: How far the controller's set-point may end from the approach's start, rad per joint
+#: (0.02 mrad: 0.03 ms of tracking lag at the KR 5 weld's 0.79 rad/s, 0.02 mm at 1 m).
+SETPOINT_TOLERANCE_RAD = 2e-5
+#: Approach moves at most before a weld: the first, then corrections while the set-point
+#: ended more than :data:`SETPOINT_TOLERANCE_RAD` off the start.
 APPROACH_ATTEMPTS = 3
+#: A correction move lasts at least this many controller cycles.
+CORRECTION_PERIODS = 20
 
 
 @dataclass(frozen=True)
@@ -324,21 +330,35 @@ def track_conveyor_seam(
     # ends up, so wait (reading, not commanding: a stop command would still be braking
     # when the approach's first commands arrive) until it is at rest.
     executor.idle(executor.now() + 2.0, until_rest=True)
-    # Go to the approach's start (at rest), then let the state settle; once more where the
-    # arm ended off it. The seam plan is a speed stream from that start, so wherever the
-    # arm ends up it keeps as a position error through the weld: after one approach
-    # through RSI against the twin, -0.46 to +0.24 mrad on the KR 5's A1 (-0.6 to +0.3 ms
-    # of tracking lag at the weld's 0.79 rad/s), and -74 mrad (-90 ms) in one of ~20
-    # welds on a loaded machine (a UR10 calibration weld through ur_rtde read +20 ms off
-    # with the same per-joint pattern; its start was not checked).
-    for _attempt in range(APPROACH_ATTEMPTS):
-        q_now = executor.estimate().q_rad
-        if np.max(np.abs(q_now - sp.plan.q_start_rad)) <= START_TOLERANCE_RAD:
+    # Go to the approach's start (at rest), then let the state settle. The seam plan is a
+    # speed stream from that start, so wherever the controller's set-point ends up stays
+    # a position error through the weld: after one approach through RSI against the twin
+    # the set-point ended -0.09 to +0.26 mrad off (the placement's lead; about 1.3 ms of
+    # tracking lag per mrad at the weld's 0.79 rad/s), and -74 mrad (-90 ms) in one of
+    # ~20 welds on a loaded machine. Where the driver reads the set-point
+    # (``commanded_q_rad``: UR target_q, RSI's start pose + the correction sent) a
+    # correction move follows from it while it is more than SETPOINT_TOLERANCE_RAD off;
+    # the reported position is not chased: at rest it differs from the set-point by what
+    # the position loop leaves (0.1-0.2 mrad on the KR 5 twin's A2/A3, 0.5 mrad on the
+    # simulator), which the weld's motion takes up again.
+    for attempt in range(APPROACH_ATTEMPTS):
+        q_held = executor.driver.commanded_q_rad()
+        q_from = executor.estimate().q_rad if q_held is None else q_held
+        off = float(np.max(np.abs(q_from - sp.plan.q_start_rad)))
+        if off <= (START_TOLERANCE_RAD if q_held is None else SETPOINT_TOLERANCE_RAD):
+            break
+        if attempt > 0 and q_held is None:
             break
         # The start is taken after the predictions (a GP's first query) and after a re-arm
         # of a watchdog that tripped while nobody stepped (a script upload: 25-50 ms);
         # taken before them, a real-time run started too late (8 ms cycles, 3 periods).
-        move = executor.prepare(executor.plan(sp.plan.q_start_rad))
+        # A correction is tiny: stretched over CORRECTION_PERIODS controller cycles, or
+        # its few speed commands may share one cycle and cancel (a 0.04 mrad move
+        # through RSI left the set-point where it was).
+        stretch = None if attempt == 0 else CORRECTION_PERIODS * executor.period_s
+        move = executor.prepare(
+            executor.plan(sp.plan.q_start_rad, start_q_rad=q_from, minimum_duration_s=stretch)
+        )
         executor.watchdog.rearm_if_tripped(executor.now)
         lead = executor.lead_time_s(move) + 3 * executor.period_s
         executor.execute(move, start_time_s=executor.now() + lead)
