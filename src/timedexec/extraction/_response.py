@@ -610,6 +610,8 @@ def _expected_change(
 #: -0.036 to +0.012 ms; on ``tests/compliant_sweep.py``'s heavy joints +0.14 to +0.60 ms,
 #: its KR 5 wrist median +0.027 ms, mean +0.065 ms (t 3.6).
 DEFLECTION_MIN_CHANGE_S = 5e-5
+#: Seed of the added noise of the probe's noise extrapolation (:func:`response_delay`).
+_SIMEX_SEED = 37
 #: Fewest trials of a joint (in a chunk) that decide for all of them.
 _MIN_GROUP = 5
 #: The deflection terms' Gaussian at the MPU-6000's noise density (0.005 °/s/√Hz), s; it
@@ -781,13 +783,27 @@ def response_delay(
     # A joint showed a deflection, so the arm's encoders are motor-side: the others (and a
     # joint with too few trials to separate it) deflect too, unseparated.
     rest = ~separated
-    out.se[rest], out.shared_se[rest] = _unseparated_se(fit.se, fit.probe, joint, sound, rest)
+    # The probe's own attenuation by the gyro's noise (its terms are derivatives of the
+    # noisy rate): the fit again on the rate plus as much noise again (the recording's own
+    # level), extrapolated linearly in the noise variance back to none (SIMEX).
+    r = np.flatnonzero(rest)
+    noise = np.random.default_rng(_SIMEX_SEED).standard_normal((r.size, y.shape[1]))
+    noisy = response_increments(
+        t_g[r], y[r] + noise * np.nan_to_num(noise_rad_s[r])[:, None], host[r], q_rel[r],
+        dt[r], tau0[r], smooth_samples=smooth_samples, probe=True, deflection_smooth_s=smooth_s,
+    )  # fmt: skip
+    unbiased = fit.probe.copy()
+    unbiased[r] = 2.0 * fit.probe[r] - noisy.probe
+    out.se[rest], out.shared_se[rest] = _unseparated_se(
+        fit.se, fit.probe, unbiased, joint, sound, rest
+    )
     return out
 
 
 def _unseparated_se(
     se: FloatArray,
     probe: FloatArray,
+    unbiased: FloatArray,
     joint: NDArray[np.int64],
     sound: NDArray[np.bool_],
     rest: NDArray[np.bool_],
@@ -821,7 +837,12 @@ def _unseparated_se(
             continue
         rows = j_rest == key
         med = float(np.median(vote))
-        upper = max(float(np.mean(vote)), 0.0) + 2.0 * float(np.std(vote)) / math.sqrt(vote.size)
+        mean_vote = unbiased[voters & np.isfinite(unbiased)]
+        if mean_vote.size < _MIN_GROUP:
+            mean_vote = vote
+        upper = max(float(np.mean(mean_vote)), 0.0) + 2.0 * float(np.std(mean_vote)) / math.sqrt(
+            mean_vote.size
+        )
         bound[rows] = max(floor, upper)
         limit = med + _PROBE_OUTLIER_SD * math.sqrt(_robust_var(vote))
         out_ = rows & np.isfinite(p_rest) & (p_rest > limit)
