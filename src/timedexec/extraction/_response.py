@@ -787,13 +787,15 @@ def response_delay(
     # noisy rate): the fit again on the rate plus as much noise again (the recording's own
     # level), extrapolated linearly in the noise variance back to none (SIMEX).
     r = np.flatnonzero(rest)
-    noise = np.random.default_rng(_SIMEX_SEED).standard_normal((r.size, y.shape[1]))
-    noisy = response_increments(
-        t_g[r], y[r] + noise * np.nan_to_num(noise_rad_s[r])[:, None], host[r], q_rel[r],
-        dt[r], tau0[r], smooth_samples=smooth_samples, probe=True, deflection_smooth_s=smooth_s,
-    )  # fmt: skip
     unbiased = fit.probe.copy()
-    unbiased[r] = 2.0 * fit.probe[r] - noisy.probe
+    if r.size:
+        noise = np.random.default_rng(_SIMEX_SEED).standard_normal((r.size, y.shape[1]))
+        noisy = response_increments(
+            t_g[r], y[r] + noise * np.nan_to_num(noise_rad_s[r])[:, None], host[r], q_rel[r],
+            dt[r], tau0[r], smooth_samples=smooth_samples, probe=True,
+            deflection_smooth_s=smooth_s,
+        )  # fmt: skip
+        unbiased[r] = 2.0 * fit.probe[r] - noisy.probe
     out.se[rest], out.shared_se[rest] = _unseparated_se(
         fit.se, fit.probe, unbiased, joint, sound, rest
     )
