@@ -282,8 +282,9 @@ def track_conveyor_seam(
     """Weld a seam on the moving belt through ``executor`` and measure the torch.
 
     The robot must be at rest; it first moves to the approach's start configuration
-    (a plain executor motion; up to :data:`APPROACH_ATTEMPTS` while it ends more than
-    :data:`START_TOLERANCE_RAD` off), then the seam plan runs: the torch meets the seam
+    (a plain executor motion; where the driver reads the controller's set-point,
+    ``commanded_q_rad``, up to :data:`APPROACH_ATTEMPTS` moves while the set-point ends
+    more than :data:`SETPOINT_TOLERANCE_RAD` off), then the seam plan runs: the torch meets the seam
     ``lead_s`` after the plan is scheduled (at least the executor's lead), follows it for
     ``settle_s + cruise_s + 0.05`` s and stops.
 
@@ -333,7 +334,7 @@ def track_conveyor_seam(
     # Go to the approach's start (at rest), then let the state settle. The seam plan is a
     # speed stream from that start, so wherever the controller's set-point ends up stays
     # a position error through the weld: after one approach through RSI against the twin
-    # the set-point ended -0.09 to +0.26 mrad off (the placement's lead; about 1.3 ms of
+    # the set-point ended -0.22 to +0.26 mrad off (the placement's lead; about 1.3 ms of
     # tracking lag per mrad at the weld's 0.79 rad/s), and -74 mrad (-90 ms) in one of
     # ~20 welds on a loaded machine. Where the driver reads the set-point
     # (``commanded_q_rad``: UR target_q, RSI's start pose + the correction sent) a
