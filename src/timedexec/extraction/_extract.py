@@ -90,6 +90,7 @@ from timedexec.extraction._onset import (
 from timedexec.extraction._response import (
     RESPONSE_FLAG_DEFLECTION,
     RESPONSE_FLAG_DEFLECTION_JOINT,
+    RESPONSE_FLAG_DEFLECTION_NOISE,
     RESPONSE_SMOOTH_S,
     response_delay,
 )
@@ -459,6 +460,7 @@ def _extract_chunk_inner(
         resp, resp_se = rd.tau, rd.se
         resp_flag[rd.gear_flag] = RESPONSE_FLAG_DEFLECTION
         resp_flag[rd.joint_flag] = RESPONSE_FLAG_DEFLECTION_JOINT
+        resp_flag[rd.noise_flag] = RESPONSE_FLAG_DEFLECTION_NOISE
         # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
         # displacement is the position *sampled* then, reported one response delay later.
         # The first guess (reported at +30 ms) is off when the joint still creeps in the
