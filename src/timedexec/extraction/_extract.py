@@ -54,7 +54,9 @@ each step assumes of the recording):
    A trial whose response delay alone cannot be trusted keeps both delays and a reason in
    ``response_flag``: ``deflection`` (its age depends on the unknown gear law by more than
    ``RESPONSE_GEAR_TOLERANCE_S``), ``deflection_joint`` (its joint's shared age does: the
-   lag there is mostly the gear's play, ``DEFLECTION_PLAY_SHARE``).
+   lag there is mostly the gear's play, ``DEFLECTION_PLAY_SHARE``), ``deflection_noise``
+   (the gyro's noise pulled its joint's age with the deflection terms short by more than
+   ``RESPONSE_NOISE_TOLERANCE_S``).
 """
 
 from __future__ import annotations
