@@ -148,12 +148,17 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
     """Two of the benchmark's conditions, 96 trials each: UR10 at 5x noise and a KR 5
     (cycloidal gears with a soft zone). On the trials without a response flag every
     joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them; a
-    joint whose every trial is flagged is flagged as a whole (``deflection_joint``).
-    Measured (joints 1/2/3/5): UR10 +0.01 / +0.15 / -0.00 / -0.01 ms, 100 %; KR 5 base and
-    elbow flagged as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5
-    -0.01 / -0.05 ms, 100 % (main 95 %: one wrist trial 0.3 ms short at -7.8 standard
-    errors, the test below). ~25 trials per joint put ~0.06 ms of sampling error on a
-    joint's mean (the UR10 elbow at 5x read -0.03 to +0.00 ms on 200-trial sweeps)."""
+    joint whose every trial is flagged is flagged as a whole (``deflection_joint``, or
+    ``deflection_noise`` where the gyro's noise pulled the age with the deflection terms
+    by more than 0.05 ms and a quarter of their correction). At 5x noise the UR10's three
+    heavy joints are flagged for the noise (on 1000-trial sweeps their pull read
+    0.14-0.24 ms, 0.30-0.66 of the correction), never at 1x (the KR 5 here); its wrist (no
+    terms) is kept. On these 26 trials the base and joint 3 are (pull 0.08 and 0.18 ms, 0.46
+    and 0.54 of the correction), the elbow not, at 0.24 (0.20 of its 0.86 ms), so at least
+    two of the three must be. Measured (joints 1/2/3/5): KR 5 base and elbow flagged
+    as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5 -0.01 /
+    -0.05 ms, 100 %. ~25 trials per joint put ~0.06 ms of sampling error on a joint's
+    mean."""
     if robot == "ur10":
         p = tmp_path / "ur10.h5"
         write_compliant_sweep(p, "ur10", 96, CompliantConditions(noise_factor=5.0), seed=2)
@@ -161,12 +166,18 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
     else:
         t = kr5_table
     reason = np.array([str(f) for f in t["response_flag"]])
+    noisy = 0
     for joint in (1, 2, 3, 5):
         err, _ = _response(t, (joint,))
+        on_joint = reason[np.asarray(t["joint"]) == joint]
+        noisy += int(np.all(on_joint == "deflection_noise"))
         if err.size == 0:
-            assert np.all(reason[np.asarray(t["joint"]) == joint] == "deflection_joint")
+            assert np.all(np.isin(on_joint, ["deflection_joint", "deflection_noise"]))
             continue
         assert abs(float(np.mean(err))) <= 0.3e-3, (joint, np.mean(err))
+    assert noisy >= (2 if robot == "ur10" else 0)
+    if robot == "kr5":
+        assert "deflection_noise" not in set(reason)
     err, se = _response(t, (1, 2, 3, 5))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
 

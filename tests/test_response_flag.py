@@ -104,6 +104,22 @@ def test_a_joint_flagged_as_a_whole_trains_on_its_responses_with_a_warning() -> 
     assert abs(p.response_mean - 0.004) < 1e-3
 
 
+def test_a_joint_flagged_for_the_gyros_noise_trains_with_a_warning_that_says_so() -> None:
+    """A joint whose trials are all flagged ``deflection_noise`` (the gyro's noise hid the
+    gear's deflection terms: its ages read short) — some chunks of it may carry
+    ``deflection_joint`` instead — trains on its own responses like a play-flagged joint,
+    and the warning names the cause and the fix (a quieter gyro). A joint flagged
+    per trial (``deflection``) on every row still refuses (above)."""
+    t = _table(flagged=0)
+    on_2 = np.flatnonzero(t["joint"] == 2)
+    flags = np.full(len(t), "", dtype=object)
+    flags[on_2] = "deflection_noise"
+    flags[on_2[:5]] = "deflection_joint"
+    cols = {**t.columns, "response_flag": flags}
+    with pytest.warns(UserWarning, match=r"joint 2 is flagged .*deflection_noise.*quieter gyro"):
+        train_delay_models(DelayTable(cols, source="t.csv"), folds=0, methods="median")
+
+
 def test_a_table_without_the_column_trains_as_before(tmp_path: Path) -> None:
     """An old table (no ``response_flag``) and the same table with an empty column train
     the same bundle: the training data's hash and the manifest are unchanged (no

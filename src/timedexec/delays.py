@@ -30,12 +30,14 @@ actuation delay is: extraction writes ``deflection`` where the reported angle is
 motor-side encoder's and the age of the state could not be separated from the gear's
 deflection to within the table's response accuracy, ``deflection_joint`` on every trial of
 a joint whose lag is mostly the gear's play, so that the age its trials share depends on
-a law the recording cannot pin down (``docs/architecture.md``). The value
+a law the recording cannot pin down, ``deflection_noise`` on every trial of a joint whose
+age the gyro's noise pulled short through the deflection terms (``docs/architecture.md``).
+The value
 stays in ``response_delay`` (with its standard error) for diagnosis; everything that uses
 response delays takes the rows :meth:`DelayTable.usable` gives (learning trains the
 response models without them, and still trains actuation on them; a joint flagged
-``deflection_joint`` on every trial is trained on its own responses, with a warning, as
-its only measurement). A table without the
+``deflection_joint`` or ``deflection_noise`` on every trial is trained on its own
+responses, with a warning, as its only measurement). A table without the
 column (older extractions, other recorders) has no response flags.
 
 A table is refused (:class:`~timedexec.errors.ConfigError`) when a trial id occurs twice:

@@ -54,7 +54,9 @@ each step assumes of the recording):
    A trial whose response delay alone cannot be trusted keeps both delays and a reason in
    ``response_flag``: ``deflection`` (its age depends on the unknown gear law by more than
    ``RESPONSE_GEAR_TOLERANCE_S``), ``deflection_joint`` (its joint's shared age does: the
-   lag there is mostly the gear's play, ``DEFLECTION_PLAY_SHARE``).
+   lag there is mostly the gear's play, ``DEFLECTION_PLAY_SHARE``), ``deflection_noise``
+   (the gyro's noise pulled its joint's age with the deflection terms short by more than
+   ``RESPONSE_NOISE_TOLERANCE_S``).
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ from timedexec.extraction._onset import (
 from timedexec.extraction._response import (
     RESPONSE_FLAG_DEFLECTION,
     RESPONSE_FLAG_DEFLECTION_JOINT,
+    RESPONSE_FLAG_DEFLECTION_NOISE,
     RESPONSE_SMOOTH_S,
     response_delay,
 )
@@ -459,6 +462,7 @@ def _extract_chunk_inner(
         resp, resp_se = rd.tau, rd.se
         resp_flag[rd.gear_flag] = RESPONSE_FLAG_DEFLECTION
         resp_flag[rd.joint_flag] = RESPONSE_FLAG_DEFLECTION_JOINT
+        resp_flag[rd.noise_flag] = RESPONSE_FLAG_DEFLECTION_NOISE
         # The gain again, time-matched: the angle ends at pause_mid (sensor time), so the
         # displacement is the position *sampled* then, reported one response delay later.
         # The first guess (reported at +30 ms) is off when the joint still creeps in the
