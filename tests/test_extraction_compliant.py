@@ -8,6 +8,7 @@ condition, before and after.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ import pytest
 
 from compliant_sweep import CompliantConditions, write_compliant_sweep
 from independent_sweep import Conditions, write_independent_sweep
+from timedexec.cli import main
 from timedexec.extraction import extract_recording
 
 
@@ -142,9 +144,17 @@ def test_a_play_dominated_joint_is_flagged_as_a_whole(kr5_table: Any) -> None:
     assert np.sqrt(np.mean(e**2)) <= 0.3e-3
 
 
+@pytest.fixture(scope="module")
+def ur10_noisy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 96-trial UR10 sweep at 5x the gyro noise (seed 2)."""
+    p = tmp_path_factory.mktemp("ur10-5x") / "ur10.h5"
+    write_compliant_sweep(p, "ur10", 96, CompliantConditions(noise_factor=5.0), seed=2)
+    return p
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("robot", ["ur10", "kr5"])
-def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str) -> None:
+def test_compliant_conditions_bounded(ur10_noisy: Path, kr5_table: Any, robot: str) -> None:
     """Two of the benchmark's conditions, 96 trials each: UR10 at 5x noise and a KR 5
     (cycloidal gears with a soft zone). On the trials without a response flag every
     joint's response bias within ±0.3 ms and the intervals covering >= 85 % of them; a
@@ -159,12 +169,7 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
     as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5 -0.01 /
     -0.05 ms, 100 %. ~25 trials per joint put ~0.06 ms of sampling error on a joint's
     mean."""
-    if robot == "ur10":
-        p = tmp_path / "ur10.h5"
-        write_compliant_sweep(p, "ur10", 96, CompliantConditions(noise_factor=5.0), seed=2)
-        t = extract_recording(p, progress=False).table
-    else:
-        t = kr5_table
+    t = extract_recording(ur10_noisy, progress=False).table if robot == "ur10" else kr5_table
     reason = np.array([str(f) for f in t["response_flag"]])
     noisy = 0
     for joint in (1, 2, 3, 5):
@@ -180,6 +185,18 @@ def test_compliant_conditions_bounded(tmp_path: Path, kr5_table: Any, robot: str
         assert "deflection_noise" not in set(reason)
     err, se = _response(t, (1, 2, 3, 5))
     assert np.mean(np.abs(err) <= 1.96 * se) >= 0.85
+
+
+@pytest.mark.slow
+def test_extract_says_what_the_noise_flag_means_and_how_to_fix_it(
+    ur10_noisy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`timedexec extract` on the noisy sweep counts the ``deflection_noise`` trials and
+    says what the flag means and what removes it (a quieter gyro or mount)."""
+    assert main(["extract", str(ur10_noisy), "--out", str(tmp_path / "d.csv")]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"deflection_noise \d+", out), out
+    assert "deflection_noise: the gyro's noise hid" in out and "quieter gyro" in out
 
 
 def test_a_pose_that_loads_the_gear_is_within_its_interval(kr5_table: Any) -> None:
