@@ -117,6 +117,7 @@ __all__ = [
     "RESPONSE_FLAG_DEFLECTION_JOINT",
     "RESPONSE_FLAG_DEFLECTION_NOISE",
     "RESPONSE_GEAR_TOLERANCE_S",
+    "RESPONSE_NOISE_SHARE",
     "RESPONSE_NOISE_TOLERANCE_S",
     "RESPONSE_SMOOTH_S",
     "ResponseDelay",
@@ -175,8 +176,8 @@ class ResponseFit:
     #: The standard error under the noise model alone (s): ``se`` without the misfit.
     se_noise: FloatArray
     #: How far the gyro's noise in the deflection terms pulled ``tau`` (s; the corrected
-    #: least squares' change, NaN where not asked for): an estimate, 1.2-1.7x the pull
-    #: measured on tests/compliant_sweep.py (module notes).
+    #: least squares' change, NaN where not asked for): an estimate, 1.2-2.6x the pull
+    #: measured at a fixed smoothing width on tests/compliant_sweep.py (module notes).
     attenuation: FloatArray
 
 
