@@ -165,10 +165,10 @@ def test_compliant_conditions_bounded(ur10_noisy: Path, kr5_table: Any, robot: s
     0.14-0.24 ms, 0.30-0.66 of the correction), never at 1x (the KR 5 here); its wrist (no
     terms) is kept. On this sweep (19-26 trials per joint) the base and joint 3 are (pull
     0.08 and 0.18 ms, 0.46 and 0.54 of the correction), the elbow not, at 0.24 (0.20 of
-    its 0.86 ms), so at least two of the three must be. Measured (joints 1/2/3/5): KR 5 base and elbow flagged
-    as a whole (the elbow by the medians' noise on ~26 trials), joints 3 / 5 -0.01 /
-    -0.05 ms, 100 %. ~25 trials per joint put ~0.06 ms of sampling error on a joint's
-    mean."""
+    its 0.86 ms), so at least two of the three must be. Measured (joints 1/2/3/5): KR 5
+    base and elbow flagged as a whole (the elbow by the medians' noise on ~26 trials),
+    joints 3 / 5 -0.01 / -0.05 ms, 100 %. ~25 trials per joint put ~0.06 ms of sampling
+    error on a joint's mean."""
     t = extract_recording(ur10_noisy, progress=False).table if robot == "ur10" else kr5_table
     reason = np.array([str(f) for f in t["response_flag"]])
     noisy = 0

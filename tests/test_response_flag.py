@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from timedexec.delays import DelayTable
+from timedexec.delays import JOINT_RESPONSE_FLAGS, RESPONSE_FLAG_WHY, DelayTable
 from timedexec.errors import ConfigError
+from timedexec.extraction import RESPONSE_FLAGS
 from timedexec.learning import cross_validate, train_delay_models
 from timedexec.report import delay_summary
 
@@ -164,3 +165,12 @@ def test_report_summary_counts_response_flags_and_leaves_their_response_out() ->
     for row in s["joints"].values():
         assert abs(row["response_delay"]["median_ms"] - 4.0) < 1.0
         assert abs(row["actuation_delay"]["median_ms"] - 30.0) < 1.0
+
+
+def test_every_response_flag_extraction_writes_is_explained() -> None:
+    """The extraction summary and training's warnings explain a flag from
+    ``timedexec.delays.RESPONSE_FLAG_WHY``: a new reason the extraction writes without its
+    entry there would be named unexplained. The joint-wide ones, which training accepts as
+    a joint's only measurement, are among them."""
+    assert set(RESPONSE_FLAGS) == set(RESPONSE_FLAG_WHY)
+    assert set(JOINT_RESPONSE_FLAGS) <= set(RESPONSE_FLAGS)

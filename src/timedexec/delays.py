@@ -63,7 +63,15 @@ from numpy.typing import ArrayLike, NDArray
 from timedexec._files import write_atomic
 from timedexec.errors import ConfigError, RecordingError
 
-__all__ = ["DELAY_COLUMNS", "FLAG_COLUMNS", "OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "DelayTable"]
+__all__ = [
+    "DELAY_COLUMNS",
+    "FLAG_COLUMNS",
+    "JOINT_RESPONSE_FLAGS",
+    "OPTIONAL_COLUMNS",
+    "REQUIRED_COLUMNS",
+    "RESPONSE_FLAG_WHY",
+    "DelayTable",
+]
 
 CONFIG_COLUMNS = tuple(f"q{i}" for i in range(1, 7))
 REQUIRED_COLUMNS: tuple[str, ...] = (
@@ -90,6 +98,18 @@ FLAG_COLUMNS: dict[str, tuple[str, ...]] = {
     "actuation_delay": ("flag",),
     "response_delay": ("flag", "response_flag"),
 }
+#: What each ``response_flag`` that extraction writes means, and what removes it (for the
+#: messages that name them: the extraction summary, training's warnings).
+RESPONSE_FLAG_WHY: dict[str, str] = {
+    "deflection": "the gear's deflection could not be separated from the state's age",
+    "deflection_joint": "the joint's lag is mostly the gear's play, so the age its trials "
+    "share is known to about 0.15 ms only",
+    "deflection_noise": "the gyro's noise hid the gear's deflection, so the age reads short "
+    "(by up to about 0.1 ms); a quieter gyro or mount removes it",
+}
+#: The response flags extraction puts on every trial of a joint (not per trial): a joint
+#: with nothing else is trained on them with a warning rather than left without a model.
+JOINT_RESPONSE_FLAGS = ("deflection_joint", "deflection_noise")
 
 
 class DelayTable:

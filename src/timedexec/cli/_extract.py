@@ -19,15 +19,6 @@ from timedexec.cli._scheduler import add_scheduler, cluster, cluster_jobs, worke
 
 __all__ = ["add_parser", "run"]
 
-#: What each ``response_flag`` means, for the summary (``timedexec.delays``).
-_RESPONSE_FLAG_WHY = {
-    "deflection": "the gear's deflection could not be separated from the state's age",
-    "deflection_joint": "the joint's lag is mostly the gear's play, so the age its trials "
-    "share is known to about 0.15 ms only",
-    "deflection_noise": "the gyro's noise hid the gear's deflection, so the age reads short; "
-    "a quieter gyro or mount removes it",
-}
-
 
 def add_parser(sub: Any) -> None:
     """Add ``extract`` to the subparsers ``sub``."""
@@ -87,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``extract``; return the exit code."""
     import numpy as np
 
+    from timedexec.delays import RESPONSE_FLAG_WHY
     from timedexec.extraction import MAX_SE_S, extract_recording
 
     check_files(
@@ -127,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if info.get("response_flagged"):
         reasons = ", ".join(f"{r} {c}" for r, c in info["response_flags"].items())
-        why = "; ".join(f"{r}: {_RESPONSE_FLAG_WHY[r]}" for r in info["response_flags"]
-                        if r in _RESPONSE_FLAG_WHY)  # fmt: skip
+        why = "; ".join(f"{r}: {RESPONSE_FLAG_WHY[r]}" for r in info["response_flags"]
+                        if r in RESPONSE_FLAG_WHY)  # fmt: skip
         text += (
             f"\n{info['response_flagged']} trials have a response_flag ({reasons}): their "
             "actuation delay is sound, their response delay is not used for training "

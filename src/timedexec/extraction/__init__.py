@@ -27,7 +27,19 @@ from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
     ladder_cap,
 )
+from timedexec.extraction._response import (
+    RESPONSE_FLAG_DEFLECTION,
+    RESPONSE_FLAG_DEFLECTION_JOINT,
+    RESPONSE_FLAG_DEFLECTION_NOISE,
+)
 from timedexec.extraction._stationary import StillAnalysis, analyse_still, design_lowpass
+
+#: Every reason extraction writes in the ``response_flag`` column (``timedexec.delays``).
+RESPONSE_FLAGS = (
+    RESPONSE_FLAG_DEFLECTION,
+    RESPONSE_FLAG_DEFLECTION_JOINT,
+    RESPONSE_FLAG_DEFLECTION_NOISE,
+)
 
 __all__ = [
     "LEPSKI_KAPPA",
@@ -38,6 +50,7 @@ __all__ = [
     "REQUIRED_FIELDS",
     "REQUIRED_HEADER",
     "REQUIRED_STATICS",
+    "RESPONSE_FLAGS",
     "UNITS",
     "ExtractionResult",
     "StillAnalysis",

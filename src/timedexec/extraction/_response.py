@@ -158,8 +158,7 @@ _ELASTIC_TERMS = 3 + len(DEFLECTION_SATURATIONS)
 DEFLECTION_STRIDE = 8
 #: Step halvings of the response fit's line search before a row is taken as converged.
 _LINE_SEARCH_HALVINGS = 6
-#: Seed of the noise drawn for the deflection terms' noise Gram (``ResponseFit.attenuation``).
-_ATTENUATION_SEED = 41
+_ATTENUATION_SEED = 41  # of the noise drawn for ``ResponseFit.attenuation``
 #: Half the baseline of the angle's slope in the response's standard error, s.
 _SE_SLOPE_S = 0.002
 
@@ -450,8 +449,7 @@ def response_increments(
         # Jᵀ W r + N θ = 0 (θ the linear parameters) is one step from the fit:
         # (A - N) δ = N θ, and δ_τ is how far the noise pulled τ.
         x_now = h - tau[:, None]
-        sigma_n = np.nan_to_num(noise_rad_s)[:, None]
-        nu = y + np.random.default_rng(_ATTENUATION_SEED).standard_normal((n, g)) * sigma_n
+        nu = _with_noise(y, noise_rad_s, _ATTENUATION_SEED)
         regs_n = deflection_regressors(nu, dt, deflection_smooth_s, np.max(np.abs(regs[0]), axis=1))
         a_n, _ = at(rows, x_now, _angle(nu, d, smooth_samples).ravel())
         u = [np.zeros_like(dq), np.zeros_like(dq), np.where(use, incr(rows, a_n - a_cur), 0.0)]
@@ -459,11 +457,12 @@ def response_increments(
             x_n, _ = at(rows, x_now, regs_n[i].ravel(), DEFLECTION_STRIDE, regs.shape[2])
             u.append(np.where(use, incr(rows, x_n - x_cur[i]), 0.0))
         gram = np.einsum("inp,jnp->nij", np.array(u) * wgt, np.array(u))
-        cols_t = [np.where(use, -k[:, None] * incr(rows, s_cur), 0.0), np.where(use, j_c, 0.0),
-                  np.where(use, incr(rows, a_cur), 0.0)]  # fmt: skip
-        cols_t += [np.where(use, incr(rows, x_cur[i]), 0.0) for i in range(m_x)]
+        # The τ column without the terms' own slope β·ẋ (the rule was chosen so; with it the
+        # UR10's base and elbow at 5x went unflagged, bias +0.04..+0.08 / -0.01..+0.01 ms).
+        cols = [-k[:, None] * incr(rows, s_cur), j_c, incr(rows, a_cur)]
+        cols += [incr(rows, x_cur[i]) for i in range(m_x)]
         theta = np.concatenate([np.zeros((n, 1)), c[:, None], k[:, None], beta], axis=1)
-        lhs = normal(wgt, cols_t) - gram
+        lhs = normal(wgt, cols) - gram
         rhs = np.einsum("nij,nj->ni", gram, theta)
         good = np.all(np.isfinite(lhs), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
         good &= np.abs(np.linalg.det(lhs)) > 0
@@ -507,6 +506,13 @@ def response_increments(
         z = [np.where(use, incr(rows, x), 0.0) for x in x_fit]
         moved = _expected_change(cols, z, wgt, res)
     return ResponseFit(tau=tau, se=se, probe=moved, se_noise=se_noise, attenuation=attenuation)
+
+
+def _with_noise(y: FloatArray, noise_rad_s: FloatArray, seed: int) -> FloatArray:
+    """The rate ``y`` (rad/s, (n, g)) plus white noise of each row's ``noise_rad_s``."""
+    drawn = np.random.default_rng(seed).standard_normal(y.shape)
+    out: FloatArray = y + drawn * np.nan_to_num(noise_rad_s)[:, None]
+    return out
 
 
 def _angle(y: FloatArray, d: FloatArray, smooth_samples: int) -> FloatArray:
@@ -576,7 +582,7 @@ DEFLECTION_MODEL_SHARE = 0.5
 #: the truth lay near the hysteretic end: uniform (width/√12) over-covered on seeds 2 and 3;
 #: with the own part the shrunk age's (:func:`_shrunk_noise`), so did a triangle (width/√18;
 #: seed 4: UR10 joint 3 96.4-99.2 %); this (seed 4, at 0.70 of the triangle's) 90.6-97.6 %
-#: on every joint and condition. A gear without hysteresis is covered less (not measured).
+#: on every joint and condition. No hysteresis is covered less (`--controls`: UR10 base 83 %).
 _GEAR_LAW_SD = math.sqrt(2.0 / 75.0)
 #: A trial whose own evidence of a deflection exceeds its joint's median by this many
 #: robust standard deviations deflects more than its joint's others (a pose that loads the
@@ -758,11 +764,9 @@ def response_delay(
     r = np.flatnonzero(rest)
     unbiased = fit.probe.copy()
     if r.size:
-        noise = np.random.default_rng(_SIMEX_SEED).standard_normal((r.size, y.shape[1]))
         noisy = response_increments(
-            t_g[r], y[r] + noise * np.nan_to_num(noise_rad_s[r])[:, None], host[r], q_rel[r],
-            dt[r], tau0[r], smooth_samples=smooth_samples, probe=True,
-            deflection_smooth_s=smooth_s,
+            t_g[r], _with_noise(y[r], noise_rad_s[r], _SIMEX_SEED), host[r], q_rel[r], dt[r],
+            tau0[r], smooth_samples=smooth_samples, probe=True, deflection_smooth_s=smooth_s,
         )  # fmt: skip
         unbiased[r] = 2.0 * fit.probe[r] - noisy.probe
     out.se[rest], out.shared_se[rest] = _unseparated_se(

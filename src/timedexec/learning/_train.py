@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from timedexec._types import FloatArray
-from timedexec.delays import DelayTable
+from timedexec.delays import JOINT_RESPONSE_FLAGS, RESPONSE_FLAG_WHY, DelayTable
 from timedexec.errors import ConfigError
 from timedexec.learning._calibrate import (
     CALIBRATED_METHOD,
@@ -145,17 +145,6 @@ class _Data:
 #: What a measured delay can be, s: a joint cannot move before its command arrives, and a
 #: state cannot be older than... a second is ten times the slowest controller's delay; the
 #: response fit's noise can put a near-zero age slightly below 0.
-#: Response flags that extraction puts on every trial of a joint (``timedexec.delays``),
-#: and what they cost: a joint with nothing else is trained on them with a warning, rather
-#: than left without a response model.
-JOINT_FLAGS = {
-    "deflection_joint": "its lag is mostly the gear's play, so the state's age is known to "
-    "about 0.15 ms only",
-    "deflection_noise": "the gyro's noise attenuated the gear's deflection terms, so the "
-    "state's age reads short, by up to about 0.1 ms; a quieter gyro mount or sensor removes "
-    "it",
-}
-
 DELAY_RANGE_S = {"actuation_delay": (0.0, 1.0), "response_delay": (-0.005, 1.0)}
 DELAY_RANGE_WHY = {
     "actuation_delay": "no arm moves before its command arrives, none waits a second",
@@ -205,12 +194,12 @@ def _prepare(table: DelayTable, time_input: bool = False) -> _Data:
         on_j = joint == j
         if not usable["response_delay"][on_j].any():
             kinds = sorted({str(f) for f in flags[on_j]})
-            if all(k in JOINT_FLAGS for k in kinds):
+            if all(k in JOINT_RESPONSE_FLAGS for k in kinds):
                 # The joint's only measurement: the age its trials share is uncertain by
                 # the gear's play or biased by the noise (~0.1-0.15 ms on the compliant
                 # benchmark), not unknown.
                 usable["response_delay"] = usable["response_delay"] | on_j
-                why = "; ".join(f"{k!r}: {JOINT_FLAGS[k]}" for k in kinds)
+                why = "; ".join(f"{k!r}: {RESPONSE_FLAG_WHY[k]}" for k in kinds)
                 warnings.warn(
                     f"{table.source}: every response delay of joint {j} is flagged ({why}); "
                     "its response model is trained on them as the joint's only measurement, "
