@@ -111,17 +111,30 @@ def check_against_truth(
     report["actuation_se_ms"] = np.round(1e3 * table["actuation_delay_se"], 3).tolist()
     assert np.sum(beyond) <= 1, report
     assert np.all(act_err[beyond] < 2.58 * table["actuation_delay_se"][measured][beyond]), report
-    # Response: the mean package age (the simulator's definition). Where one package of the
-    # trial was held up by more than a period (the twin or the client ran late), the mean
-    # moves by that delay / 81 whether or not the joint moved then, while a shift fit of the
-    # reported motion sees it only in proportion to the motion: there the motion-weighted
-    # age is the truth to meet.
+    # Response: the mean package age at arrival (the simulator's definition). Extraction
+    # dates the packages by the controller's stamps, so packages held up for a stretch (the
+    # twin or the client ran late) count as the truth counts them. Dated by arrival it had
+    # met the motion-weighted age at best: through the UR5e twin under injected stalls
+    # (twin up to 19 ms late) one trial read 1.6 ms off the mean age, 1.0 ms off the
+    # motion-weighted one, standard error 0.07 ms; dated by the stamps, twins up to 31 ms
+    # late, within 0.13 ms.
     uneven = truth.package_age_spread_s > period_s
-    response_error = np.where(
-        uneven, comparison.response_motion_error_s, comparison.response_error_s
-    )
+    response_error = comparison.response_error_s
     report["uneven_ages"] = np.flatnonzero(uneven).tolist()
-    assert np.all(np.abs(response_error[measured]) < 1e-3), report
+    wrong = measured & (np.abs(response_error) >= 1e-3)
+    # The trials beyond the bound first: pytest cuts a long report short.
+    assert not wrong.any(), {
+        "response_beyond_1ms": {
+            int(i): {
+                "error_ms": round(1e3 * float(response_error[i]), 3),
+                "se_ms": round(1e3 * float(table["response_delay_se"][i]), 3),
+                "joint": int(truth.joint[i]),
+                "age_spread_ms": round(1e3 * float(truth.package_age_spread_s[i]), 3),
+            }
+            for i in np.flatnonzero(wrong)
+        },
+        **report,
+    }
     # At most one flagged trial in 20; package gaps do not count while the twin itself ran
     # a period or more late (then up to 4, 20 %: the machine, not the pipeline, lost them).
     flagged = (flag != "") & ~slid

@@ -18,6 +18,7 @@ from timedexec.errors import ConfigError, RecordingError, TimedExecError
 from timedexec.recording import DamagedChunkError, RecordingReader, damage_note
 
 __all__ = [
+    "OPTIONAL_FIELDS",
     "REQUIRED_FIELDS",
     "REQUIRED_HEADER",
     "REQUIRED_STATICS",
@@ -39,6 +40,10 @@ REQUIRED_FIELDS: dict[str, tuple[str, int]] = {
     "gyro_raw": ("rate", 2),
     "gyro_counter": ("none", 1),
     "gyro_block_host_time_s": ("time", 1),
+}
+#: Per-trial fields extraction reads where a recording has them (checked like the others).
+OPTIONAL_FIELDS: dict[str, tuple[str, int]] = {
+    "state_controller_time_s": ("time", 1),
 }
 #: Static arrays extraction reads.
 REQUIRED_STATICS = (
@@ -158,10 +163,11 @@ def _problems(reader: RecordingReader) -> tuple[list[str], Contract | None]:
         except (TypeError, ValueError, ZeroDivisionError):
             lsb = None
     scale: dict[str, float] = {}
-    for name, (kind, rank) in REQUIRED_FIELDS.items():
+    for name, (kind, rank) in {**REQUIRED_FIELDS, **OPTIONAL_FIELDS}.items():
         fld = reader.fields.get(name)
         if fld is None:
-            problems.append(f"field {name!r} is missing (/trials/{name})")
+            if name in REQUIRED_FIELDS:
+                problems.append(f"field {name!r} is missing (/trials/{name})")
             continue
         if len(fld.shape) != rank:
             problems.append(

@@ -38,7 +38,9 @@ each step assumes of the recording):
    Cramér-Rao bound and a standard error (:mod:`._onset`). ``extrema`` (published): the
    time between the commanded and the measured speed maxima.
 6. **Response** (method ``fit``): the shift of the integrated gyro angle onto the reported
-   positions, fitted on increments between packages (the generalised least squares of a
+   positions, each dated by its controller stamp (:mod:`._dating`: held-up packages and
+   network jitter stay out of the fit; the mean lateness at arrival is added), fitted on
+   increments between packages (the generalised least squares of a
    random-walk angle error), with a standard error; where a joint's trials show a gear's
    deflection (a motor-side encoder leads the link), the deflection is fitted with it as
    a function of the link acceleration (each trial's correction shrunk towards its joint's),
@@ -75,12 +77,13 @@ from timedexec._signal import ONSET_FRACTION
 from timedexec._types import FloatArray
 from timedexec.delays import DelayTable
 from timedexec.errors import ConfigError, RecordingError
-from timedexec.extraction._check import REQUIRED_FIELDS
+from timedexec.extraction._check import OPTIONAL_FIELDS, REQUIRED_FIELDS
 from timedexec.extraction._context import (
     SweepContext,
     open_rows,
     sweep_context,
 )
+from timedexec.extraction._dating import dated_by_controller
 from timedexec.extraction._excluded import bad_time_rows, lost_trials
 from timedexec.extraction._onset import (
     ONSET_WINDOWS_S,
@@ -453,13 +456,16 @@ def _extract_chunk_inner(
     if method == "fit":
         q_rel = np.where(present, (q_rep - q_start[:, None]) * direction[:, None], np.nan)
         sound = ~clipped & ~package_gap & np.isfinite(gain)
+        dated, lateness = dated_by_controller(
+            host, chunk.get("state_controller_time_s"), present, con.period_s
+        )
         rd = response_delay(
-            t_g, y_phys, np.where(present, host, np.nan), q_rel, dt,
+            t_g, y_phys, dated, q_rel, dt,
             np.full(n, 0.6 * ctx.period_s),
             smooth_samples=2 * round(RESPONSE_SMOOTH_S * ctx.fs_hz / 2) + 1,  # odd
             joint=joint, sound=sound, noise_rad_s=sigma,
         )  # fmt: skip
-        resp, resp_se = rd.tau, rd.se
+        resp, resp_se = rd.tau + lateness, rd.se
         resp_flag[rd.gear_flag] = RESPONSE_FLAG_DEFLECTION
         resp_flag[rd.joint_flag] = RESPONSE_FLAG_DEFLECTION_JOINT
         resp_flag[rd.noise_flag] = RESPONSE_FLAG_DEFLECTION_NOISE
@@ -580,7 +586,8 @@ def _read_chunk(
     valid = (pos >= span[:, :1]) & (pos < span[:, 1:])
     nbr_rows = ctx.time_order[np.clip(pos, 0, len(ctx.time_order) - 1)]
     union = np.unique(np.concatenate([rows, nbr_rows[valid]]))
-    names = [*REQUIRED_FIELDS, *(["session"] if "session" in reader.fields else [])]
+    optional = [f for f in (*OPTIONAL_FIELDS, "session") if f in reader.fields]
+    names = [*REQUIRED_FIELDS, *optional]
     at = np.searchsorted(union, rows)
     out: dict[str, NDArray[Any]] = {}
     for name in names:
