@@ -94,6 +94,15 @@ class Conditions:
         Per block: a host stall delays it (and the following blocks) by 0.5-4 ms.
     package_loss : float
         Probability that a state package is lost (NaN arrival).
+    held_up : float
+        Fraction of trials in which a stall (3-20 ms, anywhere in the trial: a controller
+        or host thread that stopped) holds up the state packages due then; they arrive in a
+        burst when it ends (gamma gaps of ~30 µs). Drawn from its own generator: the other
+        draws, and so every recording without it, stay as they were.
+    controller_stamps : bool
+        Write ``state_controller_time_s``: the controller's cycle count times its period on
+        its own clock (an origin of 5000-6000 s, 60 ppm slower than the host's), the
+        nominal instant of each sample (the true one jitters by 5 µs).
     rate_unit : str
         Unit attribute of ``gyro_raw``: ``"LSB"`` (counts, header sensitivity) only.
     """
@@ -111,6 +120,8 @@ class Conditions:
     usb_jitter_s: float = 0.0003
     stall_probability: float = 0.002
     package_loss: float = 0.002
+    held_up: float = 0.0
+    controller_stamps: bool = False
     rate_unit: str = "LSB"
 
 
@@ -392,6 +403,14 @@ def write_independent_sweep(
     arrival = sample_t + pack[:, None] + lat
     arrival[:, 0] = 0.0
     arrival[:, 1:][rng.random((n_trials, n_pk - 1)) < cond.package_loss] = np.nan
+    stall_rng = np.random.default_rng([seed, 17])  # draws the others do not see
+    for i in np.flatnonzero(stall_rng.random(n_trials) < cond.held_up):
+        start = stall_rng.uniform(0.0, sample_t[i, -1])
+        end = start + stall_rng.uniform(0.003, 0.02)
+        held = np.flatnonzero((arrival[i] > start) & (arrival[i] < end))
+        arrival[i, held] = end + np.cumsum(stall_rng.gamma(2.0, 1.5e-5, held.size))
+        got = np.isfinite(arrival[i])
+        arrival[i, got] = np.maximum.accumulate(arrival[i, got])  # a stream keeps its order
     t_send = 0.00015 + rng.exponential(2e-5, n_trials)
     at_ctrl = t_send + 0.00025 + rng.gamma(2.0, 5e-5, n_trials)
     intake = s0 + np.ceil((at_ctrl - s0) / period) * period
@@ -423,6 +442,11 @@ def write_independent_sweep(
     lost = ~np.isfinite(arrival)  # a lost package: nothing of it is recorded
     state_q[lost] = np.nan
     state_qd[lost] = np.nan
+    boot = 5000.0 + stall_rng.uniform(0.0, 1000.0)
+    stamps = boot + (np.round((t0 + s0) / period)[:, None] + np.arange(n_pk)) * period / (
+        1.0 + 60e-6
+    )
+    stamps[lost] = np.nan
 
     # ---- gyro per trial -----------------------------------------------------------------------
     axis = rng.normal(size=(n_trials, 3))
@@ -489,6 +513,11 @@ def write_independent_sweep(
         Field("true_actuation_delay_s", (), "float64", "s", "ground truth"),
         Field("true_response_delay_s", (), "float64", "s", "ground truth"),
     ]
+    stamped = {"state_controller_time_s": stamps} if cond.controller_stamps else {}
+    if stamped:
+        fields.append(
+            Field("state_controller_time_s", (n_pk,), "float64", "s", "controller time stamp")
+        )
     path = Path(path)
     with RecordingWriter(path, header=header, fields=fields, fsync=False) as w:
         w.write_static("plan_q_start_rad", q_start, unit="rad")
@@ -511,5 +540,6 @@ def write_independent_sweep(
             "gyro_block_host_time_s": gyro_blocks,
             "true_actuation_delay_s": true_act,
             "true_response_delay_s": true_resp,
+            **stamped,
         })  # fmt: skip
     return path
