@@ -74,17 +74,17 @@ def dated_by_controller(
     lateness = np.zeros(n)
     if controller is None:
         return dated, lateness
-    stamped = present & np.isfinite(controller)
-    for i in np.flatnonzero(stamped.sum(axis=1) >= _MIN_STAMPED):
-        k = np.flatnonzero(stamped[i])
-        c = controller[i, k]
-        steps = np.diff(c) / np.diff(k)
-        if not (
-            np.all(steps > 0) and abs(float(np.median(steps)) / period_s - 1.0) < _PERIOD_TOLERANCE
-        ):
-            continue
-        row = c + float(np.median(host[i, k] - c))
-        dated[i] = np.nan  # a package without a stamp has no place on this timeline
-        dated[i, k] = row
-        lateness[i] = float(np.mean(host[i, k] - row))
+    stamp = np.where(present & np.isfinite(controller), controller, np.nan)
+    steps = np.diff(stamp, axis=1)  # NaN across a lost package: its neighbours' steps count
+    has_step = np.isfinite(steps)
+    rows = np.flatnonzero(
+        (np.sum(np.isfinite(stamp), axis=1) >= _MIN_STAMPED)
+        & has_step.any(axis=1)
+        & ~np.any(has_step & ~(steps > 0), axis=1)  # stamps that advance
+    )
+    typical = np.nanmedian(np.where(has_step[rows], steps[rows], np.nan), axis=1)
+    rows = rows[np.abs(typical / period_s - 1.0) < _PERIOD_TOLERANCE]
+    row = stamp[rows] + np.nanmedian(host[rows] - stamp[rows], axis=1)[:, None]
+    dated[rows] = row
+    lateness[rows] = np.nanmean(host[rows] - row, axis=1)
     return dated, lateness
