@@ -20,8 +20,8 @@ received state needs — is that fitted age plus the mean of ``arrival - dated``
 trial's packages. The offset cancels, so no clock fit is needed.
 
 A recording without controller time stamps, or whose stamps do not advance by about one
-controller period per package (a driver that leaves them empty or stamps its own clock),
-keeps the arrival times.
+controller period per package (a driver that leaves them empty, a unit other than
+seconds), keeps the arrival times.
 """
 
 from __future__ import annotations

@@ -40,8 +40,8 @@ each step assumes of the recording):
 6. **Response** (method ``fit``): the shift of the integrated gyro angle onto the reported
    positions, each dated by its controller stamp (:mod:`._dating`: held-up packages and
    network jitter stay out of the fit; the mean lateness at arrival is added), fitted on
-   increments between packages (the generalised least squares of a
-   random-walk angle error), with a standard error; where a joint's trials show a gear's
+   increments between packages (the generalised least squares of a random-walk angle
+   error), with a standard error; where a joint's trials show a gear's
    deflection (a motor-side encoder leads the link), the deflection is fitted with it as
    a function of the link acceleration (each trial's correction shrunk towards its joint's),
    and the standard error counts the gear law's uncertainty (:mod:`._response`). ``extrema``: the time between the
