@@ -10,9 +10,13 @@ the coverage of the per-trial 95 % intervals (``delay ± 1.96·se``).
 Conditions (the issue's list): gyro noise 1, 2, 3, 5, 10, 20x the simulator's default;
 clock drift 0, 50, 150, 300 ppm over the sweep on a -1500 ppm offset; 1-5 % lost and
 0.5-2 % duplicated blocks, 3 % of trials with one duplicated block; a sensor filter of
-2.8 ms group delay with the header stating 0.98 ms (wrong) or 2.8 ms (measured).
+2.8 ms group delay with the header stating 0.98 ms (wrong) or 2.8 ms (measured). Group
+``stalls``: the controller's own time stamps on every package, and 30 % of the trials with
+a 3-20 ms stall that holds up the state packages due then (a burst when it ends), dated by
+arrival (no stamps) and by the stamps.
 
-Targets: clean <= 0.15 ms (actuation and response); at every noise level RMSE <= 1.5x the
+Targets: clean <= 0.15 ms (actuation and response), with stalls too where the packages
+carry stamps; at every noise level RMSE <= 1.5x the
 CRB and 95 % intervals covering the truth on 90-98 % of trials; 10x noise: actuation RMSE
 <= 1.2x the local onset model's bound (column act. RMSE/CRB; issue 37: what an estimator
 that must hold on unknown physics can reach, benchmarks/crb_independent_physics.py); drift
@@ -79,6 +83,11 @@ CONDITIONS: list[tuple[str, str, str, Conditions]] = [
     ("constants", "filter 2.8 ms, header 0.98 ms (wrong)", "ur10",
      Conditions(sensor_cutoff_hz=80.0, header_group_delay_s=0.00098)),
     ("constants", "filter 2.8 ms, header measured", "ur10", Conditions(sensor_cutoff_hz=80.0)),
+    *[("stalls", f"{robot} stamps", robot, Conditions(controller_stamps=True))
+      for robot in ("ur10", "kr5", "ur10e")],
+    *[("stalls", f"{robot} 30 % held up{', stamps' if stamps else ''}", robot,
+       Conditions(held_up=0.3, controller_stamps=stamps))
+      for robot in ("ur10", "kr5", "ur10e") for stamps in (False, True)],
 ]  # fmt: skip
 
 
@@ -240,7 +249,7 @@ def main() -> None:
     )
     ap.add_argument("--trials", type=int, default=300)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--only", help="comma list of groups: clean,noise,clock,lossy,constants")
+    ap.add_argument("--only", help="comma list of groups: clean,noise,clock,lossy,constants,stalls")
     ap.add_argument("--cache", type=Path, help="keep generated recordings here")
     ap.add_argument("--baseline", metavar="REV",
                     help="compare with the extractor of this git revision (e.g. main, f0f160a)")
