@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -177,6 +177,55 @@ def test_probe_finds_the_deadline_wherever_the_packages_arrive(
     assert fix.package_lead_s == pytest.approx((0.0012 + 5e-5 - deadline_s) % PERIOD_S, abs=1e-4)
     assert np.all(ctl.sent[-1][1] == 0)  # ends on a zero speed
     assert max(float(np.max(np.abs(v))) for _, v in ctl.sent) <= 1e-4  # tiny probes
+
+
+@pytest.mark.parametrize("deadline_s", [0.0003, 0.0011, 0.0019, 0.00197])
+def test_the_echo_names_the_sampling_cycle_where_the_mean_response_would_flip(
+    deadline_s: float,
+) -> None:
+    """The probe counts the packages to each echo (``echo_cycles``); with the controller's
+    echo depth (the fake's two cycles) that names the cycle its packages were sampled in,
+    wherever the deadline lies, the step past the last phase tried (1.97 ms) included.
+    The mean response delay names it only while the probe's response is within half a
+    period of it: a publisher at the far end of a phase that wanders over the period (the
+    UR twins', 2-97 %) is 0.55 periods from its mean, and that dated every state a period
+    off (the CI run of 2026-11-29: a weld 4 mm off)."""
+    from timedexec.execution import COMMAND_UPLINK_S
+
+    ctl = FakeController(deadline_s, 0.0012)
+    ctl.read()
+    probed = probe_intake(ctl.read, ctl.send, ctl.clock, PERIOD_S, ctl.arrival(1) - PERIOD_S)
+    # The fake takes a command sent before offset + k * period + deadline_s in the cycle
+    # of package k and shows it two packages later: package k's boundary is there.
+    truth = ctl.offset + deadline_s + COMMAND_UPLINK_S
+    response = probed.arrival_offset_s - truth  # the probe's response, s
+    far = response + 0.55 * PERIOD_S  # a mean response past half a period from it
+    with pytest.warns(UserWarning, match="whole period off"):  # 0.05 periods to spare
+        by_response = probed.dated(far)
+    assert by_response.dated_by == "response"
+    assert abs(abs(by_response.sample_offset_s - truth) - PERIOD_S) <= probed.resolution_s
+    by_echo = replace(probed, echo_depth_cycles=2).dated(far)
+    assert by_echo.dated_by == "echo"
+    # Within the deadline's resolution (the spins move the virtual clock by µs).
+    assert abs(by_echo.sample_offset_s - truth) <= probed.resolution_s + 2e-6
+    # Where the mean response is near the probe's, the two agree.
+    near = replace(probed, echo_depth_cycles=2).dated(response)
+    assert near.sample_offset_s == pytest.approx(by_echo.sample_offset_s, abs=1e-12)
+    assert probed.dated(response).sample_offset_s == pytest.approx(near.sample_offset_s)
+
+
+def test_an_echo_depth_the_response_contradicts_by_a_period_is_reported() -> None:
+    """A catalog depth that does not fit the controller (the echo dates a period away from
+    a mean response delay a quarter period or more from flipping): the response decides and
+    a warning names the depth, not a silent period off."""
+    probed = replace(fix(), arrival_offset_s=0.0020, echo_cycles=3, echo_depth_cycles=3)
+    # boundary 1.5 ms, probe's response 0.5 ms: the response rule keeps this boundary;
+    # the echo (3 - 3 = 0 periods) agrees.
+    assert probed.dated(0.0006).dated_by == "echo"
+    with pytest.warns(UserWarning, match="echo depth of 4 cycles"):
+        told = replace(probed, echo_depth_cycles=4).dated(0.0006)
+    assert told.dated_by == "response"
+    assert told.sample_offset_s == pytest.approx(probed.dated(0.0006).sample_offset_s)
 
 
 @pytest.mark.parametrize(

@@ -752,7 +752,13 @@ def weld_on_twin(
         staleness=StalenessLimits.from_stale_periods(stale_periods),
         stop_deceleration_rad_s2=float(min(spec.qdd_max_rad_s2)),
     )
-    if get_robot_entry(spec.name).twin.interface == "ur_rtde":
+    entry = get_robot_entry(spec.name)
+    if entry.twin.interface == "ur_rtde":
+        # The twin's echo depth is known by construction: its states are dated by counting
+        # packages, not by a mean response its wandering publisher can be half a period from.
+        settings = settings.replace(
+            echo_depth_cycles=entry.timing.target_echo_cycles(spec.controller_period_s)
+        )
         from timedexec.drivers import URDriver
         from timedexec.twins import URTwin
 

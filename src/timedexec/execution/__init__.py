@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from timedexec.execution._bounds import TimingBounds
 from timedexec.execution._command import FrictionFeed
-from timedexec.execution._cycle import BoundaryLine, IntakeFix, SendPhase
+from timedexec.execution._cycle import COMMAND_UPLINK_S, BoundaryLine, IntakeFix, SendPhase
 from timedexec.execution._executor import TimedExecutor
 from timedexec.execution._intake import probe_intake
 from timedexec.execution._log import CycleLog, ExecutionResult, intake_echo
@@ -45,6 +45,7 @@ from timedexec.execution._state import StalenessLimits, StateEstimate
 from timedexec.execution._timing import MeetPlan
 
 __all__ = [
+    "COMMAND_UPLINK_S",
     "BoundaryLine",
     "CycleLog",
     "DelayPredictions",

@@ -26,6 +26,7 @@ deadline instead of by the arrivals.
 from __future__ import annotations
 
 import math
+import warnings
 from collections import deque
 from dataclasses import dataclass, replace
 
@@ -49,6 +50,11 @@ DEFAULT_ROUND_TRIP_S = 4e-4
 #: loopback twin's shortest round trip (a host cannot split a round trip; a wrong split
 #: moves every sampling instant found by :meth:`IntakeFix.sampled_s` by the same amount).
 COMMAND_UPLINK_S = 0.5 * DEFAULT_ROUND_TRIP_S
+#: :meth:`IntakeFix.dated` warns where the mean response chose the sampling cycle with the
+#: probe's response within this fraction of a period of flipping it (1 ms on a CB3: a
+#: loaded two-core host delays every package by that much; the CI run of 2026-11-29 dated
+#: a weld's states a period off at a margin of this order).
+DATING_MARGIN_PERIODS = 0.125
 #: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
 #: a publisher whose phase wanders like the twin's (47 s).
 LINE_WINDOW_S = 120.0
@@ -197,7 +203,19 @@ class IntakeFix:
         :meth:`dated`): its cycle boundary, which does not move with the publisher's phase.
     sample_margin_s : float
         How far the probe's earliest response was from flipping the boundary chosen by a
-        whole period (half a period minus its distance from the mean response), s.
+        whole period (half a period minus its distance from the mean response), s; half a
+        period where the echo chose it (``dated_by`` ``"echo"``). Never negative: a
+        response past half a period from the mean is measured from the flipped boundary.
+    echo_cycles : int
+        Cycles from the package a probe command answered to the first package whose
+        ``target_qd`` showed it, for a command that made the deadline (-1: unknown).
+    echo_depth_cycles : int or None
+        The controller's pipeline from the intake that takes a command to the package that
+        shows it, cycles (the robot's catalog entry; None: unknown): with ``echo_cycles``
+        it names the cycle a package was sampled in, whatever the publisher's phase.
+    dated_by : str
+        What chose the whole periods of ``sample_offset_s``: ``"echo"``, ``"response"``
+        (the mean response delay), or ``""`` before :meth:`dated`.
     """
 
     deadline_offset_s: float
@@ -210,6 +228,9 @@ class IntakeFix:
     arrival_offset_s: float = math.nan
     sample_offset_s: float = math.nan
     sample_margin_s: float = math.nan
+    echo_cycles: int = -1
+    echo_depth_cycles: int | None = None
+    dated_by: str = ""
 
     def deadline_s(self, controller_time_s: float, rate: float = 0.0) -> float:
         """Host send deadline of the cycle whose package is stamped ``controller_time_s``, s
@@ -222,22 +243,63 @@ class IntakeFix:
         """This fix with the packages' sampling instant (``sample_offset_s``).
 
         The controller samples its state at the cycle boundary, which a command leaving at
-        the deadline reaches ``uplink_s`` later: a deadline plus ``uplink_s``, whole periods
-        back from the probe's earliest arrival by the number that leaves a response
-        nearest ``response_s`` (the model's mean response delay). Chosen once: the
-        boundary's place on the controller clock does not move as the publisher's phase
-        wanders, so a package stamped ``t`` is dated ``t + sample_offset_s`` from then on.
-        Wrong by a whole period only if the probe saw a response more than half a period
-        from the mean (``sample_margin_s`` < 0).
+        the deadline reaches ``uplink_s`` later: a deadline plus ``uplink_s``, some whole
+        periods back from the probe's earliest arrival. Chosen once: the boundary's place
+        on the controller clock does not move as the publisher's phase wanders, so a
+        package stamped ``t`` is dated ``t + sample_offset_s`` from then on.
+
+        The whole periods: where the controller's echo depth is known
+        (``echo_depth_cycles``) and the probe saw its echoes (``echo_cycles``), the command
+        that made the deadline showed in the package ``echo_cycles`` after the reference,
+        so the deadline's cycle is ``echo_cycles - echo_depth_cycles`` packages after it:
+        a count, which no publisher phase moves. Otherwise, the number that leaves the
+        probe's response nearest ``response_s`` (the model's mean response delay), wrong
+        by a whole period where the probe saw a response more than half a period from the
+        mean (``sample_margin_s`` then measures from the wrong boundary, so a small margin
+        warns and none proves): a publisher whose phase wanders over most of the
+        period, as the UR twins' (2-97 %), is that near its extremes (the CI run of
+        2026-11-29: a weld's positions dated a period late, the next weld 4 mm off).
+        Where the two disagree while the response is more than a quarter period from
+        flipping, the catalog's echo depth does not fit this controller: the response
+        decides and a warning says so.
         """
         boundary = self.deadline_offset_s + uplink_s
         response = self.arrival_offset_s - boundary
         whole = round((response - response_s) / self.period_s)
         off = response - whole * self.period_s - response_s
+        margin = 0.5 * self.period_s - abs(off)
+        by = "response"
+        if self.echo_depth_cycles is not None and self.echo_cycles >= 0:
+            # The reference package's cycle lies ``echo - depth`` periods before the
+            # deadline's; the probe's earliest arrival is of packages like it.
+            echo_whole = self.echo_depth_cycles - self.echo_cycles
+            if echo_whole == whole or margin < 0.25 * self.period_s:
+                whole, margin, by = echo_whole, 0.5 * self.period_s, "echo"
+            else:
+                warnings.warn(
+                    f"intake probe: the controller's echo depth of {self.echo_depth_cycles} "
+                    f"cycles (robot catalog) dates the state {echo_whole - whole:+d} "
+                    f"period(s) from the mean response delay ({response_s * 1e3:.2f} ms, "
+                    f"{margin * 1e3:.2f} ms from flipping): the response decides; check "
+                    "the catalog entry's pipeline for this controller",
+                    stacklevel=2,
+                )
+        if by == "response" and margin < DATING_MARGIN_PERIODS * self.period_s:
+            warnings.warn(
+                f"intake probe: the mean response delay ({response_s * 1e3:.2f} ms) chose "
+                f"the cycle the state is sampled in with {margin * 1e3:.2f} ms to spare "
+                f"(period {self.period_s * 1e3:g} ms): packages that much later would date "
+                "every state a whole period off (a publisher phase at the end of a wide "
+                "range); give "
+                "ExecutorSettings.echo_depth_cycles for this controller, or probe again "
+                "when the phase has moved",
+                stacklevel=2,
+            )
         return replace(
             self,
             sample_offset_s=boundary + whole * self.period_s,
-            sample_margin_s=0.5 * self.period_s - abs(off),
+            sample_margin_s=margin,
+            dated_by=by,
         )
 
     def sampled_s(self, controller_time_s: float, rate: float = 0.0) -> float:
@@ -246,7 +308,7 @@ class IntakeFix:
         t = controller_time_s + self.sample_offset_s
         return t + rate * (t - self.probed_at_s)
 
-    def summary(self) -> dict[str, float | int]:
+    def summary(self) -> dict[str, float | int | str]:
         """JSON-safe description (times in ms)."""
         return {
             "deadline_offset_ms": self.deadline_offset_s * 1e3,
@@ -256,6 +318,8 @@ class IntakeFix:
             "mismatches": self.mismatches,
             "sample_offset_ms": self.sample_offset_s * 1e3,
             "sample_margin_ms": self.sample_margin_s * 1e3,
+            "echo_cycles": self.echo_cycles,
+            "dated_by": self.dated_by,
         }
 
 

@@ -30,6 +30,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
+from dataclasses import replace
 from types import TracebackType
 from typing import Any, NoReturn, Self
 
@@ -657,7 +658,9 @@ class TimedExecutor:
             self.watchdog.fed(self.now())
 
         fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s,
-                           wait=self._wait_until).dated(self._state.response_s)  # fmt: skip
+                           wait=self._wait_until)  # fmt: skip
+        fix = replace(fix, echo_depth_cycles=self.settings.echo_depth_cycles)
+        fix = fix.dated(self._state.response_s)
         self.send_phase.intake = self._state.intake = fix
         self.intake_error = None
         return fix

@@ -183,6 +183,11 @@ def probe_intake(
     # deadline; the probe's benchmark once settled 0.88 ms early with 11 of 31 trials off).
     resolution = 0.5 * max(gap, step) + max(0.5 * _span(last_positions(), period_s), rival)
     deadline = reference_offset_s + phase
+    # The echo of a command that made this deadline, in packages after the one it answered:
+    # each trial's latency, one less where it was sent after the step (the fitted step may
+    # lie past the last phase tried, reported wrapped to the period's start: then every
+    # trial was sent "after" it and the deadline is the previous cycle's).
+    echo = round(float(np.median([v - (p >= phase) for p, v in observed if v is not None])))
     lead = (min(leads) - deadline) % period_s
     return IntakeFix(
         deadline_offset_s=deadline,
@@ -193,6 +198,7 @@ def probe_intake(
         trials=trials,
         mismatches=miss,
         arrival_offset_s=min(leads),
+        echo_cycles=echo,
     )
 
 

@@ -104,6 +104,14 @@ class ExecutorSettings(DictMixin):
         last package. Default None: as ``cycle_lock`` (the driver's choice: on for a UR).
         With ``cycle_lock`` the send-time p99 fell from 0.40-1.15 ms to 0.24-0.35 ms
         against the independent peer (docs/execution.md).
+    echo_depth_cycles : int or None
+        Cycles from the intake that takes a command to the first state package whose
+        ``target_qd`` shows it, where known (>= 0; a protocol twin's:
+        ``ControllerTiming.target_echo_cycles``). With it the intake probe names the cycle
+        the state was sampled in by counting packages, whatever the publisher's phase
+        (:meth:`IntakeFix.dated`). Default None: the mean response delay chooses, which
+        a publisher phase at the far end of a wide range can put a period off; the probe
+        warns where its response is that close.
 
     Raises
     ------
@@ -123,6 +131,7 @@ class ExecutorSettings(DictMixin):
     compensate: bool = True
     stop_deceleration_rad_s2: float | None = None
     coast: bool | None = None
+    echo_depth_cycles: int | None = None
 
     def __post_init__(self) -> None:
         def bad(name: str, allowed: str, fix: str) -> ConfigError:
@@ -171,6 +180,15 @@ class ExecutorSettings(DictMixin):
                 "position_gain_1_s",
                 "is not a gain >= 0 1/s",
                 "give 0 (feed-forward only) or e.g. 20 (a 50 ms time constant)",
+            )
+        depth = self.echo_depth_cycles
+        if depth is not None and not (isinstance(depth, int) and not isinstance(depth, bool)
+                                      and depth >= 0):  # fmt: skip
+            raise bad(
+                "echo_depth_cycles",
+                "is not a whole number of cycles >= 0",
+                "give the controller's intake-to-target_qd depth (a twin's: "
+                "get_robot_entry(name).timing.target_echo_cycles(period)), or None",
             )
         decel = self.stop_deceleration_rad_s2
         if decel is not None and not (_is_number(decel) and decel > 0):

@@ -134,6 +134,17 @@ class ControllerTiming:
         assert self.pipeline_s is not None  # one of the two, checked when built
         return max(1, round(self.pipeline_s / period_s))
 
+    def target_echo_cycles(self, period_s: float) -> int:
+        """Cycles from the intake that takes a speed command to the first state package
+        whose ``target_qd`` shows it, at a period of ``period_s`` (s), in the simulated
+        controller and its protocol twins: the pipeline, then the cycle in which the
+        reference ramps to the command, sampled at the boundary after it. The intake probe
+        counts the packages to that echo, and this depth turns the count into the cycle
+        the probe's packages were sampled in (``ExecutorSettings.echo_depth_cycles``).
+        Not a fact about a real controller: the independent UR peer shows its targets
+        five cycles sooner."""
+        return self.pipeline_cycles_at(period_s) + 1
+
     def packing_phase_at(self, period_s: float) -> tuple[float, float]:
         """Range of the packing phase at a controller period of ``period_s``, s."""
         lo, hi = (f * period_s for f in self.packing_phase_periods)
