@@ -222,7 +222,7 @@ def test_an_echo_depth_the_response_contradicts_by_a_period_is_reported() -> Non
     # boundary 1.5 ms, probe's response 0.5 ms: the response rule keeps this boundary;
     # the echo (3 - 3 = 0 periods) agrees.
     assert probed.dated(0.0006).dated_by == "echo"
-    with pytest.warns(UserWarning, match="echo depth of 4 cycles"):
+    with pytest.warns(UserWarning, match="an echo depth of 4 cycles"):
         told = replace(probed, echo_depth_cycles=4).dated(0.0006)
     assert told.dated_by == "response"
     assert told.sample_offset_s == pytest.approx(probed.dated(0.0006).sample_offset_s)

@@ -21,9 +21,9 @@ Before the first trial (and before anything is written) the runner checks, in th
    commanded one: a host that stalls mid-pulse makes an RSI robot catch up on its late
    corrections faster than commanded (the CI run of 2026-11-29: the KR 5 twin's gyro saw
    0.61 rad/s at 0.40 commanded, and the check blamed the gyro's full scale), and a
-   pendant's speed override makes it slower. A gyro that is not on this robot's flange (a ``sim://`` gyro next
-   to a real robot, the wrong port) sees nothing; a wrong full-scale setting scales the
-   peak by 2 or more.
+   pendant's speed override makes it slower. A gyro that is not on this robot's flange
+   (a ``sim://`` gyro next to a real robot, the wrong port) sees nothing; a wrong
+   full-scale setting scales the peak by 2 or more.
 
 Errors: :class:`~timedexec.errors.ConfigError` for the gyro (exit 2 through the CLI: the
 ``--imu`` given is not a working gyro on this robot), :class:`~timedexec.errors.DriverError`

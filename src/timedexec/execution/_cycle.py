@@ -211,8 +211,9 @@ class IntakeFix:
         ``target_qd`` showed it, for a command that made the deadline (-1: unknown).
     echo_depth_cycles : int or None
         The controller's pipeline from the intake that takes a command to the package that
-        shows it, cycles (the robot's catalog entry; None: unknown): with ``echo_cycles``
-        it names the cycle a package was sampled in, whatever the publisher's phase.
+        shows it, cycles (``ExecutorSettings.echo_depth_cycles``; None: unknown): with
+        ``echo_cycles`` it names the cycle a package was sampled in, whatever the
+        publisher's phase.
     dated_by : str
         What chose the whole periods of ``sample_offset_s``: ``"echo"``, ``"response"``
         (the mean response delay), or ``""`` before :meth:`dated`.
@@ -260,8 +261,8 @@ class IntakeFix:
         period, as the UR twins' (2-97 %), is that near its extremes (the CI run of
         2026-11-29: a weld's positions dated a period late, the next weld 4 mm off).
         Where the two disagree while the response is more than a quarter period from
-        flipping, the catalog's echo depth does not fit this controller: the response
-        decides and a warning says so.
+        flipping, the echo depth given does not fit this controller: the response decides
+        and a warning says so.
         """
         boundary = self.deadline_offset_s + uplink_s
         response = self.arrival_offset_s - boundary
@@ -277,11 +278,11 @@ class IntakeFix:
                 whole, margin, by = echo_whole, 0.5 * self.period_s, "echo"
             else:
                 warnings.warn(
-                    f"intake probe: the controller's echo depth of {self.echo_depth_cycles} "
-                    f"cycles (robot catalog) dates the state {echo_whole - whole:+d} "
-                    f"period(s) from the mean response delay ({response_s * 1e3:.2f} ms, "
-                    f"{margin * 1e3:.2f} ms from flipping): the response decides; check "
-                    "the catalog entry's pipeline for this controller",
+                    f"intake probe: an echo depth of {self.echo_depth_cycles} cycles dates "
+                    f"the state {echo_whole - whole:+d} period(s) from the mean response "
+                    f"delay ({response_s * 1e3:.2f} ms, {margin * 1e3:.2f} ms from "
+                    "flipping): the response decides; ExecutorSettings.echo_depth_cycles "
+                    "does not fit this controller",
                     stacklevel=2,
                 )
         if by == "response" and margin < DATING_MARGIN_PERIODS * self.period_s:
@@ -290,9 +291,8 @@ class IntakeFix:
                 f"the cycle the state is sampled in with {margin * 1e3:.2f} ms to spare "
                 f"(period {self.period_s * 1e3:g} ms): packages that much later would date "
                 "every state a whole period off (a publisher phase at the end of a wide "
-                "range); give "
-                "ExecutorSettings.echo_depth_cycles for this controller, or probe again "
-                "when the phase has moved",
+                "range); give ExecutorSettings.echo_depth_cycles for this controller, or "
+                "probe again when the phase has moved",
                 stacklevel=2,
             )
         return replace(
