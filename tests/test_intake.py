@@ -215,17 +215,19 @@ def test_the_echo_names_the_sampling_cycle_where_the_mean_response_would_flip(
 
 
 def test_an_echo_depth_the_response_contradicts_by_a_period_is_reported() -> None:
-    """A catalog depth that does not fit the controller (the echo dates a period away from
-    a mean response delay a quarter period or more from flipping): the response decides and
-    a warning names the depth, not a silent period off."""
+    """A depth given that the mean response delay contradicts by a period, with a quarter
+    period or more to spare (a depth that does not fit the controller, or a host that
+    delayed every package while probing): the echo decides, and a warning names the depth,
+    not a silent period."""
     probed = replace(fix(), arrival_offset_s=0.0020, echo_cycles=3, echo_depth_cycles=3)
     # boundary 1.5 ms, probe's response 0.5 ms: the response rule keeps this boundary;
     # the echo (3 - 3 = 0 periods) agrees.
-    assert probed.dated(0.0006).dated_by == "echo"
-    with pytest.warns(UserWarning, match="an echo depth of 4 cycles"):
+    agreed = probed.dated(0.0006)
+    assert agreed.dated_by == "echo"
+    with pytest.warns(UserWarning, match="an echo depth of 4 cycles dates the state \\+1"):
         told = replace(probed, echo_depth_cycles=4).dated(0.0006)
-    assert told.dated_by == "response"
-    assert told.sample_offset_s == pytest.approx(probed.dated(0.0006).sample_offset_s)
+    assert told.dated_by == "echo"
+    assert told.sample_offset_s == pytest.approx(agreed.sample_offset_s + PERIOD_S)
 
 
 @pytest.mark.parametrize(

@@ -260,9 +260,12 @@ class IntakeFix:
         warns and none proves): a publisher whose phase wanders over most of the
         period, as the UR twins' (2-97 %), is that near its extremes (the CI run of
         2026-11-29: a weld's positions dated a period late, the next weld 4 mm off).
-        Where the two disagree while the response is more than a quarter period from
-        flipping, the echo depth given does not fit this controller: the response decides
-        and a warning says so.
+        The echo decides where both can: a loaded host delays the packages the probe sees,
+        which moves the response, not the count (on the simulated e-Series, every package
+        0.5 ms late dated 24 % of probes a period off by the response, none by the echo;
+        ``benchmarks/bench_intake_dating.py``). Where they disagree with the response a
+        quarter period or more from flipping, a warning says that the depth given may not
+        fit this controller.
         """
         boundary = self.deadline_offset_s + uplink_s
         response = self.arrival_offset_s - boundary
@@ -274,17 +277,17 @@ class IntakeFix:
             # The reference package's cycle lies ``echo - depth`` periods before the
             # deadline's; the probe's earliest arrival is of packages like it.
             echo_whole = self.echo_depth_cycles - self.echo_cycles
-            if echo_whole == whole or margin < 0.25 * self.period_s:
-                whole, margin, by = echo_whole, 0.5 * self.period_s, "echo"
-            else:
+            if echo_whole != whole and margin >= 0.25 * self.period_s:
                 warnings.warn(
                     f"intake probe: an echo depth of {self.echo_depth_cycles} cycles dates "
                     f"the state {echo_whole - whole:+d} period(s) from the mean response "
                     f"delay ({response_s * 1e3:.2f} ms, {margin * 1e3:.2f} ms from "
-                    "flipping): the response decides; ExecutorSettings.echo_depth_cycles "
-                    "does not fit this controller",
+                    "flipping): the echo decides; check that "
+                    "ExecutorSettings.echo_depth_cycles fits this controller (or that the "
+                    "host was not delaying every package during the probe)",
                     stacklevel=2,
                 )
+            whole, margin, by = echo_whole, 0.5 * self.period_s, "echo"
         if by == "response" and margin < DATING_MARGIN_PERIODS * self.period_s:
             warnings.warn(
                 f"intake probe: the mean response delay ({response_s * 1e3:.2f} ms) chose "
