@@ -80,6 +80,9 @@ def test_round_trip_through_json() -> None:
         ({"cycle_lock": 1}, r"cycle_lock=1 is not a bool or None; give True, False or None"),
         ({"limits": {"velocity_fraction": 0.5}}, r"limits=.* is not an ExecutionLimits"),
         ({"staleness": 3}, r"staleness=3 is not a StalenessLimits.*from_stale_periods"),
+        ({"echo_depth_cycles": -1}, r"echo_depth_cycles=-1 is not a whole number of cycles"),
+        ({"echo_depth_cycles": 2.0}, r"echo_depth_cycles=2.0 is not a whole number.*twin's"),
+        ({"echo_depth_cycles": True}, r"echo_depth_cycles=True is not a whole number"),
     ],
 )
 def test_a_bad_value_is_refused_where_the_settings_are_built(

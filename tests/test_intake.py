@@ -214,6 +214,40 @@ def test_the_echo_names_the_sampling_cycle_where_the_mean_response_would_flip(
     assert probed.dated(response).sample_offset_s == pytest.approx(near.sample_offset_s)
 
 
+def test_the_executor_dates_by_the_echo_depth_it_is_given() -> None:
+    """The simulated UR10e (virtual time: a package stamped t was sampled at host time t),
+    seed 1, publisher 0.23 ms into its 2 ms cycle: the mean response chooses the sampling
+    cycle with 0.18 ms to spare and warns; with the simulator's echo depth
+    (``ControllerTiming.target_echo_cycles``, given in the settings) the count chooses it,
+    the same cycle, without a warning. Either within the probe's resolution plus the
+    0.05 ms the assumed uplink differs from the simulator's (0.2 against 0.15 ms) of 0."""
+    import warnings
+
+    from timedexec.drivers import open_driver
+    from timedexec.execution import load_delay_model
+    from timedexec.robots import get_robot_entry
+
+    model = load_delay_model("ur10e-sim")
+    depth = get_robot_entry("ur10e").timing.target_echo_cycles(0.002)
+    dated = {}
+    for given in (None, depth):
+        settings = ExecutorSettings(cycle_lock=True, echo_depth_cycles=given)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            with (
+                open_driver("sim://ur10e?seed=1") as drv,
+                TimedExecutor(drv, model, settings) as ex,
+            ):
+                assert ex.intake is not None
+                dated[given] = ex.intake
+        near_flip = [w for w in seen if "to spare" in str(w.message)]
+        assert len(near_flip) == (1 if given is None else 0), [str(w.message) for w in seen]
+    assert dated[None].dated_by == "response"
+    assert dated[depth].dated_by == "echo"
+    for fix_ in dated.values():
+        assert abs(fix_.sample_offset_s) <= fix_.resolution_s + 5e-5 + 1e-6, fix_.summary()
+
+
 def test_an_echo_depth_the_response_contradicts_by_a_period_is_reported() -> None:
     """A depth given that the mean response delay contradicts by a period, with a quarter
     period or more to spare (a depth that does not fit the controller, or a host that
