@@ -10,6 +10,7 @@ from __future__ import annotations
 
 __all__ = [
     "ConfigError",
+    "DatingWarning",
     "DriverError",
     "DriverTimeout",
     "ModelError",
@@ -77,3 +78,10 @@ class ThermalStateWarning(UserWarning):
     """A delay model was asked about a robot in another thermal state than the one it was
     trained in (a model of a warm robot queried for one just powered on, or the reverse);
     its delays may be off by the warm-up drift. Not an error: the answer is given."""
+
+
+class DatingWarning(UserWarning):
+    """The intake probe dated the state with little to spare: the cycle each package was
+    sampled in was chosen by the mean response delay within an eighth of a period of the
+    next one, or an echo depth given was contradicted by it
+    (:meth:`timedexec.execution.IntakeFix.dated`). Not an error: the dating is used."""

@@ -30,7 +30,7 @@ import warnings
 from collections import deque
 from dataclasses import dataclass, replace
 
-from timedexec.errors import ConfigError
+from timedexec.errors import ConfigError, DatingWarning
 
 __all__ = [
     "COMMAND_UPLINK_S",
@@ -285,6 +285,7 @@ class IntakeFix:
                     "flipping): the echo decides; check that "
                     "ExecutorSettings.echo_depth_cycles fits this controller (or that the "
                     "host was not delaying every package during the probe)",
+                    DatingWarning,
                     stacklevel=2,
                 )
             whole, margin, by = echo_whole, 0.5 * self.period_s, "echo"
@@ -296,6 +297,7 @@ class IntakeFix:
                 "every state a whole period off (a publisher phase at the end of a wide "
                 "range); give ExecutorSettings.echo_depth_cycles for this controller, or "
                 "probe again when the phase has moved",
+                DatingWarning,
                 stacklevel=2,
             )
         return replace(
