@@ -117,13 +117,16 @@ def _check_twin(
 @pytest.mark.slow
 def test_gyro_check_passes_a_good_twin(capsys: pytest.CaptureFixture[str]) -> None:
     """The twin as shipped (8 kHz, +3000 ppm, 0.005 °/s/√Hz, ±500 °/s) passes: exit 0,
-    the rate within 200 ppm of its true 8024 Hz (2 s of 20 ms reads through a pty on a
-    loaded machine), nothing lost or corrupted, the noise within 10 % of 0.005 (12,000
+    the rate within 300 ppm of its true 8024 Hz (2 s of 20 ms reads through a pty on a
+    loaded machine: the lower envelope of the arrivals sits up to 0.3 ms from the sample
+    clock at each end, the check's own allowance ``_ENVELOPE_RES_S``, so 2 x 0.3 ms over
+    2 s; measured 218 ppm once beside a full CI run, within 200 before), nothing lost or
+    corrupted, the noise within 10 % of 0.005 (12,000
     differences: 0.6 % sampling error, plus quantisation), the range inferred ±500 °/s;
     progress went to stderr."""
     code, doc, err = _check_twin(capsys)
     assert code == 0, doc["problems"]
-    assert doc["rate_hz"] == pytest.approx(8024.0, rel=2e-4)
+    assert doc["rate_hz"] == pytest.approx(8024.0, rel=2 * 3e-4 / 2.0)
     assert doc["missing_samples"] == 0
     assert doc["corrupted_frames"] == 0
     np.testing.assert_allclose(doc["noise_density_dps_rthz"], 0.005, rtol=0.1)
