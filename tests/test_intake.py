@@ -528,3 +528,36 @@ def test_a_lost_echo_on_a_cb3_keeps_the_controller_watchdog_fed(
     assert fix.mismatches == 1  # the lost trial, echoed by its repeat cycles late
     off = (fix.deadline_offset_s - (ctl.offset + ctl.deadline_s) + period_s / 2) % period_s
     assert abs(off - period_s / 2) <= fix.resolution_s + 2e-6
+
+
+@pytest.mark.parametrize("publish_s", [0.0002, 0.0019])
+def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
+    publish_s: float,
+) -> None:
+    """The count of packages to the probe's echo, on something it was not built against:
+    the independent UR peer (registers taken each 2 ms cycle, ``target_qd`` in the package
+    of that cycle: echo depth 0, where our e-Series twin's is 5). With that one depth the
+    probe dates the peer's samples within the probe's resolution plus 0.15 ms (the uplink
+    split, as in the weld tests) of the peer's own clock, with its package leaving 0.2 ms
+    or 1.9 ms into the cycle — the ends where the mean response has least to spare, and
+    where the echo count itself changes (measured: counts 1 and 2, 0.02-0.10 ms from the
+    peer's truth over five phases 0.2-1.9 ms)."""
+    pytest.importorskip("rtde_control")
+    peer_mod = pytest.importorskip("independent_ur_peer")
+    import warnings
+
+    from timedexec.drivers import URDriver
+
+    host = "127.0.0.172"
+    args = ("--publish-delay", str(publish_s))
+    with peer_mod.run_peer(host, model="UR10", version="5.11.1", extra_args=args) as peer:
+        settings = ExecutorSettings(cycle_lock=True, echo_depth_cycles=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DatingWarning)  # counted, not the point here
+            with TimedExecutor(URDriver(host, robot="ur10e"), MODEL, settings) as ex:
+                fix_ = ex.intake
+                now = time.monotonic()
+                peer_t0 = now - peer.to_peer_time(now)  # host time of the peer's time 0
+    assert fix_ is not None, ex.intake_error
+    assert fix_.dated_by == "echo"
+    assert abs(fix_.sample_offset_s - peer_t0) <= fix_.resolution_s + 1.5e-4, fix_.summary()
