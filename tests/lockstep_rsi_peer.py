@@ -229,3 +229,93 @@ def _udp_port_bound(port: int) -> bool:
     except OSError:
         return True  # cannot tell: go ahead
     return any(int(line.split()[1].split(":")[1], 16) == port for line in lines)
+
+
+class LockStepRig:
+    """The peer and a flange gyro fed by its motion (``timedexec.twins.GyroTwin``) in a
+    process of their own (context manager).
+
+    In the test's process the robot side is one more Python thread beside the driver's,
+    the gyro reader's and the calibration's: each waits for the interpreter lock up to its
+    5 ms switch interval, and on a loaded machine the peer's cycles came late enough to
+    hold its arm for whole cycles mid-pulse (four of eight trials flagged ``uncertain`` in
+    one CI run). A robot's controller keeps its own time; here the peer does too.
+
+    :meth:`peer` starts a peer (``LockStepRSIPeer``'s keyword arguments) that the gyro
+    follows until the block ends; its late count is then :attr:`late`.
+    """
+
+    def __init__(self, pc_address: tuple[str, int], *, gyro_seed: int = 1) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_rig_main, args=(child, pc_address, gyro_seed),
+                                 name="lockstep-rsi-rig", daemon=True)  # fmt: skip
+        self.slave_path = ""
+        self.late = 0
+
+    def __enter__(self) -> LockStepRig:
+        self._proc.start()
+        if not self._conn.poll(60.0):
+            self._proc.kill()
+            raise RuntimeError("the RSI rig's process did not start within 60 s")
+        self.slave_path = self._conn.recv()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._conn.send(("quit",))
+        self._proc.join(timeout=10.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+
+    def peer(self, **kwargs: object) -> _RigPeer:
+        """A peer in the rig's process for the ``with`` block (``LockStepRSIPeer``'s keyword
+        arguments)."""
+        return _RigPeer(self, kwargs)
+
+
+class _RigPeer:
+    def __init__(self, rig: LockStepRig, kwargs: dict[str, object]) -> None:
+        self._rig, self._kwargs = rig, kwargs
+
+    def __enter__(self) -> None:
+        self._rig._conn.send(("start", self._kwargs))
+        self._rig._conn.recv()
+
+    def __exit__(self, *exc: object) -> None:
+        self._rig._conn.send(("stop",))
+        self._rig.late = self._rig._conn.recv()
+
+
+def _rig_main(conn, pc_address: tuple[str, int], gyro_seed: int) -> None:  # type: ignore[no-untyped-def]
+    from timedexec.twins import GyroTwin
+
+    current: list[Callable[[float, float], np.ndarray]] = []
+
+    def rates(t0: float, t1: float) -> np.ndarray:
+        if current:
+            return current[0](t0, t1)
+        return np.zeros((max(1, round((t1 - t0) * 8000)), 3))
+
+    gyro = GyroTwin(None, seed=gyro_seed)
+    gyro.source.rate_source = rates
+    with gyro:
+        conn.send(gyro.slave_path)
+        peer: LockStepRSIPeer | None = None
+        while True:
+            msg = conn.recv()
+            if msg[0] == "start":
+                peer = LockStepRSIPeer(pc_address, **msg[1])
+                peer.__enter__()
+                current[:] = [peer.rate_source(lambda: gyro.start_time_s)]
+                conn.send("started")
+            elif msg[0] == "stop" and peer is not None:
+                peer.__exit__()
+                current.clear()
+                conn.send(peer.late)
+                peer = None
+            elif msg[0] == "quit":
+                if peer is not None:
+                    peer.__exit__()
+                return
