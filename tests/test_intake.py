@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from timedexec.errors import DatingWarning
+from timedexec.errors import DatingWarning, DriverError
 from timedexec.execution import (
     CycleLog,
     ExecutorSettings,
@@ -555,9 +555,19 @@ def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DatingWarning)  # counted, not the point here
             with TimedExecutor(URDriver(host, robot="ur10e"), MODEL, settings) as ex:
-                fix_ = ex.intake
+                fix_, why = ex.intake, ex.intake_error
+                # A host loaded enough to scatter the echoes over several cycles makes the
+                # probe refuse, rightly (CI-like load here: latencies 1-6 cycles, 27 of 47
+                # off the step); probe again as a user would, twice at most.
+                for _ in range(2):
+                    if fix_ is not None:
+                        break
+                    try:
+                        fix_ = ex.probe_intake()
+                    except DriverError as exc:
+                        why = str(exc)
                 now = time.monotonic()
                 peer_t0 = now - peer.to_peer_time(now)  # host time of the peer's time 0
-    assert fix_ is not None, ex.intake_error
+    assert fix_ is not None, why
     assert fix_.dated_by == "echo"
     assert abs(fix_.sample_offset_s - peer_t0) <= fix_.resolution_s + 1.5e-4, fix_.summary()
