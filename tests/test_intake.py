@@ -265,6 +265,34 @@ def test_an_echo_depth_the_response_contradicts_by_a_period_is_reported() -> Non
     assert told.sample_offset_s == pytest.approx(agreed.sample_offset_s + PERIOD_S)
 
 
+def test_the_echo_depth_at_a_sampling_instant_measured_otherwise() -> None:
+    """``echo_depth_at``, as ``calibrate`` uses it with the sweep's gyro: a sampling
+    instant some whole periods from the probe's boundary, plus the probe's echo count, is
+    the depth that dates it (the round trip through ``dated`` gives it back); one within a
+    quarter period of flipping names none, and says how near it was."""
+    import warnings
+
+    from timedexec.execution import COMMAND_UPLINK_S
+
+    probed = replace(fix(), arrival_offset_s=0.0020, echo_cycles=3)
+    boundary = probed.deadline_offset_s + COMMAND_UPLINK_S
+    for whole in (-2, -1, 0, 1):
+        # 0.3 ms either side of the boundary (the sweep's offset is that good at worst on
+        # the simulated e-Series, docs/execution.md): still this whole
+        for err in (-3e-4, 3e-4):
+            depth, margin = probed.echo_depth_at(boundary + whole * PERIOD_S + err)
+            assert depth == whole + 3
+            assert margin == pytest.approx(0.5 * PERIOD_S - abs(err))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DatingWarning)  # the response disagrees
+                dated = replace(probed, echo_depth_cycles=depth).dated(0.0006)
+            assert dated.sample_offset_s == pytest.approx(boundary + whole * PERIOD_S)
+    depth, margin = probed.echo_depth_at(boundary + 0.3 * PERIOD_S)
+    assert depth is None
+    assert margin == pytest.approx(0.2 * PERIOD_S)
+    assert replace(probed, echo_cycles=-1).echo_depth_at(boundary)[0] is None
+
+
 @pytest.mark.parametrize(
     ("echo", "message"), [("frozen", "no single step"), ("none", "no target_qd")]
 )
@@ -537,11 +565,12 @@ def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
     """The count of packages to the probe's echo, on something it was not built against:
     the independent UR peer (registers taken each 2 ms cycle, ``target_qd`` in the package
     of that cycle: echo depth 0, where our e-Series twin's is 5). With that one depth the
-    probe dates the peer's samples within the probe's resolution plus 0.15 ms (the uplink
-    split, as in the weld tests) of the peer's own clock, with its package leaving 0.2 ms
-    or 1.9 ms into the cycle — the ends where the mean response has least to spare, and
-    where the echo count itself changes (measured: counts 1 and 2, 0.02-0.10 ms from the
-    peer's truth over five phases 0.2-1.9 ms)."""
+    probe dates the peer's samples in the right cycle of its own clock, with its package
+    leaving 0.2 ms or 1.9 ms into the cycle — the ends where the mean response has least to
+    spare, and where the echo count itself changes (measured: counts 1 and 2, 0.02-0.12 ms
+    from the peer's truth over five phases 0.2-1.9 ms idle). And the other way round, as
+    ``calibrate`` measures a depth: given when the peer samples, the probe implies the
+    peer's depth."""
     pytest.importorskip("rtde_control")
     peer_mod = pytest.importorskip("independent_ur_peer")
     import warnings
@@ -557,9 +586,10 @@ def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
             with TimedExecutor(URDriver(host, robot="ur10e"), MODEL, settings) as ex:
                 fix_, why = ex.intake, ex.intake_error
                 # A host loaded enough to scatter the echoes over several cycles makes the
-                # probe refuse, rightly (CI-like load here: latencies 1-6 cycles, 27 of 47
-                # off the step); probe again as a user would, twice at most.
-                for _ in range(2):
+                # probe refuse, rightly (beside two FIFO burners and two spinners: latencies
+                # 1-6 cycles, 27 of 47 off the step; up to 3 probes in 4 refused at 1.9 ms);
+                # probe again as a user would, four times at most.
+                for _ in range(4):
                     if fix_ is not None:
                         break
                     try:
@@ -570,4 +600,11 @@ def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
                 peer_t0 = now - peer.to_peer_time(now)  # host time of the peer's time 0
     assert fix_ is not None, why
     assert fix_.dated_by == "echo"
-    assert abs(fix_.sample_offset_s - peer_t0) <= fix_.resolution_s + 1.5e-4, fix_.summary()
+    # Dated a period off is what this guards against; within a quarter period is the right
+    # cycle (idle 0.05-0.12 ms off, beside the burners up to 0.43 ms: the deadline's own
+    # precision under load, which the lock tests above check)
+    assert abs(fix_.sample_offset_s - peer_t0) <= fix_.period_s / 4, fix_.summary()
+    # The other way round, as calibrate measures a depth: given when the peer samples (its
+    # own clock here, the sweep's gyro there), the probe implies the peer's depth, 0
+    depth, margin = fix_.echo_depth_at(peer_t0)
+    assert depth == 0, (margin, fix_.summary())

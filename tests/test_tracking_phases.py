@@ -203,6 +203,14 @@ def test_calibrate_fits_the_tracking_phases_and_train_puts_them_into_the_bundle(
     fast = [lag["lag_ms"] for lag in written["lags"] if lag["joint"] == 1
             and abs(lag["speed_rad_s"]) == 0.25]  # fmt: skip
     assert all(10.0 < lag < 16.0 for lag in fast), fast
+    # The probes that chose their cycle with a quarter period to spare imply the
+    # controller's echo depth; their majority is the simulated UR10's, known by
+    # construction (pipeline + 1 = 2), and goes into the model
+    from timedexec.robots import get_robot_entry
+
+    truth = get_robot_entry("ur10").timing.target_echo_cycles(0.008)
+    assert written["echo_depth"]["cycles"] == truth == 2, written["echo_depth"]
+    assert written["tracking"]["echo_depth_cycles"] == truth
     assert main(["extract", str(out), "--out", str(tmp_path / "d.csv"), "--quiet"]) == 0
     bundle = tmp_path / "bundle"
     argv = ["train", str(tmp_path / "d.csv"), "--out", str(bundle), "--folds", "0",
@@ -214,3 +222,11 @@ def test_calibrate_fits_the_tracking_phases_and_train_puts_them_into_the_bundle(
     stored = TrackingDelays.of_bundle(DelayModel.load(bundle))
     assert stored is not None
     assert stored.to_dict() == written["tracking"]
+    # ... and the executor on that model dates its probe by counting packages
+    from timedexec.drivers import open_driver
+    from timedexec.execution import ExecutorSettings, TimedExecutor
+
+    with TimedExecutor(open_driver("sim://ur10?seed=3"), stored,
+                       ExecutorSettings(cycle_lock=True)) as ex:  # fmt: skip
+        assert ex.intake is not None, ex.intake_error
+        assert ex.intake.dated_by == "echo"

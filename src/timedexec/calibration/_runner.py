@@ -72,6 +72,9 @@ class CalibrationResult:
         This run's session number (0 for the first run, +1 per resume).
     preflight : PreflightReport or None
         What the pre-flight measured (None if it did not run).
+    origin_s : float
+        This session's sweep clock zero on the driver's host clock, s: its trials' ``t0_s``
+        plus this is the driver's time (NaN where unknown).
     """
 
     path: Path
@@ -79,6 +82,7 @@ class CalibrationResult:
     n_recorded_now: int
     session: int
     preflight: PreflightReport | None = None
+    origin_s: float = math.nan
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe summary."""
@@ -420,7 +424,7 @@ def run_calibration(
         finally:
             bar.close()
         driver.stop()
-    return CalibrationResult(out, len(plan), len(todo), before.session, report)
+    return CalibrationResult(out, len(plan), len(todo), before.session, report, origin)
 
 
 class DriverRunner:
@@ -526,6 +530,17 @@ class DriverRunner:
         """The sweep clock now, s."""
         sess = self._session_()
         return sess.clock() - sess.origin_s
+
+    @property
+    def origin_s(self) -> float:
+        """This session's sweep clock zero on the driver's host clock, s (NaN before
+        :meth:`prepare`)."""
+        return math.nan if self._sess is None else self._sess.origin_s
+
+    @property
+    def session(self) -> int:
+        """This session's number in the recording (0 for a new one, +1 per resume)."""
+        return self._session
 
     def run(
         self, plan: SweepPlan, rows: NDArray[np.int64], until_s: float

@@ -8,6 +8,7 @@ import dataclasses
 import math
 import os
 import sys
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from timedexec.cli._common import (
@@ -350,7 +351,9 @@ def run(args: argparse.Namespace) -> int:
                     resume=args.resume,
                     progress=not args.quiet,
                 )
-                tracking = _tracking_phases(args, driver, protocol)
+                tracking = _tracking_phases(
+                    args, driver, protocol, runner.origin_s, runner.session
+                )
                 return adaptive_done(args, done, tracking)
             assert plan is not None
             result = run_calibration(
@@ -363,7 +366,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 source=args.robot_url,
             )
-            tracking = _tracking_phases(args, driver, protocol)
+            tracking = _tracking_phases(args, driver, protocol, result.origin_s, result.session)
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("calibrate", exc, args.out, resume_command(args))
     info = result.summary()
@@ -383,7 +386,9 @@ def tracking_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".tracking.json"
 
 
-def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> dict[str, Any] | None:
+def _tracking_phases(
+    args: argparse.Namespace, driver: Any, protocol: Any, origin_s: float, session: int
+) -> dict[str, Any] | None:
     """Run the tracking phases after the sweep (unless ``--no-tracking-phases``) through an
     uncompensated, cycle-locked executor on the sweep's driver, from where the sweep left
     the robot; write the fitted tracking model with the phases' settings and lags to
@@ -419,11 +424,53 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
     # publisher phase whose response is past half a period dated every position a cycle
     # late (simulated UR10, 8 ms cycle, response ~4.9 ms: lag 20.9 ms for 13.0 physical,
     # a conveyor weld 3.6 mm off). The sweep just recorded measures it: date by its median.
-    response_s = _sweep_response_s(args.out)
+    response_s, sampling = _sweep_timing(args.out, origin_s, session)
     base = dataclasses.replace(base, response_s=response_s)
     runs = [r if r.intake is None else dataclasses.replace(r, intake=r.intake.dated(response_s))
             for r in runs]  # fmt: skip
-    model = TrackingDelays.calibrate_phases(base, runs)
+    # The controller's echo depth, from the probe and the sweep's gyro: the gyro dated
+    # the sweep's states by itself (host time of sampling minus the controller stamp,
+    # whatever the publisher's phase), which lies some whole periods from the probe's
+    # boundary. Known, it dates every phase by counting packages, and the executor does so
+    # on every later connect (the model carries it).
+    fixes = {id(r.intake): r.intake for r in runs if r.intake is not None}
+    depth, echo = None, {"cycles": None, "why": "no intake probe (no cycle lock)"}
+    if sampling is not None and fixes:
+        fix = next(iter(fixes.values()))  # one probe per executor session
+        offset = sampling(fix.probed_at_s)
+        depth, margin = fix.echo_depth_at(offset)
+        why = "the sweep's gyro and the intake probe"
+        if depth is None:
+            why = (f"the sweep's sampling instant {margin * 1e3:.2f} ms from flipping the "
+                   "probe's whole periods (a quarter period needed)")  # fmt: skip
+        else:
+            # a second witness: the mean response, where it chose with as much to spare
+            by_depth = dataclasses.replace(fix, echo_depth_cycles=depth, dated_by="")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DatingWarning)
+                echo_offset = by_depth.dated(response_s).sample_offset_s
+            if fix.sample_margin_s >= 0.25 * fix.period_s and (
+                abs(echo_offset - fix.sample_offset_s) > 0.5 * fix.period_s
+            ):
+                depth, why = None, (
+                    f"the sweep's gyro implies {depth} cycles, the mean response delay "
+                    f"{round((echo_offset - fix.sample_offset_s) / fix.period_s):+d} "
+                    "period(s) from it with a quarter period to spare")  # fmt: skip
+        echo = {"cycles": depth, "margin_ms": round(margin * 1e3, 3), "why": why}
+    elif fixes:
+        echo["why"] = "no sampling instant from this session's sweep (nothing recorded now)"
+    if depth is not None:
+        runs = [r if r.intake is None else dataclasses.replace(
+                    r, intake=dataclasses.replace(r.intake, echo_depth_cycles=depth)
+                    .dated(response_s))
+                for r in runs]  # fmt: skip
+    elif fixes:
+        warn("calibrate", f"the controller's echo depth not measured ({echo['why']}): the "
+             "executor dates states by the mean response delay, which warns where that is "
+             "fragile")  # fmt: skip
+    model = dataclasses.replace(
+        TrackingDelays.calibrate_phases(base, runs), echo_depth_cycles=depth
+    )
     lags = [
         {"joint": r.joint, "speed_rad_s": r.speed_rad_s,
          "lag_ms": round(float(fit_joint_lags(r.plan, *r.window())[r.joint - 1]) * 1e3, 3)}
@@ -436,35 +483,79 @@ def _tracking_phases(args: argparse.Namespace, driver: Any, protocol: Any) -> di
         "phases": phases.to_dict(),
         "robot_time_s": round(robot_time_s, 3),
         "response_s": response_s,
+        "echo_depth": echo,
         "tracking": model.to_dict(),
         "lags": lags,
     }
     path = tracking_path(args.out)
     write_atomic(path, json.dumps(data, indent=1) + "\n")
     return {"path": path, "robot_time_s": data["robot_time_s"],
-            "dead_time_ms": (np.asarray(model.dead_time_s) * 1e3).round(3).tolist()}  # fmt: skip
+            "dead_time_ms": (np.asarray(model.dead_time_s) * 1e3).round(3).tolist(),
+            "echo_depth_cycles": depth}  # fmt: skip
 
 
-def _sweep_response_s(recording: str) -> float:
-    """The median measured response delay of a recording's trials (extracted as `extract`
-    does), s; 0 with a warning where none was measured (the phases' positions may then be
-    dated a controller cycle off)."""
+def _sweep_timing(
+    recording: str, origin_s: float, session: int
+) -> tuple[float, Callable[[float], float] | None]:
+    """What the recording's sweep measured of the state's timing (extracted as `extract`
+    does): the median response delay of its trials, s (0 with a warning where none was
+    measured: the phases' positions may then be dated a controller cycle off), and where
+    this session recorded trials, the host time of a package's sampling minus its
+    controller stamp as a function of host time (the line through this session's trials,
+    for the clocks' drift; None where it recorded none).
+
+    Each trial's offset is its packages' mean of arrival - stamp less its response delay
+    (the mean age at arrival): with the packages dated by their stamps, that is the fitted
+    sampling instant's offset, which the publisher's phase does not move."""
     import numpy as np
 
     from timedexec.extraction import extract_recording
+    from timedexec.recording import RecordingReader
 
     try:
-        r = np.asarray(extract_recording(recording, progress=False).table["response_delay"],
-                       dtype=float)  # fmt: skip
+        table = extract_recording(recording, progress=False).table
     except TimedExecError as exc:
-        r, why = np.zeros(0), f"its extraction failed ({exc})"
+        r, why, table = np.zeros(0), f"its extraction failed ({exc})", None
     else:
-        r, why = r[np.isfinite(r)], "no trial measured one"
-    if r.size:
-        return float(np.median(r))
-    warn("calibrate", f"no response delay from the sweep to date the tracking phases by: {why}; "
-         "dated with none, they may be a controller cycle off")  # fmt: skip
-    return 0.0
+        r, why = np.asarray(table["response_delay"], dtype=float), "no trial measured one"
+    ok = np.isfinite(r)
+    if not ok.any():
+        warn("calibrate", f"no response delay from the sweep to date the tracking phases "
+             f"by: {why}; dated with none, they may be a controller cycle off")  # fmt: skip
+        return 0.0, None
+    response_s = float(np.median(r[ok]))
+    if table is None or not math.isfinite(origin_s):
+        return response_s, None
+    by_trial = dict(zip(np.asarray(table["trial"], dtype=np.int64)[ok], r[ok], strict=True))
+    with RecordingReader(recording) as rec:
+        rows = np.flatnonzero(rec.read("session") == session)[-_SAMPLING_TRIALS:]
+        if not len(rows):
+            return response_s, None
+        trial = rec.read("trial", rows)
+        t0 = rec.read("t0_s", rows)
+        host = rec.read("state_host_time_s", rows)
+        stamp = rec.read("state_controller_time_s", rows)
+    resp = np.array([by_trial.get(int(k), np.nan) for k in trial])
+    with np.errstate(invalid="ignore"):
+        offset = origin_s + t0 + np.nanmean(host - stamp, axis=1) - resp
+        at = origin_s + t0 + np.nanmean(host, axis=1)  # host time of the trial's packages
+    good = np.isfinite(offset) & np.isfinite(at)
+    if good.sum() < 3:
+        return response_s, None
+    at, offset = at[good], offset[good]
+    # a line (the clocks drift: 100 ppm is 1 ms over 10 s), refitted without the trials
+    # further from it than 3 robust sd (a trial the extraction got wrong)
+    line = np.polyfit(at - at[-1], offset, 1)
+    res = offset - np.polyval(line, at - at[-1])
+    spread = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    keep = np.abs(res) <= max(3.0 * spread, 1e-4)
+    if keep.sum() >= 3:
+        line = np.polyfit(at[keep] - at[-1], offset[keep], 1)
+    return response_s, lambda t: float(np.polyval(line, t - at[-1]))
+
+
+#: The last trials of the session whose sampling instants date the probe.
+_SAMPLING_TRIALS = 50
 
 
 def _tracking_text(tracking: dict[str, Any] | None) -> str:
@@ -473,9 +564,11 @@ def _tracking_text(tracking: dict[str, Any] | None) -> str:
         return ""
     if "skipped" in tracking:
         return "; tracking phases skipped"
+    depth = tracking.get("echo_depth_cycles")
     return (
         f"; tracking phases ({tracking['robot_time_s']:.0f} s of robot time) fitted to "
         f"{tracking['path']}"
+        + ("" if depth is None else f" (echo depth {depth} cycles)")
     )
 
 

@@ -16,7 +16,8 @@ The face, by what it is for:
   :class:`TimingBounds`;
 * the delay models the loop reads: :class:`DelayPredictor` (the protocol),
   :class:`DelayPredictions`, :class:`FixedDelays`, :func:`load_delay_model`,
-  :func:`predict_delays`, :func:`check_model_robot`, :func:`model_period_s`;
+  :func:`predict_delays`, :func:`check_model_robot`, :func:`model_period_s`,
+  :func:`model_echo_depth`;
 * the feed-forward a tracking model's friction offsets ride on: :class:`FrictionFeed`;
 * the cycle lock and what measures it on a cell: :class:`SendPhase`, :class:`BoundaryLine`,
   :class:`IntakeFix`, :func:`probe_intake`, :func:`intake_echo`.
@@ -36,6 +37,7 @@ from timedexec.execution._model import (
     FixedDelays,
     check_model_robot,
     load_delay_model,
+    model_echo_depth,
     model_period_s,
     predict_delays,
 )
@@ -66,6 +68,7 @@ __all__ = [
     "check_model_robot",
     "intake_echo",
     "load_delay_model",
+    "model_echo_depth",
     "model_period_s",
     "plan_motion",
     "predict_delays",

@@ -55,6 +55,11 @@ COMMAND_UPLINK_S = 0.5 * DEFAULT_ROUND_TRIP_S
 #: loaded two-core host delays every package by that much; the CI run of 2026-11-29 dated
 #: a weld's states a period off at a margin of this order).
 DATING_MARGIN_PERIODS = 0.125
+#: :meth:`IntakeFix.echo_depth_at` names the controller's echo depth only where the
+#: sampling instant it is given lies at least this fraction of a period from flipping the
+#: whole periods (a quarter: the uplink split, the deadline's resolution and the sampling
+#: instant's own error together stay well inside it).
+ECHO_DEPTH_MARGIN_PERIODS = 0.25
 #: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
 #: a publisher whose phase wanders like the twin's (47 s).
 LINE_WINDOW_S = 120.0
@@ -295,7 +300,8 @@ class IntakeFix:
                 f"the cycle the state is sampled in with {margin * 1e3:.2f} ms to spare "
                 f"(period {self.period_s * 1e3:g} ms): packages that much later would date "
                 "every state a whole period off (a publisher phase at the end of a wide "
-                "range); give ExecutorSettings.echo_depth_cycles for this controller, or "
+                "range); a tracking model from calibrate's tracking phases carries this "
+                "controller's echo depth (or give ExecutorSettings.echo_depth_cycles), or "
                 "probe again when the phase has moved",
                 DatingWarning,
                 stacklevel=2,
@@ -306,6 +312,31 @@ class IntakeFix:
             sample_margin_s=margin,
             dated_by=by,
         )
+
+    def echo_depth_at(
+        self, sample_offset_s: float, uplink_s: float = COMMAND_UPLINK_S
+    ) -> tuple[int | None, float]:
+        """The controller's echo depth, given when its packages are sampled.
+
+        ``sample_offset_s`` is host time of sampling minus the package's controller stamp
+        near the probe, measured by other means (``calibrate``: the sweep's gyro, which
+        dates the states whatever the publisher's phase). It lies some whole periods from
+        the probe's boundary (deadline + ``uplink_s``); those plus the probe's echo count
+        are the depth (:meth:`dated` the other way round).
+
+        Returns
+        -------
+        depth : int or None
+            Cycles; None where the probe saw no echo count or the offset lies less than
+            ``ECHO_DEPTH_MARGIN_PERIODS`` of a period from flipping the whole periods.
+        margin_s : float
+            How far it lay from flipping, s (half a period at best).
+        """
+        frac = (sample_offset_s - (self.deadline_offset_s + uplink_s)) / self.period_s
+        whole = round(frac)
+        margin = (0.5 - abs(frac - whole)) * self.period_s
+        ok = self.echo_cycles >= 0 and margin >= ECHO_DEPTH_MARGIN_PERIODS * self.period_s
+        return (whole + self.echo_cycles if ok else None), margin
 
     def sampled_s(self, controller_time_s: float, rate: float = 0.0) -> float:
         """Host time the package stamped ``controller_time_s`` was sampled at, s (NaN

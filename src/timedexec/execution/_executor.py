@@ -50,6 +50,7 @@ from timedexec.execution._model import (
     DelayPredictor,
     check_model_robot,
     load_delay_model,
+    model_echo_depth,
 )
 from timedexec.execution._plan import JointPlan, check_target, plan_motion
 from timedexec.execution._safety import (
@@ -659,7 +660,8 @@ class TimedExecutor:
 
         fix = probe_intake(read, send, self.now, self._period, self._state.offset_min_s,
                            wait=self._wait_until)  # fmt: skip
-        fix = replace(fix, echo_depth_cycles=self.settings.echo_depth_cycles)
+        depth = self.settings.echo_depth_cycles
+        fix = replace(fix, echo_depth_cycles=model_echo_depth(self.model) if depth is None else depth)
         fix = fix.dated(self._state.response_s)
         self.send_phase.intake = self._state.intake = fix
         self.intake_error = None

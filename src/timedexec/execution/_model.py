@@ -29,6 +29,7 @@ __all__ = [
     "FixedDelays",
     "check_model_robot",
     "load_delay_model",
+    "model_echo_depth",
     "model_period_s",
     "predict_delays",
 ]
@@ -182,6 +183,14 @@ def model_period_s(model: Any) -> float:
     raise ModelError(
         f"{type(model).__name__} does not say its controller period (controller_period_s)"
     )
+
+
+def model_echo_depth(model: Any) -> int | None:
+    """The controller's echo depth a model carries (``echo_depth_cycles``: what
+    ``calibrate`` measured on the robot, :class:`~timedexec.tasks.TrackingDelays`), cycles,
+    or None where it carries none."""
+    value = getattr(model, "echo_depth_cycles", None)
+    return None if value is None else int(value)
 
 
 def load_delay_model(model: DelayPredictor | str | os.PathLike[str]) -> DelayPredictor:

@@ -109,9 +109,11 @@ class ExecutorSettings(DictMixin):
         ``target_qd`` shows it, where known (>= 0; a protocol twin's:
         ``ControllerTiming.target_echo_cycles``). With it the intake probe names the cycle
         the state was sampled in by counting packages, whatever the publisher's phase
-        (:meth:`IntakeFix.dated`). Default None: the mean response delay chooses, which
-        a publisher phase at the far end of a wide range can put a period off; the probe
-        warns where its response is that close.
+        (:meth:`IntakeFix.dated`). Default None: the model's (``echo_depth_cycles`` of a
+        tracking model: ``calibrate`` measures it on the robot in its tracking phases and
+        ``train --tracking`` puts it into the bundle), else the mean response delay
+        chooses, which a publisher phase at the far end of a wide range can put a period
+        off; the probe warns where its response is that close.
 
     Raises
     ------

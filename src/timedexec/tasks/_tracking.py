@@ -165,6 +165,12 @@ class TrackingDelays:
         Where the dead times and offsets came from: ``"dry runs"`` (:meth:`calibrate_runs`,
         runs of the task), ``"sweep"`` (:meth:`calibrate_phases`, the calibration sweep's
         constant-speed phases) or ``"given"``.
+    echo_depth_cycles : int, optional
+        The controller's echo depth (cycles from the intake that takes a command to the
+        first state package showing it; ``ExecutorSettings.echo_depth_cycles``) where the
+        calibration measured it (``calibrate``'s tracking phases,
+        :func:`~timedexec.execution.echo_depth_of`): the executor then dates the states by
+        counting packages, whatever the publisher's phase. None: not measured.
     """
 
     base: Any
@@ -173,9 +179,18 @@ class TrackingDelays:
     fit_rms_rad: tuple[float, ...] | None = None
     notes: tuple[str, ...] = ()
     source: str = "given"
+    echo_depth_cycles: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "base", load_delay_model(self.base))
+        depth = self.echo_depth_cycles
+        if depth is not None and (
+            isinstance(depth, bool) or not isinstance(depth, int) or depth < 0
+        ):
+            raise ConfigError(
+                f"TrackingDelays.echo_depth_cycles={depth!r} must be a whole number of "
+                "cycles >= 0, or None (not measured)"
+            )
         d = np.asarray(self.dead_time_s, dtype=float).reshape(-1)
         if d.shape != (6,) or not np.all(d >= 0) or not np.all(np.isfinite(d)):
             raise ConfigError(
@@ -200,8 +215,9 @@ class TrackingDelays:
             object.__setattr__(self, "fit_rms_rad", tuple(map(float, r)))
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-safe: ``{"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}``
-        (the base model is not included: :meth:`from_dict` takes it)."""
+        """JSON-safe: ``{"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source",
+        "echo_depth_cycles"}`` (the base model is not included: :meth:`from_dict` takes
+        it)."""
         return {
             "dead_time_s": list(self.dead_time_s),
             "friction_rad": None if self.friction_rad is None else [list(r) for r in self.friction_rad],
@@ -209,6 +225,7 @@ class TrackingDelays:
                 None if not math.isfinite(x) else x for x in self.fit_rms_rad],
             "notes": list(self.notes),
             "source": self.source,
+            "echo_depth_cycles": self.echo_depth_cycles,
         }  # fmt: skip
 
     @classmethod
@@ -220,7 +237,8 @@ class TrackingDelays:
         ConfigError
             A key missing or unknown, or a value out of range.
         """
-        known = {"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source"}
+        known = {"dead_time_s", "friction_rad", "fit_rms_rad", "notes", "source",
+                 "echo_depth_cycles"}  # fmt: skip
         if not isinstance(data, dict) or "dead_time_s" not in data or set(data) - known:
             raise ConfigError(
                 f"a tracking model needs the keys {sorted(known)} (dead_time_s required), got "
@@ -234,6 +252,7 @@ class TrackingDelays:
             fit_rms_rad=None if rms is None else tuple(math.nan if x is None else x for x in rms),
             notes=tuple(data.get("notes", ())),
             source=str(data.get("source", "given")),
+            echo_depth_cycles=data.get("echo_depth_cycles"),
         )
 
     def save(self, bundle_dir: str | os.PathLike[str]) -> Path:
