@@ -168,9 +168,9 @@ class TrackingDelays:
     echo_depth_cycles : int, optional
         The controller's echo depth (cycles from the intake that takes a command to the
         first state package showing it; ``ExecutorSettings.echo_depth_cycles``) where the
-        calibration measured it (``calibrate``'s tracking phases,
-        :func:`~timedexec.execution.echo_depth_of`): the executor then dates the states by
-        counting packages, whatever the publisher's phase. None: not measured.
+        calibration measured it (``calibrate``'s tracking phases: the sweep's gyro and
+        :meth:`~timedexec.execution.IntakeFix.echo_depth_at`): the executor then dates the
+        states by counting packages, whatever the publisher's phase. None: not measured.
     """
 
     base: Any
