@@ -351,9 +351,7 @@ def run(args: argparse.Namespace) -> int:
                     resume=args.resume,
                     progress=not args.quiet,
                 )
-                tracking = _tracking_phases(
-                    args, driver, protocol, runner.origin_s, runner.session
-                )
+                tracking = _tracking_phases(args, driver, protocol, runner)
                 return adaptive_done(args, done, tracking)
             assert plan is not None
             result = run_calibration(
@@ -366,7 +364,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 source=args.robot_url,
             )
-            tracking = _tracking_phases(args, driver, protocol, result.origin_s, result.session)
+            tracking = _tracking_phases(args, driver, protocol, result)
     except (KeyboardInterrupt, OSError) as exc:
         return sweep_stopped("calibrate", exc, args.out, resume_command(args))
     info = result.summary()
@@ -387,12 +385,14 @@ def tracking_path(out: str) -> str:
 
 
 def _tracking_phases(
-    args: argparse.Namespace, driver: Any, protocol: Any, origin_s: float, session: int
+    args: argparse.Namespace, driver: Any, protocol: Any, sweep: Any
 ) -> dict[str, Any] | None:
     """Run the tracking phases after the sweep (unless ``--no-tracking-phases``) through an
     uncompensated, cycle-locked executor on the sweep's driver, from where the sweep left
-    the robot; write the fitted tracking model with the phases' settings and lags to
-    :func:`tracking_path`; return what was written (None when skipped)."""
+    the robot (``sweep``: the sweep's ``origin_s`` and ``session``, a
+    ``CalibrationResult`` or ``DriverRunner``); write the fitted tracking model with the
+    phases' settings and lags to :func:`tracking_path`; return what was written (None when
+    skipped)."""
     if not args.tracking_phases:
         return None
     import json
@@ -424,7 +424,7 @@ def _tracking_phases(
     # publisher phase whose response is past half a period dated every position a cycle
     # late (simulated UR10, 8 ms cycle, response ~4.9 ms: lag 20.9 ms for 13.0 physical,
     # a conveyor weld 3.6 mm off). The sweep just recorded measures it: date by its median.
-    response_s, sampling = _sweep_timing(args.out, origin_s, session)
+    response_s, sampling = _sweep_timing(args.out, sweep.origin_s, sweep.session)
     base = dataclasses.replace(base, response_s=response_s)
     runs = [r if r.intake is None else dataclasses.replace(r, intake=r.intake.dated(response_s))
             for r in runs]  # fmt: skip
