@@ -280,17 +280,24 @@ def test_the_echo_depth_at_a_sampling_instant_measured_otherwise() -> None:
         # 0.3 ms either side of the boundary (the sweep's offset is that good at worst on
         # the simulated e-Series, docs/execution.md): still this whole
         for err in (-3e-4, 3e-4):
-            depth, margin = probed.echo_depth_at(boundary + whole * PERIOD_S + err)
+            depth, margin, _ = probed.echo_depth_at(boundary + whole * PERIOD_S + err)
             assert depth == whole + 3
             assert margin == pytest.approx(0.5 * PERIOD_S - abs(err))
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", DatingWarning)  # the response disagrees
                 dated = replace(probed, echo_depth_cycles=depth).dated(0.0006)
             assert dated.sample_offset_s == pytest.approx(boundary + whole * PERIOD_S)
-    depth, margin = probed.echo_depth_at(boundary + 0.3 * PERIOD_S)
-    assert depth is None
+    depth, margin, why = probed.echo_depth_at(boundary + 0.3 * PERIOD_S)
+    assert depth is None, why
     assert margin == pytest.approx(0.2 * PERIOD_S)
     assert replace(probed, echo_cycles=-1).echo_depth_at(boundary)[0] is None
+    # The mean response as a second witness: the probe's response (0.5 ms) lies 0.1 ms from
+    # 0.6 ms, so it chooses this boundary with 0.9 ms to spare; it agrees with a sampling
+    # instant there and refuses one a period on, saying so
+    assert probed.echo_depth_at(boundary, 0.0006)[0] == 3
+    depth, _, why = probed.echo_depth_at(boundary + PERIOD_S, 0.0006)
+    assert depth is None
+    assert "mean response delay -1 period(s) from it" in why
 
 
 @pytest.mark.parametrize(
@@ -606,5 +613,5 @@ def test_one_echo_depth_dates_the_independent_peer_at_either_end_of_its_cycle(
     assert abs(fix_.sample_offset_s - peer_t0) <= fix_.period_s / 4, fix_.summary()
     # The other way round, as calibrate measures a depth: given when the peer samples (its
     # own clock here, the sweep's gyro there), the probe implies the peer's depth, 0
-    depth, margin = fix_.echo_depth_at(peer_t0)
+    depth, margin, _ = fix_.echo_depth_at(peer_t0)
     assert depth == 0, (margin, fix_.summary())

@@ -433,38 +433,20 @@ def _tracking_phases(
     # whatever the publisher's phase), which lies some whole periods from the probe's
     # boundary. Known, it dates every phase by counting packages, and the executor does so
     # on every later connect (the model carries it).
-    fixes = {id(r.intake): r.intake for r in runs if r.intake is not None}
+    fix = next((r.intake for r in runs if r.intake is not None), None)  # one per session
     depth, echo = None, {"cycles": None, "why": "no intake probe (no cycle lock)"}
-    if sampling is not None and fixes:
-        fix = next(iter(fixes.values()))  # one probe per executor session
-        offset = sampling(fix.probed_at_s)
-        depth, margin = fix.echo_depth_at(offset)
-        why = "the sweep's gyro and the intake probe"
-        if depth is None:
-            why = (f"the sweep's sampling instant {margin * 1e3:.2f} ms from flipping the "
-                   "probe's whole periods (a quarter period needed)")  # fmt: skip
+    if fix is not None:
+        if sampling is None:
+            echo["why"] = "no sampling instant from this session's sweep (nothing recorded now)"
         else:
-            # a second witness: the mean response, where it chose with as much to spare
-            by_depth = dataclasses.replace(fix, echo_depth_cycles=depth, dated_by="")
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", DatingWarning)
-                echo_offset = by_depth.dated(response_s).sample_offset_s
-            if fix.sample_margin_s >= 0.25 * fix.period_s and (
-                abs(echo_offset - fix.sample_offset_s) > 0.5 * fix.period_s
-            ):
-                depth, why = None, (
-                    f"the sweep's gyro implies {depth} cycles, the mean response delay "
-                    f"{round((echo_offset - fix.sample_offset_s) / fix.period_s):+d} "
-                    "period(s) from it with a quarter period to spare")  # fmt: skip
-        echo = {"cycles": depth, "margin_ms": round(margin * 1e3, 3), "why": why}
-    elif fixes:
-        echo["why"] = "no sampling instant from this session's sweep (nothing recorded now)"
+            depth, margin, why = fix.echo_depth_at(sampling(fix.probed_at_s), response_s)
+            echo = {"cycles": depth, "margin_ms": round(margin * 1e3, 3), "why": why}
     if depth is not None:
         runs = [r if r.intake is None else dataclasses.replace(
                     r, intake=dataclasses.replace(r.intake, echo_depth_cycles=depth)
                     .dated(response_s))
                 for r in runs]  # fmt: skip
-    elif fixes:
+    elif fix is not None:
         warn("calibrate", f"the controller's echo depth not measured ({echo['why']}): the "
              "executor dates states by the mean response delay, which warns where that is "
              "fragile")  # fmt: skip
@@ -501,15 +483,12 @@ def _sweep_timing(
     does): the median response delay of its trials, s (0 with a warning where none was
     measured: the phases' positions may then be dated a controller cycle off), and where
     this session recorded trials, the host time of a package's sampling minus its
-    controller stamp as a function of host time (the line through this session's trials,
-    for the clocks' drift; None where it recorded none).
-
-    Each trial's offset is its packages' mean of arrival - stamp less its response delay
-    (the mean age at arrival): with the packages dated by their stamps, that is the fitted
-    sampling instant's offset, which the publisher's phase does not move."""
+    controller stamp as a function of host time (the line through this session's last
+    trials' :func:`~timedexec.extraction.sampling_offsets`, for the clocks' drift; None
+    where it recorded none)."""
     import numpy as np
 
-    from timedexec.extraction import extract_recording
+    from timedexec.extraction import extract_recording, sampling_offsets
     from timedexec.recording import RecordingReader
 
     try:
@@ -536,8 +515,8 @@ def _sweep_timing(
         host = rec.read("state_host_time_s", rows)
         stamp = rec.read("state_controller_time_s", rows)
     resp = np.array([by_trial.get(int(k), np.nan) for k in trial])
+    offset = origin_s + t0 + sampling_offsets(host, stamp, resp)
     with np.errstate(invalid="ignore"):
-        offset = origin_s + t0 + np.nanmean(host - stamp, axis=1) - resp
         at = origin_s + t0 + np.nanmean(host, axis=1)  # host time of the trial's packages
     good = np.isfinite(offset) & np.isfinite(at)
     if good.sum() < 3:

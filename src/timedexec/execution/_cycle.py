@@ -314,29 +314,54 @@ class IntakeFix:
         )
 
     def echo_depth_at(
-        self, sample_offset_s: float, uplink_s: float = COMMAND_UPLINK_S
-    ) -> tuple[int | None, float]:
+        self,
+        sample_offset_s: float,
+        response_s: float | None = None,
+        uplink_s: float = COMMAND_UPLINK_S,
+    ) -> tuple[int | None, float, str]:
         """The controller's echo depth, given when its packages are sampled.
 
         ``sample_offset_s`` is host time of sampling minus the package's controller stamp
         near the probe, measured by other means (``calibrate``: the sweep's gyro, which
         dates the states whatever the publisher's phase). It lies some whole periods from
         the probe's boundary (deadline + ``uplink_s``); those plus the probe's echo count
-        are the depth (:meth:`dated` the other way round).
+        are the depth (:meth:`dated` the other way round). ``response_s``, the mean
+        response delay, is a second witness: where it chooses the whole periods with as
+        much to spare and chooses others, no depth.
 
         Returns
         -------
         depth : int or None
-            Cycles; None where the probe saw no echo count or the offset lies less than
-            ``ECHO_DEPTH_MARGIN_PERIODS`` of a period from flipping the whole periods.
+            Cycles; None where the probe saw no echo count, the offset lies less than
+            ``ECHO_DEPTH_MARGIN_PERIODS`` of a period from flipping the whole periods, or
+            the witness contradicts it.
         margin_s : float
-            How far it lay from flipping, s (half a period at best).
+            How far the offset lay from flipping, s (half a period at best).
+        why : str
+            How the depth was found, or why none was.
         """
-        frac = (sample_offset_s - (self.deadline_offset_s + uplink_s)) / self.period_s
+        period, need = self.period_s, ECHO_DEPTH_MARGIN_PERIODS * self.period_s
+        boundary = self.deadline_offset_s + uplink_s
+        frac = (sample_offset_s - boundary) / period
         whole = round(frac)
-        margin = (0.5 - abs(frac - whole)) * self.period_s
-        ok = self.echo_cycles >= 0 and margin >= ECHO_DEPTH_MARGIN_PERIODS * self.period_s
-        return (whole + self.echo_cycles if ok else None), margin
+        margin = (0.5 - abs(frac - whole)) * period
+        if self.echo_cycles < 0:
+            return None, margin, "the probe saw no echo count"
+        if margin < need:
+            return None, margin, (
+                f"the sampling instant {margin * 1e3:.2f} ms from flipping the probe's "
+                f"whole periods ({need * 1e3:.2f} ms needed)"
+            )
+        if response_s is not None:
+            off = (self.arrival_offset_s - boundary - response_s) / period
+            by_response = round(off)
+            if (0.5 - abs(off - by_response)) * period >= need and by_response != whole:
+                return None, margin, (
+                    f"the sampling instant implies {whole + self.echo_cycles} cycles, the "
+                    f"mean response delay {by_response - whole:+d} period(s) from it with "
+                    f"{need * 1e3:.2f} ms or more to spare"
+                )
+        return whole + self.echo_cycles, margin, "the sampling instant and the probe's echo"
 
     def sampled_s(self, controller_time_s: float, rate: float = 0.0) -> float:
         """Host time the package stamped ``controller_time_s`` was sampled at, s (NaN

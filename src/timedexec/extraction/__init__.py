@@ -1,7 +1,8 @@
 """timedexec.extraction: recording -> delay table.
 
 Stationary analysis, lossy-stream repair, drift-following gyro clock, filtering,
-noise-adaptive onset timing with standard errors and Cramér-Rao bounds, response timing;
+noise-adaptive onset timing with standard errors and Cramér-Rao bounds, response timing
+(and where it puts each trial's sampling instants, :func:`sampling_offsets`);
 :func:`check_recording` lists every way a file departs from ``docs/recording-format.md``.
 """
 
@@ -14,6 +15,7 @@ from timedexec.extraction._check import (
     UNITS,
     check_recording,
 )
+from timedexec.extraction._dating import sampling_offsets
 from timedexec.extraction._extract import (
     MAX_SE_S,
     METHODS,
@@ -59,5 +61,6 @@ __all__ = [
     "design_lowpass",
     "extract_recording",
     "ladder_cap",
+    "sampling_offsets",
     "trial_traces",
 ]

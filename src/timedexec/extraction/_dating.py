@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from timedexec._types import FloatArray
 
-__all__ = ["dated_by_controller"]
+__all__ = ["dated_by_controller", "sampling_offsets"]
 
 #: Packages with a stamp a trial needs before its stamps are trusted.
 _MIN_STAMPED = 8
@@ -88,3 +88,20 @@ def dated_by_controller(
     dated[rows] = row
     lateness[rows] = np.nanmean(host[rows] - row, axis=1)
     return dated, lateness
+
+
+def sampling_offsets(host: FloatArray, controller: FloatArray, response: FloatArray) -> FloatArray:
+    """Each trial's host time of sampling minus the controller stamp, s, shape (n,).
+
+    The trial's response delay is the mean age of its packages at arrival
+    (:func:`dated_by_controller`), so its packages' mean of arrival - stamp less that is
+    where, on the host's clock, the stamps' instants lie: the gyro's dating of the state,
+    which the publisher's phase does not move (it moves arrival - stamp and the response
+    alike). ``host`` and ``controller`` as in :func:`dated_by_controller` (NaN where no
+    package arrived), ``response`` (n,); NaN where either is missing. On the trial's clock
+    (add its start for the host's)."""
+    d = host - controller
+    seen = np.isfinite(d)
+    n = seen.sum(axis=1)
+    mean = np.where(n > 0, np.where(seen, d, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
+    return np.asarray(mean - response, dtype=float)
