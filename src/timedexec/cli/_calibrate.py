@@ -491,21 +491,22 @@ def _sweep_timing(
     from timedexec.extraction import extract_recording, sampling_offsets
     from timedexec.recording import RecordingReader
 
+    why = "no trial measured one"
     try:
         table = extract_recording(recording, progress=False).table
+        r = np.asarray(table["response_delay"], dtype=float)
+        trials = np.asarray(table["trial"], dtype=np.int64)
     except TimedExecError as exc:
-        r, why, table = np.zeros(0), f"its extraction failed ({exc})", None
-    else:
-        r, why = np.asarray(table["response_delay"], dtype=float), "no trial measured one"
+        r, trials, why = np.zeros(0), np.zeros(0, np.int64), f"its extraction failed ({exc})"
     ok = np.isfinite(r)
     if not ok.any():
         warn("calibrate", f"no response delay from the sweep to date the tracking phases "
              f"by: {why}; dated with none, they may be a controller cycle off")  # fmt: skip
         return 0.0, None
     response_s = float(np.median(r[ok]))
-    if table is None or not math.isfinite(origin_s):
+    if not math.isfinite(origin_s):
         return response_s, None
-    by_trial = dict(zip(np.asarray(table["trial"], dtype=np.int64)[ok], r[ok], strict=True))
+    by_trial = dict(zip(trials[ok], r[ok], strict=True))
     with RecordingReader(recording) as rec:
         rows = np.flatnonzero(rec.read("session") == session)[-_SAMPLING_TRIALS:]
         if not len(rows):
