@@ -10,7 +10,7 @@ import pytest
 
 from timedexec.cli import main
 from timedexec.errors import ConfigError, RecordingError
-from timedexec.extraction import extract_recording
+from timedexec.extraction import extract_recording, sampling_offsets
 from timedexec.recording import RecordingReader
 from timedexec.sim import simulate_sweep
 
@@ -158,9 +158,10 @@ def test_packages_held_up_in_the_motion_are_dated_by_the_controller_clock(record
     standard errors of 0.3 ms (16 UR10 trials: a confident wrong number); dated by the
     controller's stamps (every driver records them) the mean package age is met as on the
     clean recording. Stamps that do not advance by a controller period per package (here
-    in ms) are not trusted: the arrival times are used, as without stamps."""
+    in ms) are not trusted: the arrival times are used, as without stamps, and no sampling
+    instant is read from them (``sampling_offsets``)."""
     rows = np.arange(1, 17)
-    results = {}
+    results, offsets = {}, {}
     for name, scale in (("stamped", 1.0), ("unstamped", np.nan), ("ms", 1e3)):
         path = tmp_path / f"{name}.h5"
         added = _hold_up_packages(recordings["ur10"], path, rows, stamps_scale=scale)
@@ -170,9 +171,18 @@ def test_packages_held_up_in_the_motion_are_dated_by_the_controller_clock(record
         assert all(f == "" for f in table["flag"][pos])
         truth = table["true_response_delay"][pos] + added
         results[name] = (table["response_delay"][pos] - truth, table["response_delay_se"][pos])
+        with RecordingReader(path) as reader:
+            host = reader.read("state_host_time_s", rows=rows)
+            stamp = reader.read("state_controller_time_s", rows=rows)
+        # where the gyro puts the stamps' instants (calibrate's echo depth)
+        offsets[name] = sampling_offsets(host, stamp, table["response_delay"][pos], 0.008)
     err, _ = results["stamped"]
     # 0.1 ms: 5x the clean fit's standard error here (0.02 ms; measured |error| <= 0.045 ms).
     assert np.max(np.abs(err)) < 1e-4
+    # stamps the extraction trusts give where their instants lie; those it does not (ms)
+    # give none, so calibrate reads no echo depth from them
+    assert np.isfinite(offsets["stamped"]).all()
+    assert np.isnan(offsets["ms"]).all()
     bad, bad_se = results["unstamped"]
     assert np.max(np.abs(bad)) > 1e-3  # what dating by arrival gave (up to 3.4 ms)
     assert np.max(np.abs(bad) / bad_se) > 5  # ... with a standard error that hid it

@@ -424,7 +424,9 @@ def _tracking_phases(
     # publisher phase whose response is past half a period dated every position a cycle
     # late (simulated UR10, 8 ms cycle, response ~4.9 ms: lag 20.9 ms for 13.0 physical,
     # a conveyor weld 3.6 mm off). The sweep just recorded measures it: date by its median.
-    response_s, sampling = _sweep_timing(args.out, sweep.origin_s, sweep.session)
+    response_s, sampling = _sweep_timing(
+        args.out, sweep.origin_s, sweep.session, protocol.controller_period_s
+    )
     base = dataclasses.replace(base, response_s=response_s)
     runs = [r if r.intake is None else dataclasses.replace(r, intake=r.intake.dated(response_s))
             for r in runs]  # fmt: skip
@@ -477,15 +479,15 @@ def _tracking_phases(
 
 
 def _sweep_timing(
-    recording: str, origin_s: float, session: int
+    recording: str, origin_s: float, session: int, period_s: float
 ) -> tuple[float, Callable[[float], float] | None]:
     """What the recording's sweep measured of the state's timing (extracted as `extract`
     does): the median response delay of its trials, s (0 with a warning where none was
     measured: the phases' positions may then be dated a controller cycle off), and where
     this session recorded trials, the host time of a package's sampling minus its
     controller stamp as a function of host time (the line through this session's last
-    trials' :func:`~timedexec.extraction.sampling_offsets`, for the clocks' drift; None
-    where it recorded none)."""
+    trials' :func:`~timedexec.extraction.sampling_offsets` at controller period
+    ``period_s``, for the clocks' drift; None where it recorded none)."""
     import numpy as np
 
     from timedexec.extraction import extract_recording, sampling_offsets
@@ -516,7 +518,7 @@ def _sweep_timing(
         host = rec.read("state_host_time_s", rows)
         stamp = rec.read("state_controller_time_s", rows)
     resp = np.array([by_trial.get(int(k), np.nan) for k in trial])
-    offset = origin_s + t0 + sampling_offsets(host, stamp, resp)
+    offset = origin_s + t0 + sampling_offsets(host, stamp, resp, period_s)
     with np.errstate(invalid="ignore"):
         at = origin_s + t0 + np.nanmean(host, axis=1)  # host time of the trial's packages
     good = np.isfinite(offset) & np.isfinite(at)

@@ -55,10 +55,11 @@ COMMAND_UPLINK_S = 0.5 * DEFAULT_ROUND_TRIP_S
 #: loaded two-core host delays every package by that much; the CI run of 2026-11-29 dated
 #: a weld's states a period off at a margin of this order).
 DATING_MARGIN_PERIODS = 0.125
-#: :meth:`IntakeFix.echo_depth_at` names the controller's echo depth only where the
-#: sampling instant it is given lies at least this fraction of a period from flipping the
-#: whole periods (a quarter: the uplink split, the deadline's resolution and the sampling
-#: instant's own error together stay well inside it).
+#: A choice of whole periods this fraction of a period or more from flipping is firm:
+#: :meth:`IntakeFix.echo_depth_at` names a depth only from such a sampling instant, and a
+#: mean response that firmly contradicts an echo depth is reported (a quarter: the uplink
+#: split, the deadline's resolution and the sampling instant's own error together stay
+#: well inside it).
 ECHO_DEPTH_MARGIN_PERIODS = 0.25
 #: Window of the long-term clock line (:class:`BoundaryLine`), s: over two drift periods of
 #: a publisher whose phase wanders like the twin's (47 s).
@@ -273,16 +274,13 @@ class IntakeFix:
         fit this controller.
         """
         boundary = self.deadline_offset_s + uplink_s
-        response = self.arrival_offset_s - boundary
-        whole = round((response - response_s) / self.period_s)
-        off = response - whole * self.period_s - response_s
-        margin = 0.5 * self.period_s - abs(off)
+        whole, margin = self._by_response(response_s, uplink_s)
         by = "response"
         if self.echo_depth_cycles is not None and self.echo_cycles >= 0:
             # The reference package's cycle lies ``echo - depth`` periods before the
             # deadline's; the probe's earliest arrival is of packages like it.
             echo_whole = self.echo_depth_cycles - self.echo_cycles
-            if echo_whole != whole and margin >= 0.25 * self.period_s:
+            if echo_whole != whole and margin >= ECHO_DEPTH_MARGIN_PERIODS * self.period_s:
                 warnings.warn(
                     f"intake probe: an echo depth of {self.echo_depth_cycles} cycles dates "
                     f"the state {echo_whole - whole:+d} period(s) from the mean response "
@@ -353,15 +351,23 @@ class IntakeFix:
                 f"whole periods ({need * 1e3:.2f} ms needed)"
             )
         if response_s is not None:
-            off = (self.arrival_offset_s - boundary - response_s) / period
-            by_response = round(off)
-            if (0.5 - abs(off - by_response)) * period >= need and by_response != whole:
+            by_response, firm = self._by_response(response_s, uplink_s)
+            if firm >= need and by_response != whole:
                 return None, margin, (
                     f"the sampling instant implies {whole + self.echo_cycles} cycles, the "
                     f"mean response delay {by_response - whole:+d} period(s) from it with "
                     f"{need * 1e3:.2f} ms or more to spare"
                 )
         return whole + self.echo_cycles, margin, "the sampling instant and the probe's echo"
+
+    def _by_response(self, response_s: float, uplink_s: float) -> tuple[int, float]:
+        """The whole periods from the boundary to the sampling instant that leave the
+        probe's earliest response nearest ``response_s``, and how far that choice was from
+        flipping, s."""
+        response = self.arrival_offset_s - (self.deadline_offset_s + uplink_s)
+        whole = round((response - response_s) / self.period_s)
+        off = response - whole * self.period_s - response_s
+        return whole, 0.5 * self.period_s - abs(off)
 
     def sampled_s(self, controller_time_s: float, rate: float = 0.0) -> float:
         """Host time the package stamped ``controller_time_s`` was sampled at, s (NaN

@@ -75,6 +75,16 @@ def dated_by_controller(
     if controller is None:
         return dated, lateness
     stamp = np.where(present & np.isfinite(controller), controller, np.nan)
+    rows = _stamped_rows(stamp, period_s)
+    row = stamp[rows] + np.nanmedian(host[rows] - stamp[rows], axis=1)[:, None]
+    dated[rows] = row
+    lateness[rows] = np.nanmean(host[rows] - row, axis=1)
+    return dated, lateness
+
+
+def _stamped_rows(stamp: FloatArray, period_s: float) -> NDArray[np.int64]:
+    """The trials whose stamps (NaN where no package) can be used: enough of them, each
+    advancing, by about one controller period per package."""
     steps = np.diff(stamp, axis=1)  # NaN across a lost package: its neighbours' steps count
     has_step = np.isfinite(steps)
     rows = np.flatnonzero(
@@ -83,25 +93,27 @@ def dated_by_controller(
         & ~np.any(has_step & ~(steps > 0), axis=1)  # stamps that advance
     )
     typical = np.nanmedian(np.where(has_step[rows], steps[rows], np.nan), axis=1)
-    rows = rows[np.abs(typical / period_s - 1.0) < _PERIOD_TOLERANCE]
-    row = stamp[rows] + np.nanmedian(host[rows] - stamp[rows], axis=1)[:, None]
-    dated[rows] = row
-    lateness[rows] = np.nanmean(host[rows] - row, axis=1)
-    return dated, lateness
+    return rows[np.abs(typical / period_s - 1.0) < _PERIOD_TOLERANCE]
 
 
-def sampling_offsets(host: FloatArray, controller: FloatArray, response: FloatArray) -> FloatArray:
+def sampling_offsets(
+    host: FloatArray, controller: FloatArray, response: FloatArray, period_s: float
+) -> FloatArray:
     """Each trial's host time of sampling minus the controller stamp, s, shape (n,).
 
-    The trial's response delay is the mean age of its packages at arrival
-    (:func:`dated_by_controller`), so its packages' mean of arrival - stamp less that is
-    where, on the host's clock, the stamps' instants lie: the gyro's dating of the state,
-    which the publisher's phase does not move (it moves arrival - stamp and the response
-    alike). ``host`` and ``controller`` as in :func:`dated_by_controller` (NaN where no
-    package arrived), ``response`` (n,); NaN where either is missing. On the trial's clock
-    (add its start for the host's)."""
+    A trial dated by its stamps (:func:`dated_by_controller`) has as response delay the
+    mean age of its packages at arrival, so its packages' mean of arrival - stamp less that
+    is where, on the host's clock, the stamps' instants lie: the gyro's dating of the
+    state, which the publisher's phase does not move (it moves arrival - stamp and the
+    response alike). ``host`` and ``controller`` as in :func:`dated_by_controller` (NaN
+    where no package arrived), ``response`` (n,); NaN where either is missing or the trial
+    kept its arrival times (its response then says nothing about the stamps). On the
+    trial's clock (add its start for the host's)."""
     d = host - controller
     seen = np.isfinite(d)
     n = seen.sum(axis=1)
     mean = np.where(n > 0, np.where(seen, d, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
-    return np.asarray(mean - response, dtype=float)
+    out = np.full(len(mean), np.nan)
+    rows = _stamped_rows(np.where(seen, controller, np.nan), period_s)
+    out[rows] = mean[rows] - response[rows]
+    return out
